@@ -1,0 +1,165 @@
+"""One exception hierarchy; each class carries its exit code (DESIGN.md, "CLI contract").
+
+Two roots, as in python-tuf: :class:`IntegrityError` (exit 1) when content is not what
+was pinned or signed, :class:`InputError` (exit 3) when something could not be read,
+parsed or fetched. Every error can name the file, line, expected and actual value.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class HcdfTrustError(Exception):
+    """Base class. ``code`` is a stable, machine-readable identifier for ``--json``."""
+
+    exit_code = 3
+    code = "error"
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        file: str | None = None,
+        line: int | None = None,
+        expected: str | None = None,
+        actual: str | None = None,
+        url: str | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.message = message
+        self.file = file
+        self.line = line
+        self.expected = expected
+        self.actual = actual
+        self.url = url
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "code": self.code,
+            "message": self.message,
+            "file": self.file,
+            "line": self.line,
+        }
+        if self.url is not None:
+            out["url"] = self.url
+        if self.expected is not None or self.actual is not None:
+            out["expected"] = self.expected
+            out["actual"] = self.actual
+        return out
+
+    def __str__(self) -> str:
+        where = ""
+        if self.file:
+            where = f"{self.file}:{self.line}: " if self.line else f"{self.file}: "
+        text = f"{where}{self.message}"
+        if self.url and self.url not in self.message:
+            text += f" [{self.url}]"
+        if self.expected is not None or self.actual is not None:
+            text += f"\n  expected: {self.expected}\n  actual:   {self.actual}"
+        return text
+
+
+# --- exit 1: the content is wrong -------------------------------------------------
+
+
+class IntegrityError(HcdfTrustError):
+    """Content is not what was pinned, locked or signed."""
+
+    exit_code = 1
+    code = "integrity"
+
+
+class DigestMismatchError(IntegrityError):
+    code = "digest-mismatch"
+
+
+class LockDriftError(IntegrityError):
+    """The document tree no longer matches its lock file (under ``--locked``)."""
+
+    code = "lock-drift"
+
+
+class UnpinnedError(IntegrityError):
+    """A reference has no digest and the lock file does not pin it (under ``--locked``)."""
+
+    code = "unpinned"
+
+
+class WeakPinError(IntegrityError):
+    """A short hex prefix was used as a pin under ``--strict``."""
+
+    code = "weak-pin"
+
+
+# --- exit 3: the input could not be used -------------------------------------------
+
+
+class InputError(HcdfTrustError):
+    """A file is missing, unreadable, malformed or hostile, or the network failed."""
+
+    exit_code = 3
+    code = "input"
+
+
+class MalformedDigestError(InputError):
+    code = "bad-digest"
+
+
+class XmlError(InputError):
+    code = "xml"
+
+
+class NotFoundError(InputError):
+    code = "not-found"
+
+
+class PathEscapeError(InputError):
+    """A local reference leaves its root (``..``, absolute path, symlink)."""
+
+    code = "path-escape"
+
+
+class FetchError(InputError):
+    """Transport failure: TLS, timeout, too large, bad redirect, HTTP status."""
+
+    code = "fetch"
+
+
+class OfflineError(InputError):
+    """The content is not available without the network and ``--offline`` forbids it."""
+
+    code = "offline"
+
+
+class IncludeCycleError(InputError):
+    code = "include-cycle"
+
+
+class IncludeDepthError(InputError):
+    code = "include-depth"
+
+
+class LockFileError(InputError):
+    """The lock file is missing, unreadable or of an unknown format version."""
+
+    code = "lock-file"
+
+
+class FlattenError(InputError):
+    """Includes cannot be merged: name collision, frame convention mismatch, bad pose."""
+
+    code = "flatten"
+
+
+class ErrorGroup(HcdfTrustError):
+    """Several errors collected from one run; exit 1 if any is an integrity failure."""
+
+    def __init__(self, errors: list[HcdfTrustError]) -> None:
+        self.errors = errors
+        first = errors[0]
+        super().__init__(
+            f"{len(errors)} error(s); first: {first}", file=first.file, line=first.line
+        )
+        self.exit_code = 1 if any(e.exit_code == 1 for e in errors) else 3
+        self.code = "errors"

@@ -1,0 +1,152 @@
+"""Where a reference points: relative resolution, ``--base``, ``--mirror``, root confinement.
+
+Pure functions over strings and paths: no file is opened and no socket used here.
+A :class:`Location` keeps the *logical* URL (what the document means, recorded in
+the lock file, the same with or without a mirror) apart from where the bytes are
+actually read (a local path confined to a root, or a remote URL).
+"""
+
+from __future__ import annotations
+
+import os
+import posixpath
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import quote, unquote, urljoin, urlsplit
+
+from ..errors import InputError, PathEscapeError
+
+REMOTE_SCHEMES = ("https", "http")
+
+
+@dataclass(frozen=True)
+class Location:
+    url: str  # logical identity: file:///abs/path or https://…
+    path: Path | None = None  # read from here (local file or local mirror)
+    root: Path | None = None  # ...which must stay inside this folder
+    remote: str | None = None  # or fetch from here (after mirror rewrite)
+
+    @property
+    def is_local(self) -> bool:
+        return self.path is not None
+
+    @property
+    def scheme(self) -> str:
+        return urlsplit(self.remote or self.url).scheme
+
+
+def file_url(path: str | os.PathLike[str], *, directory: bool = False) -> str:
+    text = os.path.abspath(os.fspath(path))
+    url = "file://" + quote(text)
+    return url + "/" if directory and not url.endswith("/") else url
+
+
+def _is_url(text: str) -> bool:
+    return "://" in text
+
+
+@dataclass(frozen=True)
+class Locator:
+    """Turns the ``uri`` of a reference into a :class:`Location`.
+
+    ``root`` confines local references; ``base`` (a folder or URL), when given,
+    replaces the referencing document as the base of relative references;
+    ``mirrors`` rewrite URL prefixes to a local folder or another URL.
+    """
+
+    root: Path
+    base: str | None = None
+    mirrors: tuple[tuple[str, str], ...] = ()
+
+    @classmethod
+    def create(
+        cls,
+        *,
+        root: str | os.PathLike[str],
+        base: str | None = None,
+        mirrors: list[tuple[str, str]] | tuple[tuple[str, str], ...] = (),
+    ) -> Locator:
+        base_url = None
+        if base is not None:
+            base_url = base if _is_url(base) else file_url(base, directory=True)
+            if not base_url.endswith("/"):
+                base_url += "/"
+        # Longest prefix first, so a specific mirror beats a general one.
+        ordered = tuple(sorted(mirrors, key=lambda m: len(m[0]), reverse=True))
+        return cls(root=Path(os.path.abspath(root)), base=base_url, mirrors=ordered)
+
+    def for_document(self, path: str | os.PathLike[str]) -> Location:
+        """The location of a root document given on the command line."""
+        p = Path(os.path.abspath(path))
+        return self._local(file_url(p), p, self.root, file=str(path), line=None)
+
+    def locate(self, uri: str, referrer: Location, *, file: str, line: int | None) -> Location:
+        """Resolve ``uri`` written in the document at ``referrer``.
+
+        Raises:
+            PathEscapeError: an absolute local path, or a path that leaves the root.
+            InputError: an empty uri or an unsupported scheme.
+        """
+        text = uri.strip()
+        if not text:
+            raise InputError("empty uri", file=file, line=line)
+        parts = urlsplit(text)
+        scheme = parts.scheme.lower()
+        if scheme in REMOTE_SCHEMES:
+            absolute = text
+        elif scheme == "file" or text.startswith(("/", "\\")) or (len(scheme) == 1 and ":" in text):
+            raise PathEscapeError(
+                f"absolute local path {uri!r} is refused: references must be relative "
+                "to their document (or --base) or https URLs",
+                file=file,
+                line=line,
+                actual=uri,
+            )
+        elif scheme:
+            raise InputError(
+                f"unsupported URL scheme {scheme!r} in {uri!r}", file=file, line=line, actual=uri
+            )
+        else:
+            absolute = urljoin(self.base or referrer.url, text)
+        return self._apply(absolute, file=file, line=line, uri=uri)
+
+    def _apply(self, url: str, *, file: str, line: int | None, uri: str) -> Location:
+        url = _normalise(url)
+        for prefix, target in self.mirrors:
+            if url.startswith(prefix):
+                rest = url[len(prefix) :]
+                if _is_url(target):
+                    return Location(url=url, remote=target.rstrip("/") + "/" + rest.lstrip("/"))
+                mroot = Path(os.path.abspath(target))
+                return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line)
+        if url.startswith("file://"):
+            return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line)
+        return Location(url=url, remote=url)
+
+    @staticmethod
+    def _local(url: str, path: Path, root: Path, *, file: str, line: int | None) -> Location:
+        # Lexical check here; the symlink check happens on the opened descriptor (fetch.py).
+        normal = Path(os.path.normpath(path))
+        if normal != root and root not in normal.parents:
+            raise PathEscapeError(
+                f"{path} is outside the root {root}",
+                file=file,
+                line=line,
+                expected=f"a path inside {root}",
+                actual=str(normal),
+            )
+        return Location(url=url, path=normal, root=root)
+
+
+def _normalise(url: str) -> str:
+    """Collapse ``.``/``..`` segments so one file has one identity."""
+    parts = urlsplit(url)
+    path = posixpath.normpath(parts.path) if parts.path else "/"
+    if parts.path.endswith("/") and not path.endswith("/"):
+        path += "/"
+    if path.startswith("//"):
+        path = "/" + path.lstrip("/")
+    rebuilt = f"{parts.scheme}://{parts.netloc}{path}"
+    if parts.query:
+        rebuilt += "?" + parts.query
+    return rebuilt

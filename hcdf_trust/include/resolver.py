@@ -1,0 +1,571 @@
+"""Resolve a document tree: walk includes, fetch each distinct file once, verify every pin.
+
+The run has three steps:
+
+1. Walk the include tree breadth first; each level's new includes are fetched in
+   parallel, checked against their pins and parsed before the next level.
+2. Fetch every other artifact (models, meshes, stream profiles, firmware
+   manifests) in parallel, hashing while streaming.
+3. Decide, in pure functions over digests and pins (:func:`check_artifact`,
+   :func:`lockfile.compare`), which errors and warnings the tree has.
+
+Nothing is written here except verified cache blobs; the lock file and the
+flattened document are written by the caller, and only when the run is clean.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+from ..digest import Hashed, Pin, hash_bytes, hash_chunks, hash_fd, parse_pin
+from ..document import Document, Kind, Reference
+from ..errors import (
+    DigestMismatchError,
+    FetchError,
+    HcdfTrustError,
+    IncludeCycleError,
+    IncludeDepthError,
+    InputError,
+    OfflineError,
+    UnpinnedError,
+    WeakPinError,
+)
+from ..store import ContentStore, default_cache_dir
+from ..xml import MAX_DOCUMENT_BYTES
+from . import lockfile
+from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, open_local, read_chunks
+from .locate import Location, Locator, file_url
+
+DEFAULT_MAX_DEPTH = 16
+DEFAULT_JOBS = 8
+
+
+@dataclass(frozen=True)
+class ResolveOptions:
+    """Everything a resolve run may be told. Keyword-only by convention."""
+
+    base: str | None = None
+    mirrors: tuple[tuple[str, str], ...] = ()
+    root: str | None = None
+    cache_dir: str | None = None
+    lock_path: str | None = None
+    locked: bool = False
+    offline: bool = False
+    allow_http: bool = False
+    strict: bool = False
+    jobs: int = DEFAULT_JOBS
+    max_depth: int = DEFAULT_MAX_DEPTH
+    max_bytes: int = DEFAULT_MAX_BYTES
+    timeout: float = DEFAULT_TIMEOUT
+    ca_bundle: str | None = None
+    write_cache: bool = True
+
+
+@dataclass
+class Use:
+    """One place that references an artifact."""
+
+    doc: str  # display name of the referencing document
+    doc_url: str
+    ref: Reference
+    pin: Pin | None
+
+
+@dataclass
+class Artifact:
+    kind: Kind
+    uri: str  # as written in the first reference
+    location: Location
+    uses: list[Use] = field(default_factory=list)
+    sha256: str | None = None
+    size: int | None = None
+    source: str | None = None  # file | mirror | cache | network
+    error: HcdfTrustError | None = None
+
+    @property
+    def url(self) -> str:
+        return self.location.url
+
+    @property
+    def pin_status(self) -> str:
+        pins = [u.pin for u in self.uses if u.pin is not None]
+        if any(p.is_full for p in pins):
+            return "full"
+        return "weak" if pins else "unpinned"
+
+
+@dataclass
+class Resolution:
+    root: Document
+    root_location: Location
+    lock_path: Path
+    documents: dict[str, Document] = field(default_factory=dict)
+    artifacts: dict[str, Artifact] = field(default_factory=dict)
+    includes: dict[str, list[tuple[Reference, str]]] = field(default_factory=dict)
+    others: list[tuple[str, Reference]] = field(default_factory=list)  # firmware hashes, extensions
+    errors: list[HcdfTrustError] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+    def display(self, url: str) -> str:
+        return display_url(url)
+
+    def lock_entries(self) -> list[lockfile.LockEntry]:
+        base = self.lock_path.parent
+        entries = []
+        for art in self.artifacts.values():
+            if art.sha256 is None or art.size is None:
+                continue
+            entries.append(
+                lockfile.LockEntry(
+                    kind=art.kind.value,
+                    uri=art.uri,
+                    url=lock_url(art.url, base),
+                    sha256=art.sha256,
+                    size=art.size,
+                    referenced_from=tuple(
+                        sorted({f"{lock_url(u.doc_url, base)}:{u.ref.line}" for u in art.uses})
+                    ),
+                )
+            )
+        return entries
+
+    def write_lock(self) -> None:
+        lockfile.write(self.lock_path, self.lock_entries(), root=lock_url(self.root_location.url, self.lock_path.parent))
+
+
+def lock_url(url: str, base: Path) -> str:
+    """Local URLs relative to the lock file's folder; remote URLs as they are."""
+    if url.startswith("file://"):
+        return Path(os.path.relpath(unquote(urlsplit(url).path), base)).as_posix()
+    return url
+
+
+def display_url(url: str) -> str:
+    if url.startswith("file://"):
+        path = unquote(urlsplit(url).path)
+        rel = os.path.relpath(path)
+        return path if rel.startswith("..") else rel
+    return url
+
+
+Reporter = Callable[[int, int], None]  # (files done, bytes done) increments
+
+
+def resolve(doc_path: str | os.PathLike[str], options: ResolveOptions | None = None, *, on_start: Callable[[int], None] | None = None, on_progress: Reporter | None = None) -> Resolution:
+    """Resolve ``doc_path`` and every file it references; never raises for content errors.
+
+    Errors are collected in :attr:`Resolution.errors` (use ``ok``). Raises
+    :class:`InputError` only when the root document itself cannot be read.
+    """
+    run = _Run(options or ResolveOptions(), on_start=on_start, on_progress=on_progress)
+    try:
+        return run.run(Path(doc_path))
+    finally:
+        run.close()
+
+
+class _Run:
+    def __init__(self, options: ResolveOptions, *, on_start, on_progress) -> None:
+        self.o = options
+        self.on_start = on_start
+        self.on_progress = on_progress
+        self.store = ContentStore(options.cache_dir or default_cache_dir())
+        self.fetcher: HttpFetcher | None = None
+        if not options.offline:
+            self.fetcher = HttpFetcher(
+                ca_bundle=options.ca_bundle,
+                allow_http=options.allow_http,
+                timeout=options.timeout,
+                max_bytes=options.max_bytes,
+                max_connections=max(1, options.jobs),
+            )
+        self.lock: dict[str, lockfile.LockEntry] = {}
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        if self.fetcher is not None:
+            self.fetcher.close()
+
+    # -- step 0: the root document and the lock --------------------------------------
+
+    def run(self, doc_path: Path) -> Resolution:
+        doc_path = Path(os.path.abspath(doc_path))
+        root_dir = self._confinement_root(doc_path)
+        locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
+        root_loc = Location(url=file_url(doc_path), path=doc_path, root=doc_path.parent)
+        data = _read_root(doc_path)
+        stub = _link_stub_target(doc_path, data)
+        if stub is not None:
+            doc_path, data = stub, _read_root(stub)
+            root_loc = Location(url=file_url(doc_path), path=doc_path, root=doc_path.parent)
+        root = Document.from_bytes(data, source=display_url(root_loc.url))
+        lock_path = Path(self.o.lock_path) if self.o.lock_path else doc_path.parent / lockfile.DEFAULT_NAME
+        res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
+        res.documents[root_loc.url] = root
+        if self.o.locked or lock_path.exists():
+            try:
+                loaded = lockfile.load(lock_path)
+            except HcdfTrustError as exc:
+                if self.o.locked:
+                    raise
+                res.warnings.append(f"ignoring unreadable lock file: {exc}")
+                loaded = {}
+            base = lock_path.parent
+            self.lock = {_absolute(url, base): e for url, e in loaded.items()}
+        self.res = res
+        self.locator = locator
+        self._walk_includes(root_loc)
+        self._fetch([a for a in res.artifacts.values() if a.kind is not Kind.INCLUDE and a.error is None and a.sha256 is None], keep=False)
+        self._find_cycles()
+        self._check_all()
+        return res
+
+    def _confinement_root(self, doc_path: Path) -> Path:
+        if self.o.root:
+            return Path(os.path.abspath(self.o.root))
+        if self.o.base and "://" not in self.o.base:
+            return Path(os.path.abspath(self.o.base))
+        return doc_path.parent
+
+    # -- step 1: the include tree ----------------------------------------------------
+
+    def _walk_includes(self, root_loc: Location) -> None:
+        res = self.res
+        parent: dict[str, str | None] = {root_loc.url: None}
+        frontier = [root_loc]
+        depth = 0
+        while frontier:
+            depth += 1
+            pending: list[Artifact] = []
+            for doc_loc in frontier:
+                for art in self._collect(doc_loc):
+                    if art.url in parent or art.error is not None:
+                        continue
+                    if depth > self.o.max_depth:
+                        chain = " → ".join(display_url(u) for u in _chain(parent, doc_loc.url) + [art.url])
+                        use = art.uses[-1]
+                        res.errors.append(
+                            IncludeDepthError(
+                                f"includes nest deeper than {self.o.max_depth} levels: {chain}",
+                                file=use.doc,
+                                line=use.ref.line,
+                            )
+                        )
+                        parent[art.url] = doc_loc.url
+                        continue
+                    parent[art.url] = doc_loc.url
+                    pending.append(art)
+            self._fetch(pending, keep=True)
+            frontier = [a.location for a in pending if a.url in res.documents]
+
+    def _collect(self, doc_loc: Location) -> list[Artifact]:
+        """Record every reference of one document; return the include artifacts it names."""
+        res = self.res
+        doc = res.documents[doc_loc.url]
+        includes: list[Artifact] = []
+        res.includes.setdefault(doc_loc.url, [])
+        for ref in doc.references():
+            if not ref.kind.fetchable:
+                res.others.append((doc.source, ref))
+                continue
+            try:
+                pin = parse_pin(ref.sha, file=doc.source, line=ref.line)
+                if not ref.uri:
+                    raise InputError(f"<{ref.kind.value}> has no uri", file=doc.source, line=ref.line)
+                loc = self.locator.locate(ref.uri, doc_loc, file=doc.source, line=ref.line)
+            except HcdfTrustError as exc:
+                res.errors.append(exc)
+                continue
+            art = res.artifacts.get(loc.url)
+            if art is None:
+                art = res.artifacts[loc.url] = Artifact(kind=ref.kind, uri=ref.uri, location=loc)
+            art.uses.append(Use(doc=doc.source, doc_url=doc_loc.url, ref=ref, pin=pin))
+            if ref.kind is Kind.INCLUDE:
+                res.includes[doc_loc.url].append((ref, loc.url))
+                includes.append(art)
+        return includes
+
+    # -- step 2: fetching ------------------------------------------------------------
+
+    def _fetch(self, artifacts: list[Artifact], *, keep: bool) -> None:
+        if not artifacts:
+            return
+        if self.on_start:
+            self.on_start(len(artifacts))
+        jobs = max(1, min(self.o.jobs, len(artifacts)))
+        if jobs == 1:
+            for art in artifacts:
+                self._obtain_one(art, keep)
+            return
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            list(pool.map(lambda a: self._obtain_one(a, keep), artifacts))
+
+    def _obtain_one(self, art: Artifact, keep: bool) -> None:
+        use = art.uses[0]
+        try:
+            data = self._obtain(art, keep, file=use.doc, line=use.ref.line)
+        except HcdfTrustError as exc:
+            art.error = exc
+            data = None
+        if keep and data is not None and self._acceptable(art):
+            try:
+                doc = Document.from_bytes(data, source=display_url(art.url))
+            except HcdfTrustError as exc:
+                art.error = exc
+            else:
+                with self._lock:
+                    self.res.documents[art.url] = doc
+        if self.on_progress:
+            self.on_progress(1, art.size or 0)
+
+    def _obtain(self, art: Artifact, keep: bool, *, file: str, line: int | None) -> bytes | None:
+        loc = art.location
+        data: bytes | None = None
+        if loc.path is not None:
+            with open_local(loc.path, loc.root or loc.path.parent, file=file, line=line) as fd:
+                if keep:
+                    data = _read_limited(fd, display_url(art.url))
+                    hashed = hash_bytes(data)
+                else:
+                    hashed = hash_fd(fd)
+            self._record(art, hashed, "file" if art.url.startswith("file://") else "mirror")
+            return data
+        assert loc.remote is not None
+        want = self._wanted_sha(art)
+        if want is not None:
+            cached = self.store.verified_path(want)
+            if cached is not None:
+                data = cached.read_bytes() if keep else None
+                self._record(art, Hashed(want, cached.stat().st_size), "cache")
+                return data
+        if self.fetcher is None:
+            raise OfflineError(
+                f"{art.url} is not in the cache or a mirror, and --offline forbids the network"
+                + ("" if want else " (it has no full pin or lock entry to find it in the cache by)"),
+                file=file,
+                line=line,
+                url=art.url,
+            )
+        if urlsplit(loc.remote).scheme == "http" and not (self.o.allow_http and want):
+            raise FetchError(
+                f"{loc.remote}: plain http is refused without --allow-http and a full SHA-256 pin",
+                file=file,
+                line=line,
+                url=art.url,
+            )
+        limit = min(self.o.max_bytes, MAX_DOCUMENT_BYTES) if keep else self.o.max_bytes
+        with self.fetcher.open(loc.remote, file=file, line=line) as chunks:
+            if self.o.write_cache:
+                try:
+                    hashed, path = self.store.ingest(
+                        chunks, accept=lambda h: self._acceptable(art, h), limit=limit, source=loc.remote
+                    )
+                except FetchError as exc:
+                    exc.file, exc.line = file, line
+                    raise
+                if keep and path is not None:
+                    data = path.read_bytes()
+            else:
+                sink = _Sink() if keep else None
+                try:
+                    hashed = hash_chunks(chunks, sink=sink, limit=limit)
+                except ValueError as exc:
+                    raise FetchError(f"{loc.remote}: body {exc}", file=file, line=line, url=art.url) from None
+                data = sink.data() if sink is not None else None
+        self._record(art, hashed, "network")
+        return data
+
+    def _record(self, art: Artifact, hashed: Hashed, source: str) -> None:
+        art.sha256, art.size, art.source = hashed.sha256, hashed.size, source
+
+    def _wanted_sha(self, art: Artifact) -> str | None:
+        for use in art.uses:
+            if use.pin is not None and use.pin.is_full:
+                return use.pin.hex
+        entry = self.lock.get(art.url)
+        if entry is not None and all(u.pin is None or u.pin.matches(entry.sha256) for u in art.uses):
+            return entry.sha256
+        return None
+
+    def _acceptable(self, art: Artifact, hashed: Hashed | None = None) -> bool:
+        """May this content be cached and (for includes) parsed? Pins, and the lock under --locked."""
+        sha = hashed.sha256 if hashed is not None else art.sha256
+        if sha is None:
+            return False
+        if any(u.pin is not None and not u.pin.matches(sha) for u in art.uses):
+            return False
+        if self.o.locked:
+            entry = self.lock.get(art.url)
+            return entry is not None and entry.sha256 == sha
+        return True
+
+    # -- step 3: decisions -----------------------------------------------------------
+
+    def _find_cycles(self) -> None:
+        graph = self.res.includes
+        state: dict[str, int] = {}  # 1 = on the stack, 2 = done
+        reported: set[tuple[str, ...]] = set()
+
+        def visit(url: str, stack: list[str]) -> None:
+            state[url] = 1
+            stack.append(url)
+            for ref, child in graph.get(url, []):
+                if state.get(child) == 1:
+                    cycle = stack[stack.index(child) :] + [child]
+                    key = tuple(sorted(set(cycle)))
+                    if key not in reported:
+                        reported.add(key)
+                        doc = self.res.documents[url]
+                        self.res.errors.append(
+                            IncludeCycleError(
+                                "include cycle: " + " → ".join(display_url(u) for u in cycle),
+                                file=doc.source,
+                                line=ref.line,
+                            )
+                        )
+                elif child not in state and child in self.res.documents:
+                    visit(child, stack)
+            stack.pop()
+            state[url] = 2
+
+        visit(self.res.root_location.url, [])
+
+    def _check_all(self) -> None:
+        res = self.res
+        for art in res.artifacts.values():
+            if art.error is not None:
+                res.errors.append(art.error)
+                continue
+            if art.sha256 is None:
+                continue  # never reached (an error elsewhere stopped the walk)
+            errors, warnings = check_artifact(art, self.lock.get(art.url), strict=self.o.strict, locked=self.o.locked)
+            res.errors.extend(errors)
+            res.warnings.extend(warnings)
+        for source, ref in res.others:
+            if ref.kind is Kind.FIRMWARE and ref.sha:
+                try:
+                    parse_pin(ref.sha, file=source, line=ref.line)
+                except HcdfTrustError as exc:
+                    res.warnings.append(f"firmware {ref.name!r}: {exc}")
+        if self.o.locked:
+            base = res.lock_path.parent
+            actual = {e.url: e for e in res.lock_entries()}
+            failed = {lock_url(a.url, base) for a in res.artifacts.values() if a.sha256 is None}
+            locked = {lock_url(url, base): e for url, e in self.lock.items()}
+            locked = {url: e for url, e in locked.items() if url not in failed}
+            res.errors.extend(lockfile.compare(locked, actual, lock_path=str(res.lock_path)))
+
+
+def check_artifact(
+    art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool
+) -> tuple[list[HcdfTrustError], list[str]]:
+    """Every pin of every use of one artifact against its actual digest. Pure."""
+    errors: list[HcdfTrustError] = []
+    warnings: list[str] = []
+    sha = art.sha256
+    assert sha is not None
+    for use in art.uses:
+        pin = use.pin
+        where = f"{use.doc}:{use.ref.line}"
+        if pin is None:
+            if locked and lock_entry is None:
+                errors.append(
+                    UnpinnedError(
+                        f"{use.ref.uri} has no sha and the lock file does not pin it",
+                        file=use.doc,
+                        line=use.ref.line,
+                        url=art.url,
+                        actual=sha,
+                    )
+                )
+            else:
+                warnings.append(f"{where}: {use.ref.uri} is unpinned (sha256 {sha})")
+            continue
+        if not pin.matches(sha):
+            errors.append(
+                DigestMismatchError(
+                    f"{use.ref.uri}: digest mismatch",
+                    file=use.doc,
+                    line=use.ref.line,
+                    url=art.url,
+                    expected=pin.hex,
+                    actual=sha,
+                )
+            )
+        elif not pin.is_full:
+            bits = len(pin.hex) * 4
+            if strict:
+                errors.append(
+                    WeakPinError(
+                        f"{use.ref.uri}: weak pin of {len(pin.hex)} hex digits ({bits} bits) refused by --strict",
+                        file=use.doc,
+                        line=use.ref.line,
+                        url=art.url,
+                        expected="a full 64-digit SHA-256",
+                        actual=pin.hex,
+                    )
+                )
+            else:
+                warnings.append(f"{where}: {use.ref.uri} has a weak pin ({bits} bits): sha256 {sha}")
+    return errors, warnings
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+
+    def write(self, chunk: bytes) -> None:
+        self.parts.append(bytes(chunk))
+
+    def data(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def _read_limited(fd: int, source: str) -> bytes:
+    if os.fstat(fd).st_size > MAX_DOCUMENT_BYTES:
+        raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
+    data = b"".join(read_chunks(fd))
+    if len(data) > MAX_DOCUMENT_BYTES:  # it grew while we read it
+        raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
+    return data
+
+
+def _read_root(path: Path) -> bytes:
+    with open_local(path, path.parent, file=str(path)) as fd:
+        return _read_limited(fd, display_url(file_url(path)))
+
+
+def _link_stub_target(path: Path, data: bytes) -> Path | None:
+    """A symlink checked out as a plain file (git with core.symlinks=false) holds just
+    the target's name: hcdf_models' ``{device}.hcdf`` pointers arrive that way.
+    Follow it only to a sibling file, never across folders."""
+    if len(data) > 255 or b"<" in data:
+        return None
+    name = data.strip().decode("utf-8", "replace")
+    if not name or "/" in name or "\\" in name or name in (".", "..") or "\n" in name:
+        return None
+    target = path.parent / name
+    return target if target.is_file() else None
+
+
+def _chain(parent: dict[str, str | None], url: str) -> list[str]:
+    out = []
+    cur: str | None = url
+    while cur is not None:
+        out.append(cur)
+        cur = parent.get(cur)
+    return list(reversed(out))
+
+
+def _absolute(url: str, base: Path) -> str:
+    return url if "://" in url else file_url(os.path.normpath(base / url))

@@ -1,0 +1,139 @@
+"""Atomic writes and the content-addressed cache.
+
+Every output (lock file, flattened document, cache blob, later images,
+manifests and key stores) is written to a temporary file in the destination
+folder, fsynced, then renamed: a failed run leaves the previous state intact.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+from .digest import Hashed, hash_chunks, hash_stream, is_full_sha256
+from .errors import FetchError
+
+
+@contextlib.contextmanager
+def atomic_writer(path: str | os.PathLike[str], *, mode: int = 0o644) -> Iterator[BinaryIO]:
+    """Yield a binary file; on clean exit it replaces ``path`` atomically, else vanishes."""
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        os.fchmod(fd, mode)
+        with os.fdopen(fd, "wb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, dest)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(dest.parent)
+
+
+def atomic_write(path: str | os.PathLike[str], data: bytes, *, mode: int = 0o644) -> None:
+    with atomic_writer(path, mode=mode) as f:
+        f.write(data)
+
+
+def _fsync_dir(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hcdf-trust"
+
+
+class ContentStore:
+    """Blobs named by their SHA-256, verified on the way in and on the way out.
+
+    Layout: ``ROOT/sha256/ab/abcdef…``. A blob is only ever created by renaming
+    a fully written temporary file whose digest was checked, so a crash or a
+    mismatch never leaves a partial or wrong entry.
+    """
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root)
+
+    def path_for(self, sha256: str) -> Path:
+        if not is_full_sha256(sha256):
+            raise ValueError(f"not a full lower-case SHA-256: {sha256!r}")
+        return self.root / "sha256" / sha256[:2] / sha256
+
+    def has(self, sha256: str) -> bool:
+        return self.path_for(sha256).is_file()
+
+    def verified_path(self, sha256: str) -> Path | None:
+        """The blob's path if present and its content still hashes to its name.
+
+        A blob that no longer matches (tampered, bit rot) is removed and ``None``
+        returned, so the caller fetches it again instead of trusting it.
+        """
+        path = self.path_for(sha256)
+        try:
+            with open(path, "rb", buffering=0) as f:
+                actual = hash_stream(f).sha256
+        except FileNotFoundError:
+            return None
+        if actual != sha256:
+            with contextlib.suppress(OSError):
+                path.unlink()
+            return None
+        return path
+
+    def ingest(
+        self,
+        chunks: Iterable[bytes],
+        *,
+        accept: Callable[[Hashed], bool] | None = None,
+        limit: int | None = None,
+        source: str = "",
+    ) -> tuple[Hashed, Path | None]:
+        """Copy ``chunks`` into the store, hashing as they pass.
+
+        ``accept`` sees the digest before the blob is committed; if it returns
+        False (a pin mismatch) nothing is stored and the path is ``None``.
+
+        Raises:
+            InputError: more than ``limit`` bytes.
+        """
+        tmpdir = self.root / "tmp"
+        tmpdir.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=tmpdir)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                try:
+                    hashed = hash_chunks(chunks, sink=f, limit=limit)
+                except ValueError as exc:
+                    raise FetchError(f"body {exc}", file=source, url=source) from None
+                f.flush()
+                os.fsync(f.fileno())
+            if accept is not None and not accept(hashed):
+                os.unlink(tmp)
+                return hashed, None
+            dest = self.path_for(hashed.sha256)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.chmod(tmp, 0o444)
+            os.replace(tmp, dest)
+            return hashed, dest
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise

@@ -1,0 +1,70 @@
+"""The only XML parser factory: no DTD, no entities, no network, bounded depth and size.
+
+Every XML read in hcdf-trust goes through :func:`parse_bytes`. libxml2 already
+caps depth (256 without XML_PARSE_HUGE) and text node size (10 MB); we add a
+byte limit before parsing and refuse any document that carries a DOCTYPE, so
+entity tricks (external, parameter, billion-laughs) never reach the tree.
+"""
+
+from __future__ import annotations
+
+from lxml import etree
+
+from .errors import XmlError
+
+# An HCDF document is text; the humanoid example is ~100 KB. 32 MiB is generous
+# and keeps lxml's ~13x memory blow-up (notes/env.md §3) under half a gigabyte.
+MAX_DOCUMENT_BYTES = 32 << 20
+MAX_DEPTH = 200
+
+
+def _parser() -> etree.XMLParser:
+    return etree.XMLParser(
+        resolve_entities=False,
+        no_network=True,
+        load_dtd=False,
+        dtd_validation=False,
+        huge_tree=False,
+        remove_blank_text=False,
+        collect_ids=False,
+    )
+
+
+def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
+    """Parse an XML document safely.
+
+    Raises:
+        XmlError: empty, too large, not well-formed, not UTF-8, has a DTD, too deep.
+    """
+    if not data.strip():
+        raise XmlError("empty document", file=source)
+    if len(data) > MAX_DOCUMENT_BYTES:
+        raise XmlError(
+            f"document is {len(data)} bytes, over the {MAX_DOCUMENT_BYTES}-byte limit",
+            file=source,
+        )
+    try:
+        tree = etree.fromstring(data, _parser()).getroottree()
+    except etree.XMLSyntaxError as exc:
+        line = exc.lineno if getattr(exc, "lineno", None) else None
+        raise XmlError(f"malformed XML: {exc.msg}", file=source, line=line) from None
+    except ValueError as exc:  # e.g. an encoding declaration lxml cannot honour
+        raise XmlError(f"malformed XML: {exc}", file=source) from None
+    docinfo = tree.docinfo
+    if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
+        raise XmlError(
+            "a DOCTYPE is not allowed in HCDF (entities and DTDs are refused)", file=source, line=1
+        )
+    _check_depth(tree.getroot(), source)
+    return tree
+
+
+def _check_depth(root: etree._Element, source: str) -> None:
+    stack = [(root, 1)]
+    while stack:
+        el, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise XmlError(
+                f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=el.sourceline
+            )
+        stack.extend((child, depth + 1) for child in el)
