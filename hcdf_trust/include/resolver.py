@@ -65,6 +65,9 @@ class ResolveOptions:
     timeout: float = DEFAULT_TIMEOUT
     ca_bundle: str | None = None
     write_cache: bool = True
+    # For `pin`, which repairs mismatches: a pin mismatch no longer stops an include from
+    # being parsed and walked (or a blob from being cached); it is still reported in errors.
+    accept_mismatch: bool = False
 
 
 @dataclass
@@ -402,7 +405,7 @@ class _Run:
         sha = hashed.sha256 if hashed is not None else art.sha256
         if sha is None:
             return False
-        if any(u.pin is not None and not u.pin.matches(sha) for u in art.uses):
+        if not self.o.accept_mismatch and any(u.pin is not None and not u.pin.matches(sha) for u in art.uses):
             return False
         if self.o.locked:
             entry = self.lock.get(art.url)

@@ -1,0 +1,30 @@
+# The two README commands (`make demo`, `make test`) and the benchmark.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: demo test lint bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+## Resolve, lock, flatten and verify the bundled example robot.
+demo: $(STAMP)
+	$(BIN)/hcdf-trust resolve examples/robot/robot.hcdf --locked --out examples/out/scout2.flat.hcdf
+	$(BIN)/hcdf-trust verify examples/robot/robot.hcdf
+	$(BIN)/hcdf-trust validate examples/robot/robot.hcdf
+
+## The whole test suite (what CI runs).
+test: $(STAMP)
+	$(BIN)/ruff check hcdf_trust tests bench
+	$(BIN)/pytest -n 2 -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check hcdf_trust tests bench
+
+clean:
+	rm -rf $(VENV) examples/out bench/work .pytest_cache
