@@ -12,6 +12,8 @@ from click.testing import CliRunner
 
 from hcdf_trust.cli import main
 
+pytest_plugins = ["tests.servers"]  # loopback HTTP(S) servers: tests/servers.py
+
 PROJECT = Path(__file__).resolve().parents[1]
 CORPUS = Path(os.environ.get("HCDF_CORPUS", PROJECT.parent / "shared" / "corpus")).resolve()
 MODELS = CORPUS / "hcdf_models"
