@@ -163,8 +163,11 @@ def pin(doc: str, write: bool, as_json: bool, **kw: Any) -> None:
     if report.errors:
         fail(report.errors, as_json=as_json, payload={"changes": [c.to_dict() for c in report.changes]})
     if as_json:
-        emit_json({"ok": True, "changes": [c.to_dict() for c in report.changes], "wrote": report.written, "errors": []})
+        emit_json({"ok": True, "changes": [c.to_dict() for c in report.changes], "wrote": report.written,
+                   "warnings": list(report.warnings), "errors": []})
         return
+    for w in report.warnings:
+        click.echo(f"warning: {w}", err=True)
     verb = "pinned" if write else "would pin"
     for c in report.changes:
         click.echo(f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new}", err=True)

@@ -405,7 +405,8 @@ class _Run:
         sha = hashed.sha256 if hashed is not None else art.sha256
         if sha is None:
             return False
-        if not self.o.accept_mismatch and any(u.pin is not None and not u.pin.matches(sha) for u in art.uses):
+        mismatch = any(u.pin is not None and not u.pin.matches(sha) for u in art.uses)
+        if mismatch and not self.o.accept_mismatch:
             return False
         if self.o.locked:
             entry = self.lock.get(art.url)
