@@ -63,14 +63,47 @@ def _mirror(ctx: click.Context, param: click.Parameter, values: tuple[str, ...])
 def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options shared by every verb that resolves a document tree."""
     options = [
-        click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: hcdf.lock beside DOC]."),
-        click.option("--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."),
-        click.option("--base", help="Folder or URL that relative references resolve against (default: the referencing document)."),
-        click.option("--root", type=click.Path(file_okay=False), help="Folder that local references may not leave [default: --base if a folder, else DOC's folder]."),
-        click.option("--mirror", "mirrors", multiple=True, callback=_mirror, metavar="PREFIX=DIR|URL", help="Rewrite a URL prefix to a local folder or another server (repeatable)."),
-        click.option("--ca-bundle", type=click.Path(dir_okay=False, exists=True), envvar="HCDF_TRUST_CA_BUNDLE", help="PEM file of CA certificates to trust for https [env: HCDF_TRUST_CA_BUNDLE]."),
-        click.option("--timeout", type=float, default=30.0, show_default=True, help="Seconds without data before a fetch fails."),
-        click.option("--max-size", "max_bytes", type=int, default=4 << 30, show_default=True, help="Largest body accepted from a server, in bytes."),
+        click.option(
+            "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: hcdf.lock beside DOC]."
+        ),
+        click.option(
+            "--cache-dir",
+            type=click.Path(file_okay=False),
+            help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
+        ),
+        click.option(
+            "--base", help="Folder or URL that relative references resolve against (default: the referencing document)."
+        ),
+        click.option(
+            "--root",
+            type=click.Path(file_okay=False),
+            help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
+        ),
+        click.option(
+            "--mirror",
+            "mirrors",
+            multiple=True,
+            callback=_mirror,
+            metavar="PREFIX=DIR|URL",
+            help="Rewrite a URL prefix to a local folder or another server (repeatable).",
+        ),
+        click.option(
+            "--ca-bundle",
+            type=click.Path(dir_okay=False, exists=True),
+            envvar="HCDF_TRUST_CA_BUNDLE",
+            help="PEM file of CA certificates to trust for https [env: HCDF_TRUST_CA_BUNDLE].",
+        ),
+        click.option(
+            "--timeout", type=float, default=30.0, show_default=True, help="Seconds without data before a fetch fails."
+        ),
+        click.option(
+            "--max-size",
+            "max_bytes",
+            type=int,
+            default=4 << 30,
+            show_default=True,
+            help="Largest body accepted from a server, in bytes.",
+        ),
         click.option("--max-depth", type=int, default=16, show_default=True, help="Deepest include nesting accepted."),
         click.option("--strict", is_flag=True, help="Refuse weak pins (hex prefixes shorter than 64 digits)."),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout."),
@@ -93,11 +126,15 @@ def main() -> None:
 @main.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
-@click.option("--locked", is_flag=True, help="Fail (exit 1) if anything differs from the lock file or is missing from it.")
+@click.option(
+    "--locked", is_flag=True, help="Fail (exit 1) if anything differs from the lock file or is missing from it."
+)
 @click.option("--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket.")
 @click.option("--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256.")
 @click.option("--jobs", "-j", type=click.IntRange(1, 64), default=8, show_default=True, help="Parallel fetches.")
-@click.option("--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded.")
+@click.option(
+    "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
+)
 @click.option("--no-lock", is_flag=True, help="Do not write the lock file.")
 @handle_errors
 def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) -> None:
@@ -163,8 +200,15 @@ def pin(doc: str, write: bool, as_json: bool, **kw: Any) -> None:
     if report.errors:
         fail(report.errors, as_json=as_json, payload={"changes": [c.to_dict() for c in report.changes]})
     if as_json:
-        emit_json({"ok": True, "changes": [c.to_dict() for c in report.changes], "wrote": report.written,
-                   "warnings": list(report.warnings), "errors": []})
+        emit_json(
+            {
+                "ok": True,
+                "changes": [c.to_dict() for c in report.changes],
+                "wrote": report.written,
+                "warnings": list(report.warnings),
+                "errors": [],
+            }
+        )
         return
     for w in report.warnings:
         click.echo(f"warning: {w}", err=True)
@@ -176,7 +220,9 @@ def pin(doc: str, write: bool, as_json: bool, **kw: Any) -> None:
 
 @main.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
-@click.option("--schema", type=click.Path(dir_okay=False), help="XSD to validate against (the official schemas are not shipped).")
+@click.option(
+    "--schema", type=click.Path(dir_okay=False), help="XSD to validate against (the official schemas are not shipped)."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def validate(doc: str, schema: str | None, as_json: bool) -> None:
@@ -188,9 +234,15 @@ def validate(doc: str, schema: str | None, as_json: bool) -> None:
 
     report = validate_document(doc, schema=schema)
     if as_json:
-        emit_json({"ok": report.ok, "checked": report.checked, "schema": report.schema,
-                   "findings": [f.to_dict() for f in report.findings],
-                   "errors": [f.to_dict() for f in report.findings if f.severity == "error"]})
+        emit_json(
+            {
+                "ok": report.ok,
+                "checked": report.checked,
+                "schema": report.schema,
+                "findings": [f.to_dict() for f in report.findings],
+                "errors": [f.to_dict() for f in report.findings if f.severity == "error"],
+            }
+        )
     else:
         for f in report.findings:
             click.echo(str(f), err=True)
@@ -228,8 +280,12 @@ class _progress:
         from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
 
         self.bar = Progress(
-            TextColumn("resolving"), BarColumn(), TextColumn("{task.completed}/{task.total} files"),
-            DownloadColumn(), console=Console(stderr=True), transient=True,
+            TextColumn("resolving"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} files"),
+            DownloadColumn(),
+            console=Console(stderr=True),
+            transient=True,
         )
         self.bar.start()
         self.task = self.bar.add_task("resolve", total=0)

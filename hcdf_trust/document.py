@@ -124,8 +124,14 @@ def _reference(el: etree._Element, tag: str) -> Reference | None:
     line = el.sourceline
     if tag == "include":
         return Reference(
-            Kind.INCLUDE, line, uri=el.get("uri"), sha=el.get("sha"), uri_attr="uri",
-            name=el.get("name"), pose=el.get("pose"), element=el,
+            Kind.INCLUDE,
+            line,
+            uri=el.get("uri"),
+            sha=el.get("sha"),
+            uri_attr="uri",
+            name=el.get("name"),
+            pose=el.get("pose"),
+            element=el,
         )
     if tag == "model":
         # The schema says uri; the published model repository writes href.
@@ -140,23 +146,33 @@ def _reference(el: etree._Element, tag: str) -> Reference | None:
         return Reference(Kind.MESH, line, uri=el.get("uri"), sha=el.get("sha"), uri_attr="uri", element=el)
     if tag == "stream-profile" and el.get("uri") is not None:
         return Reference(
-            Kind.STREAM_PROFILE, line, uri=el.get("uri"), sha=el.get("sha"), uri_attr="uri",
-            active=_bool(el.get("active")), element=el,
+            Kind.STREAM_PROFILE,
+            line,
+            uri=el.get("uri"),
+            sha=el.get("sha"),
+            uri_attr="uri",
+            active=_bool(el.get("active")),
+            element=el,
         )
     if tag == "hash" and el.getparent() is not None and el.getparent().tag == "software":
         sw = el.getparent()
         return Reference(
-            Kind.FIRMWARE, line, sha=_text(el), name=sw.get("name"),
-            version=_text(sw.find("version")), element=el,
+            Kind.FIRMWARE,
+            line,
+            sha=_text(el),
+            name=sw.get("name"),
+            version=_text(sw.find("version")),
+            element=el,
         )
     if tag == "firmware-manifest-uri" and _text(el):
         sw = el.getparent()
         return Reference(
-            Kind.FIRMWARE_MANIFEST, line, uri=_text(el),
-            name=sw.get("name") if sw is not None else None, element=el,
+            Kind.FIRMWARE_MANIFEST,
+            line,
+            uri=_text(el),
+            name=sw.get("name") if sw is not None else None,
+            element=el,
         )
     if tag == "extension":
-        return Reference(
-            Kind.EXTENSION, line, domain=el.get("domain"), version=el.get("version"), element=el
-        )
+        return Reference(Kind.EXTENSION, line, domain=el.get("domain"), version=el.get("version"), element=el)
     return None

@@ -158,8 +158,6 @@ class ErrorGroup(HcdfTrustError):
     def __init__(self, errors: list[HcdfTrustError]) -> None:
         self.errors = errors
         first = errors[0]
-        super().__init__(
-            f"{len(errors)} error(s); first: {first}", file=first.file, line=first.line
-        )
+        super().__init__(f"{len(errors)} error(s); first: {first}", file=first.file, line=first.line)
         self.exit_code = 1 if any(e.exit_code == 1 for e in errors) else 3
         self.code = "errors"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -88,10 +89,14 @@ class ContentStore:
         """
         path = self.path_for(sha256)
         try:
-            with open(path, "rb", buffering=0) as f:
-                actual = hash_stream(f).sha256
-        except FileNotFoundError:
+            # O_NONBLOCK: a FIFO planted in the cache must not hang us; only a
+            # regular file can be a blob (a directory or device is not one).
+            fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        except OSError:  # missing, unreadable, a symlink loop: not usable
             return None
+        with os.fdopen(fd, "rb", buffering=0) as f:
+            regular = stat.S_ISREG(os.fstat(fd).st_mode)
+            actual = hash_stream(f).sha256 if regular else None
         if actual != sha256:
             with contextlib.suppress(OSError):
                 path.unlink()

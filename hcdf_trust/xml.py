@@ -18,8 +18,26 @@ MAX_DOCUMENT_BYTES = 32 << 20
 MAX_DEPTH = 200
 
 
+class _ExternalLoadRefused(Exception):
+    def __init__(self, url: str) -> None:
+        super().__init__(url)
+        self.url = url
+
+
+class _RefuseExternal(etree.Resolver):
+    """Refuse every external load before any I/O.
+
+    Even with ``load_dtd=False`` libxml2 opens an external DTD subset and external
+    parameter entities named in a DOCTYPE: a local file would be read (an existence
+    and content oracle) and a FIFO would hang the parser for ever.
+    """
+
+    def resolve(self, system_url, public_id, context):  # type: ignore[no-untyped-def]
+        raise _ExternalLoadRefused(str(system_url))
+
+
 def _parser() -> etree.XMLParser:
-    return etree.XMLParser(
+    parser = etree.XMLParser(
         resolve_entities=False,
         no_network=True,
         load_dtd=False,
@@ -28,6 +46,8 @@ def _parser() -> etree.XMLParser:
         remove_blank_text=False,
         collect_ids=False,
     )
+    parser.resolvers.add(_RefuseExternal())
+    return parser
 
 
 def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
@@ -45,6 +65,11 @@ def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
         )
     try:
         tree = etree.fromstring(data, _parser()).getroottree()
+    except _ExternalLoadRefused as exc:
+        raise XmlError(
+            f"a DOCTYPE that loads {exc.url!r} is refused (external DTDs and entities are never loaded)",
+            file=source,
+        ) from None
     except etree.XMLSyntaxError as exc:
         line = exc.lineno if getattr(exc, "lineno", None) else None
         raise XmlError(f"malformed XML: {exc.msg}", file=source, line=line) from None
@@ -52,9 +77,7 @@ def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
         raise XmlError(f"malformed XML: {exc}", file=source) from None
     docinfo = tree.docinfo
     if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
-        raise XmlError(
-            "a DOCTYPE is not allowed in HCDF (entities and DTDs are refused)", file=source, line=1
-        )
+        raise XmlError("a DOCTYPE is not allowed in HCDF (entities and DTDs are refused)", file=source, line=1)
     _check_depth(tree.getroot(), source)
     return tree
 
@@ -64,7 +87,5 @@ def _check_depth(root: etree._Element, source: str) -> None:
     while stack:
         el, depth = stack.pop()
         if depth > MAX_DEPTH:
-            raise XmlError(
-                f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=el.sourceline
-            )
+            raise XmlError(f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=el.sourceline)
         stack.extend((child, depth + 1) for child in el)

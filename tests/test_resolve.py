@@ -42,7 +42,13 @@ def tree(tmp_path):
             + f'\n<include uri="sub.hcdf" sha="{sha(sub.encode())}" name="r" pose="0 -1 0 0 0 0"/>'
         )
     )
-    return {"root": root, "doc": doc, "glb": root / "models" / "a.glb", "sub": root / "sub.hcdf", "cache": tmp_path / "cache"}
+    return {
+        "root": root,
+        "doc": doc,
+        "glb": root / "models" / "a.glb",
+        "sub": root / "sub.hcdf",
+        "cache": tmp_path / "cache",
+    }
 
 
 def resolve(cli, t, *extra):
@@ -128,8 +134,11 @@ def test_unpinned_is_an_error_under_locked_unless_the_lock_pins_it(cli, tree):
     tree["doc"].write_text(tree["doc"].read_text().replace('<comp name="c_', '<comp name="x_', 1))
     (tree["root"] / "models" / "b.stl").write_bytes(b"solid")
     tree["doc"].write_text(
-        tree["doc"].read_text().replace(
-            "</hcdf>", '<comp name="m"><collision><geometry><mesh uri="models/b.stl"/></geometry></collision></comp>\n</hcdf>'
+        tree["doc"]
+        .read_text()
+        .replace(
+            "</hcdf>",
+            '<comp name="m"><collision><geometry><mesh uri="models/b.stl"/></geometry></collision></comp>\n</hcdf>',
         )
     )
     r = resolve(cli, tree, "--locked")
@@ -147,7 +156,9 @@ def test_locked_reports_new_and_removed_artifacts(cli, tree):
     assert resolve(cli, tree).exit_code == 0
     (tree["root"] / "models" / "n.glb").write_bytes(b"new")
     text = tree["doc"].read_text()
-    tree["doc"].write_text(text.replace("models/a.glb", "models/n.glb").replace(sha(tree["glb"].read_bytes()), sha(b"new"), 1))
+    tree["doc"].write_text(
+        text.replace("models/a.glb", "models/n.glb").replace(sha(tree["glb"].read_bytes()), sha(b"new"), 1)
+    )
     r = resolve(cli, tree, "--locked")
     assert r.exit_code == 1
     messages = [e["message"] for e in r.json["errors"]]

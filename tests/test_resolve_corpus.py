@@ -56,7 +56,7 @@ def test_flipped_byte_in_one_glb_exits_1_naming_it(cli, tmp_path):
     err = errors[0]
     assert "72eef172-optical_flow.glb" in err["message"]
     assert err["file"].endswith("d9507e38-optical-flow.hcdf")
-    assert doc.read_text().splitlines()[err["line"] - 1].strip().startswith("<model href=\"models/72eef172")
+    assert doc.read_text().splitlines()[err["line"] - 1].strip().startswith('<model href="models/72eef172')
     assert err["expected"] == "72eef1724ebbf6d7df57edba6465ef9e35ac25a4db10365ef29b9a2b39d0636a"
     assert err["actual"] == hashlib.sha256(bytes(data)).hexdigest()
     assert not lock.exists(), "no lock file is written on failure"

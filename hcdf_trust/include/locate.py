@@ -103,9 +103,7 @@ class Locator:
                 actual=uri,
             )
         elif scheme:
-            raise InputError(
-                f"unsupported URL scheme {scheme!r} in {uri!r}", file=file, line=line, actual=uri
-            )
+            raise InputError(f"unsupported URL scheme {scheme!r} in {uri!r}", file=file, line=line, actual=uri)
         else:
             absolute = urljoin(self.base or referrer.url, text)
         return self._apply(absolute, file=file, line=line, uri=uri)

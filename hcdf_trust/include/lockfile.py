@@ -102,7 +102,9 @@ def compare(locked: dict[str, LockEntry], actual: dict[str, LockEntry], *, lock_
         where = now.referenced_from[0] if now.referenced_from else None
         file, line = _split_where(where)
         if before is None:
-            errors.append(LockDriftError(f"{now.uri} is not in the lock file {lock_path}", file=file, line=line, url=url))
+            errors.append(
+                LockDriftError(f"{now.uri} is not in the lock file {lock_path}", file=file, line=line, url=url)
+            )
         elif before.sha256 != now.sha256:
             errors.append(
                 LockDriftError(
@@ -115,9 +117,7 @@ def compare(locked: dict[str, LockEntry], actual: dict[str, LockEntry], *, lock_
                 )
             )
     for url in sorted(set(locked) - set(actual)):
-        errors.append(
-            LockDriftError(f"{url} is in the lock file but no longer referenced", file=lock_path, url=url)
-        )
+        errors.append(LockDriftError(f"{url} is in the lock file but no longer referenced", file=lock_path, url=url))
     return errors
 
 
