@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/hcdf-trust resolve examples/robot/robot.hcdf --locked --out examples/out/scout2.flat.hcdf
 	$(BIN)/hcdf-trust verify examples/robot/robot.hcdf
-	$(BIN)/hcdf-trust validate examples/robot/robot.hcdf
+	$(BIN)/hcdf-trust validate examples/out/scout2.flat.hcdf
 
 ## The whole test suite (what CI runs).
 test: $(STAMP)

@@ -151,7 +151,7 @@ def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) 
     if out:
         from .include.flatten import flatten
 
-        flat = flatten(res)
+        flat = flatten(res, out_path=out)
     if not no_lock:
         res.write_lock()
     if flat is not None and out:

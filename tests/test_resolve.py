@@ -325,3 +325,13 @@ def test_not_hcdf_is_an_input_error(cli, tmp_path):
     doc.write_text("<html><body/></html>")
     r = cli("resolve", doc, "--json")
     assert r.exit_code == 3 and "not an HCDF document" in r.json["errors"][0]["message"]
+
+
+def test_flattened_output_elsewhere_still_points_at_the_same_files(cli, tree, tmp_path):
+    out = tmp_path / "dist" / "flat" / "robot.flat.hcdf"
+    assert resolve(cli, tree, "--out", out).exit_code == 0
+    r = cli("resolve", out, "--root", tmp_path, "--no-lock", "--json")
+    assert r.exit_code == 0, r.stdout
+    shas = {a["sha256"] for a in r.json["artifacts"]}
+    assert shas == {sha(tree["glb"].read_bytes())}
+    assert "<include" not in out.read_text()
