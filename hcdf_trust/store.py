@@ -94,9 +94,12 @@ class ContentStore:
             fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
         except OSError:  # missing, unreadable, a symlink loop: not usable
             return None
-        with os.fdopen(fd, "rb", buffering=0) as f:
-            regular = stat.S_ISREG(os.fstat(fd).st_mode)
-            actual = hash_stream(f).sha256 if regular else None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            actual = None
+        else:
+            with os.fdopen(fd, "rb", buffering=0) as f:
+                actual = hash_stream(f).sha256
         if actual != sha256:
             with contextlib.suppress(OSError):
                 path.unlink()
@@ -128,8 +131,10 @@ class ContentStore:
                     hashed = hash_chunks(chunks, sink=f, limit=limit)
                 except ValueError as exc:
                     raise FetchError(f"body {exc}", file=source, url=source) from None
-                f.flush()
-                os.fsync(f.fileno())
+                # No fsync: a blob torn by a crash no longer hashes to its name, and
+                # verified_path() re-hashes on every read, so it is dropped and fetched
+                # again. Skipping it makes many small fetches ~2x faster (fsync per blob
+                # was the largest client cost in the 200-file latency test).
             if accept is not None and not accept(hashed):
                 os.unlink(tmp)
                 return hashed, None

@@ -61,6 +61,7 @@ class Route:
     reset_after: int | None = None  # send this many body bytes, then RST the connection
     stream_size: int | None = None  # generate this many bytes instead of sending ``body``
     chunked: bool = False  # Transfer-Encoding: chunked (no Content-Length)
+    close_delimited: bool = False  # no Content-Length, no chunking: the body ends at close
     drip_every: float | None = None  # seconds between single bytes
     latency: float = 0.0
 
@@ -160,7 +161,10 @@ class LoopbackServer:
         root = self.root.resolve()
         if root not in file.parents or not file.is_file():
             return None
-        return Route(body=file.read_bytes(), headers={"Content-Type": mimetypes.guess_type(file.name)[0] or "application/octet-stream"})
+        return Route(
+            body=file.read_bytes(),
+            headers={"Content-Type": mimetypes.guess_type(file.name)[0] or "application/octet-stream"},
+        )
 
 
 class _Server(http.server.ThreadingHTTPServer):
@@ -243,6 +247,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.send_header(name, value)
         if route.chunked:
             self.send_header("Transfer-Encoding", "chunked")
+        elif route.close_delimited:
+            self.send_header("Connection", "close")
+            self.close_connection = True
         else:
             declared = route.declared_length if route.declared_length is not None else size
             self.send_header("Content-Length", str(declared))
@@ -355,15 +362,19 @@ class TlsMaterial:
     other_ca: Any  # a CA the client is never told about
 
     def server_context(self, kind: str = "good") -> ssl.SSLContext:
-        """``good``: issued by ``ca``; ``untrusted``: issued by ``other_ca``; ``expired``: by ``ca``, expired."""
+        """A server context: ``good`` (issued by ``ca``), ``untrusted`` (by ``other_ca``)
+        or ``expired`` (by ``ca``, validity ended yesterday)."""
         if kind == "good":
             cert = self.ca.issue_cert(HOST, "localhost")
         elif kind == "untrusted":
             cert = self.other_ca.issue_cert(HOST, "localhost")
         elif kind == "expired":
-            now = dt.datetime.now(dt.timezone.utc)
+            now = dt.datetime.now(dt.UTC)
             cert = self.ca.issue_cert(
-                HOST, "localhost", not_before=now - dt.timedelta(days=30), not_after=now - dt.timedelta(days=1)
+                HOST,
+                "localhost",
+                not_before=now - dt.timedelta(days=30),
+                not_after=now - dt.timedelta(days=1),
             )
         else:
             raise ValueError(kind)
