@@ -44,6 +44,13 @@ from .locate import Location, Locator, file_url
 
 DEFAULT_MAX_DEPTH = 16
 DEFAULT_JOBS = 8
+# Local files and cached blobs at least this large are hashed on a thread per core;
+# smaller ones in the resolving thread (see _Run._plan).
+PARALLEL_MIN_BYTES = 256 << 10
+try:
+    _CORES = max(1, len(os.sched_getaffinity(0)))
+except AttributeError:  # not on Linux
+    _CORES = os.cpu_count() or 1
 
 
 @dataclass(frozen=True)
@@ -305,13 +312,54 @@ class _Run:
             return
         if self.on_start:
             self.on_start(len(artifacts))
-        jobs = max(1, min(self.o.jobs, len(artifacts)))
-        if jobs == 1:
-            for art in artifacts:
+        inline, cpu, net = self._plan(artifacts)
+        pools: list[ThreadPoolExecutor] = []
+        futures = []
+        try:
+            for work, workers in ((net, self.o.jobs), (cpu, min(self.o.jobs, _CORES))):
+                if work:
+                    pools.append(ThreadPoolExecutor(max_workers=min(workers, len(work))))
+                    futures += [pools[-1].submit(self._obtain_one, a, keep) for a in work]
+            for art in inline:
                 self._obtain_one(art, keep)
-            return
-        with ThreadPoolExecutor(max_workers=jobs) as pool:
-            list(pool.map(lambda a: self._obtain_one(a, keep), artifacts))
+            for future in futures:
+                future.result()
+        finally:
+            for pool in pools:
+                pool.shutdown()
+
+    def _plan(self, artifacts: list[Artifact]) -> tuple[list[Artifact], list[Artifact], list[Artifact]]:
+        """Split work into (this thread, one thread per core, up to --jobs threads).
+
+        Network fetches wait on latency: up to --jobs at once. Local files and cached
+        blobs are CPU work: hashing a large one releases the GIL, so one thread per
+        core hashes in parallel, but for a small one the per-file Python work costs
+        more than the hash, and threads contending for the GIL make it several times
+        slower than doing it here. The sizes are only a hint (a stat, no open):
+        :meth:`_obtain` still makes every check.
+        """
+        if self.o.jobs <= 1:
+            return artifacts, [], []
+        inline: list[Artifact] = []
+        sized: list[tuple[int, Artifact]] = []
+        net: list[Artifact] = []
+        for art in artifacts:
+            try:
+                path = art.location.path
+                if path is None:
+                    want = self._wanted_sha(art)
+                    path = self.store.path_for(want) if want else None
+                size = os.stat(path).st_size if path is not None else -1
+            except (OSError, ValueError):
+                size = -1
+            if size < 0:
+                (inline if art.location.path is not None else net).append(art)
+            elif size < PARALLEL_MIN_BYTES:
+                inline.append(art)
+            else:
+                sized.append((size, art))
+        sized.sort(key=lambda pair: -pair[0])  # largest first: the cores finish together
+        return inline, [art for _, art in sized], net
 
     def _obtain_one(self, art: Artifact, keep: bool) -> None:
         use = art.uses[0]
@@ -348,7 +396,7 @@ class _Run:
         if want is not None:
             cached = self.store.verified_path(want)
             if cached is not None:
-                data = cached.read_bytes() if keep else None
+                data = _read_blob(cached, want, file=file, line=line, url=art.url) if keep else None
                 self._record(art, Hashed(want, cached.stat().st_size), "cache")
                 return data
         if self.fetcher is None:
@@ -377,7 +425,7 @@ class _Run:
                     exc.file, exc.line = file, line
                     raise
                 if keep and path is not None:
-                    data = path.read_bytes()
+                    data = _read_blob(path, hashed.sha256, file=file, line=line, url=art.url)
             else:
                 sink = _Sink() if keep else None
                 try:
@@ -533,6 +581,16 @@ class _Sink:
 
     def data(self) -> bytes:
         return b"".join(self.parts)
+
+
+def _read_blob(path: Path, sha256: str, *, file: str, line: int | None, url: str) -> bytes:
+    """A cache blob's bytes for parsing, hashed again: a blob swapped after it was
+    verified (or replaced by a FIFO) must not be parsed under the verified digest."""
+    with open_local(path, path.parent, file=file, line=line) as fd:
+        data = _read_limited(fd, url)
+    if hash_bytes(data).sha256 != sha256:
+        raise InputError(f"cache blob {path} changed after it was verified", file=file, line=line, url=url)
+    return data
 
 
 def _read_limited(fd: int, source: str) -> bytes:
