@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from .digest import Hashed, hash_chunks, hash_stream, is_full_sha256
-from .errors import FetchError
+from .errors import FetchError, InputError
 
 
 @contextlib.contextmanager
@@ -81,11 +81,12 @@ class ContentStore:
     def has(self, sha256: str) -> bool:
         return self.path_for(sha256).is_file()
 
-    def verified_path(self, sha256: str) -> Path | None:
+    def verified_path(self, sha256: str, *, repair: bool = True) -> Path | None:
         """The blob's path if present and its content still hashes to its name.
 
-        A blob that no longer matches (tampered, bit rot) is removed and ``None``
-        returned, so the caller fetches it again instead of trusting it.
+        A blob that no longer matches (tampered, bit rot) is never returned; with
+        ``repair`` it is also removed, so the next fetch can replace it (``verify``,
+        which writes nothing, passes ``repair=False``).
         """
         path = self.path_for(sha256)
         try:
@@ -101,8 +102,9 @@ class ContentStore:
             with os.fdopen(fd, "rb", buffering=0) as f:
                 actual = hash_stream(f).sha256
         if actual != sha256:
-            with contextlib.suppress(OSError):
-                path.unlink()
+            if repair:
+                with contextlib.suppress(OSError):
+                    path.unlink()
             return None
         return path
 
@@ -139,9 +141,12 @@ class ContentStore:
                 os.unlink(tmp)
                 return hashed, None
             dest = self.path_for(hashed.sha256)
-            dest.parent.mkdir(parents=True, exist_ok=True)
             os.chmod(tmp, 0o444)
-            os.replace(tmp, dest)
+            try:
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp, dest)
+            except OSError as exc:  # e.g. a directory planted where the blob goes
+                raise InputError(f"cannot store cache blob {dest}: {exc.strerror}", file=str(dest)) from None
             return hashed, dest
         except BaseException:
             with contextlib.suppress(FileNotFoundError):

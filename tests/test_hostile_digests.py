@@ -7,6 +7,7 @@ is used only for a full digest and only if its bytes still hash to its name.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -420,3 +421,26 @@ def test_store_ingest_rejected_content_leaves_nothing(tmp_path):
     assert path is None and hashed.sha256 == sha256(MODEL)
     assert _blobs(tmp_path / "cache") == set()
     assert list((tmp_path / "cache" / "tmp").iterdir()) == []
+
+
+def test_verify_leaves_a_tampered_cache_blob_in_place(tmp_path):
+    """verify writes nothing, not even cache repairs; resolve drops the bad blob."""
+    store = ContentStore(tmp_path / "c")
+    hashed, path = store.ingest([b"genuine"])
+    path.chmod(0o644)
+    path.write_bytes(b"tampered")
+    assert store.verified_path(hashed.sha256, repair=False) is None
+    assert path.read_bytes() == b"tampered"
+    assert store.verified_path(hashed.sha256) is None
+    assert not path.exists()
+
+
+def test_a_directory_where_a_blob_goes_is_an_input_error(tmp_path):
+    from hcdf_trust.errors import InputError
+
+    store = ContentStore(tmp_path / "c")
+    dest = store.path_for(hashlib.sha256(b"x").hexdigest())
+    (dest / "sub").mkdir(parents=True)
+    with pytest.raises(InputError, match="cannot store cache blob"):
+        store.ingest([b"x"])
+    assert list((tmp_path / "c" / "tmp").iterdir()) == []
