@@ -1,6 +1,6 @@
 """The ``hcdf-trust`` command: parses, calls the library, renders. No logic here.
 
-Heavy modules (httpx, xmlschema, rich) are imported inside the commands that
+Heavy modules (httpx, rich) are imported inside the commands that
 need them, so ``--help`` and an offline ``verify`` start fast.
 """
 
@@ -239,6 +239,7 @@ def validate(doc: str, schema: str | None, as_json: bool) -> None:
                 "ok": report.ok,
                 "checked": report.checked,
                 "schema": report.schema,
+                "notes": list(report.notes),
                 "findings": [f.to_dict() for f in report.findings],
                 "errors": [f.to_dict() for f in report.findings if f.severity == "error"],
             }
@@ -246,6 +247,8 @@ def validate(doc: str, schema: str | None, as_json: bool) -> None:
     else:
         for f in report.findings:
             click.echo(str(f), err=True)
+        for n in report.notes:
+            click.echo(f"note: {n}", err=True)
         if report.schema is None:
             click.echo("note: no --schema given: only the semantic rules were checked", err=True)
         errors = sum(1 for f in report.findings if f.severity == "error")

@@ -376,8 +376,8 @@ def test_cached_include_swapped_after_verification_is_not_parsed(cli, tree, monk
     real = ContentStore.verified_path
     swapped = []
 
-    def racing_verified_path(self, sha):
-        path = real(self, sha)
+    def racing_verified_path(self, sha, **kwargs):
+        path = real(self, sha, **kwargs)
         if path is not None and sha == sha256(SUB_A):
             os.chmod(path, 0o644)
             _rewrite_in_place(path, evil)

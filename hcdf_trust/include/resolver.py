@@ -214,7 +214,7 @@ class _Run:
         locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
         root_loc = Location(url=file_url(doc_path), path=doc_path, root=doc_path.parent)
         data = _read_root(doc_path)
-        stub = _link_stub_target(doc_path, data)
+        stub = link_stub_target(doc_path, data)
         if stub is not None:
             doc_path, data = stub, _read_root(stub)
             root_loc = Location(url=file_url(doc_path), path=doc_path, root=doc_path.parent)
@@ -394,7 +394,7 @@ class _Run:
         assert loc.remote is not None
         want = self._wanted_sha(art)
         if want is not None:
-            cached = self.store.verified_path(want)
+            cached = self.store.verified_path(want, repair=self.o.write_cache)
             if cached is not None:
                 data = _read_blob(cached, want, file=file, line=line, url=art.url) if keep else None
                 self._record(art, Hashed(want, cached.stat().st_size), "cache")
@@ -607,7 +607,7 @@ def _read_root(path: Path) -> bytes:
         return _read_limited(fd, display_url(file_url(path)))
 
 
-def _link_stub_target(path: Path, data: bytes) -> Path | None:
+def link_stub_target(path: Path, data: bytes) -> Path | None:
     """A symlink checked out as a plain file (git with core.symlinks=false) holds just
     the target's name: hcdf_models' ``{device}.hcdf`` pointers arrive that way.
     Follow it only to a sibling file, never across folders."""

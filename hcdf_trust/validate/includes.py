@@ -1,0 +1,111 @@
+"""Read the local include chain of a document, for the frame-convention rule.
+
+Only local files are read, through the include package's locator (relative to
+the including document, confined to the root document's folder) and its safe
+opener (no symlink escape, regular files only); every file is parsed by
+:func:`hcdf_trust.xml.parse_bytes`. Nothing is fetched, hashed or cached: that
+is ``resolve``'s job. An include that cannot be read becomes an edge with a
+reason, never an exception.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from lxml import etree
+
+from ..document import Document
+from ..errors import HcdfTrustError, InputError
+from ..include.fetch import open_local, read_chunks
+from ..include.flatten import SEPARATOR
+from ..include.locate import Location, Locator, file_url
+from ..xml import MAX_DOCUMENT_BYTES
+from .semantic import IncludeEdge
+
+MAX_INCLUDE_DEPTH = 16
+MAX_INCLUDE_EDGES = 1000
+
+
+def read_local(path: Path, root: Path, *, source: str, line: int | None = None) -> bytes:
+    """A local document's bytes, confined to ``root`` and bounded in size.
+
+    Raises:
+        NotFoundError, PathEscapeError, InputError.
+    """
+    with open_local(path, root, file=source, line=line) as fd:
+        if os.fstat(fd).st_size > MAX_DOCUMENT_BYTES:
+            raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
+        data = b"".join(read_chunks(fd))
+    if len(data) > MAX_DOCUMENT_BYTES:
+        raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
+    return data
+
+
+def display(path: Path) -> str:
+    rel = os.path.relpath(path)
+    return str(path) if rel.startswith("..") else rel
+
+
+def local_include_edges(root: etree._Element, path: Path, *, source: str) -> list[IncludeEdge]:
+    """Every ``<include>`` reachable through local files, depth first in document order
+    (the order flattening uses).
+
+    Each edge carries the prefix flattening gives the included file's names
+    (the include ``name`` chain joined with ``_``) and, when the file could be
+    read, its parsed root and frames. A file included twice under two names is
+    visited twice but read once.
+    """
+    path = Path(os.path.abspath(path))
+    locator = Locator.create(root=path.parent)
+    start = Location(url=file_url(path), path=path, root=path.parent)
+    read: dict[str, tuple[str, Document] | str] = {}  # url -> (display, document) or why not
+    edges: list[IncludeEdge] = []
+
+    def visit(loc: Location, doc_root: etree._Element, shown: str, prefix: str, stack: tuple[str, ...]) -> None:
+        for inc in doc_root.findall("include"):
+            uri = inc.get("uri")
+            line = inc.sourceline
+            if not uri:
+                continue  # the XSD reports the missing attribute
+            name = (inc.get("name") or "").strip()
+            edge = dict(parent=shown, line=line, uri=uri, prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix)
+            try:
+                child = locator.locate(uri, loc, file=shown, line=line)
+            except HcdfTrustError as exc:
+                edges.append(IncludeEdge(**edge, skipped=exc.message))
+                continue
+            if not child.is_local or child.path is None:
+                edges.append(IncludeEdge(**edge, skipped="not a local file; validate does not fetch"))
+                continue
+            if child.url in stack:
+                edges.append(IncludeEdge(**edge, skipped="include cycle"))
+                continue
+            if len(stack) > MAX_INCLUDE_DEPTH or len(edges) >= MAX_INCLUDE_EDGES:
+                edges.append(IncludeEdge(**edge, skipped="include tree too deep or too large"))
+                continue
+            if child.url not in read:
+                child_name = display(child.path)
+                try:
+                    data = read_local(child.path, child.root or path.parent, source=shown, line=line)
+                    read[child.url] = (child_name, Document.from_bytes(data, source=child_name))
+                except HcdfTrustError as exc:
+                    read[child.url] = exc.message
+            found = read[child.url]
+            if isinstance(found, str):
+                edges.append(IncludeEdge(**edge, skipped=found))
+                continue
+            child_name, doc = found
+            edges.append(
+                IncludeEdge(
+                    **edge,
+                    child=child_name,
+                    body_frame=doc.body_frame,
+                    world_frame=doc.world_frame,
+                    document=doc.root,
+                )
+            )
+            visit(child, doc.root, child_name, edge["prefix"], (*stack, child.url))
+
+    visit(start, root, source, "", (start.url,))
+    return edges
