@@ -28,3 +28,7 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) examples/out bench/work .pytest_cache
+
+## Ratio benchmarks (a few minutes, not part of `make test`); writes bench/RESULTS.md.
+bench: $(STAMP)
+	$(BIN)/python bench/run.py $(BENCH_ARGS)

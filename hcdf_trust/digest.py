@@ -60,9 +60,7 @@ def parse_pin(text: str | None, *, file: str | None = None, line: int | None = N
     if value.startswith("sha256:"):
         value = value[len("sha256:") :]
     if not set(value) <= _HEX:
-        raise MalformedDigestError(
-            f"sha {text!r} is not a hex SHA-256 digest", file=file, line=line, actual=text
-        )
+        raise MalformedDigestError(f"sha {text!r} is not a hex SHA-256 digest", file=file, line=line, actual=text)
     if len(value) > FULL_HEX or len(value) < MIN_WEAK_HEX:
         raise MalformedDigestError(
             f"sha {text!r} has {len(value)} hex digits: a SHA-256 pin has 64 "
@@ -127,9 +125,7 @@ def hash_stream(stream: BinaryIO, *, sink: BinaryIO | None = None, limit: int | 
     return Hashed(h.hexdigest(), size)
 
 
-def hash_chunks(
-    chunks: Iterable[bytes], *, sink: BinaryIO | None = None, limit: int | None = None
-) -> Hashed:
+def hash_chunks(chunks: Iterable[bytes], *, sink: BinaryIO | None = None, limit: int | None = None) -> Hashed:
     """Like :func:`hash_stream` over an iterator of byte chunks (e.g. an HTTP body)."""
     h = hashlib.sha256()
     size = 0

@@ -142,15 +142,15 @@ class Resolution:
                     url=lock_url(art.url, base),
                     sha256=art.sha256,
                     size=art.size,
-                    referenced_from=tuple(
-                        sorted({f"{lock_url(u.doc_url, base)}:{u.ref.line}" for u in art.uses})
-                    ),
+                    referenced_from=tuple(sorted({f"{lock_url(u.doc_url, base)}:{u.ref.line}" for u in art.uses})),
                 )
             )
         return entries
 
     def write_lock(self) -> None:
-        lockfile.write(self.lock_path, self.lock_entries(), root=lock_url(self.root_location.url, self.lock_path.parent))
+        lockfile.write(
+            self.lock_path, self.lock_entries(), root=lock_url(self.root_location.url, self.lock_path.parent)
+        )
 
 
 def lock_url(url: str, base: Path) -> str:
@@ -171,7 +171,13 @@ def display_url(url: str) -> str:
 Reporter = Callable[[int, int], None]  # (files done, bytes done) increments
 
 
-def resolve(doc_path: str | os.PathLike[str], options: ResolveOptions | None = None, *, on_start: Callable[[int], None] | None = None, on_progress: Reporter | None = None) -> Resolution:
+def resolve(
+    doc_path: str | os.PathLike[str],
+    options: ResolveOptions | None = None,
+    *,
+    on_start: Callable[[int], None] | None = None,
+    on_progress: Reporter | None = None,
+) -> Resolution:
     """Resolve ``doc_path`` and every file it references; never raises for content errors.
 
     Errors are collected in :attr:`Resolution.errors` (use ``ok``). Raises
@@ -235,7 +241,10 @@ class _Run:
         self.res = res
         self.locator = locator
         self._walk_includes(root_loc)
-        self._fetch([a for a in res.artifacts.values() if a.kind is not Kind.INCLUDE and a.error is None and a.sha256 is None], keep=False)
+        self._fetch(
+            [a for a in res.artifacts.values() if a.kind is not Kind.INCLUDE and a.error is None and a.sha256 is None],
+            keep=False,
+        )
         self._find_cycles()
         self._check_all()
         return res
