@@ -139,18 +139,33 @@ def hash_chunks(chunks: Iterable[bytes], *, sink: BinaryIO | None = None, limit:
     return Hashed(h.hexdigest(), size)
 
 
-def hash_fd(fd: int) -> Hashed:
+def read_small(fd: int, size: int) -> bytes:
+    """Read a regular file of about ``size`` bytes to its end, usually in one call.
+
+    A short read from a regular file means end of file on Linux, so asking for one
+    byte more than the expected size saves the extra read that would return b"".
+    A file that grew meanwhile is read on to its (new) end.
+    """
+    data = os.read(fd, size + 1)
+    if len(data) <= size:
+        return data
+    parts = [data]
+    while more := os.read(fd, CHUNK):
+        parts.append(more)
+    return b"".join(parts)
+
+
+def hash_fd(fd: int, *, size: int | None = None) -> Hashed:
     """Hash an open file descriptor from its current position to end of file.
 
     Reads straight from ``fd`` (no duplicate descriptor, no file object): small
     files in one read, larger ones with ``readv`` into this thread's buffer. Both
     the reads and the hash updates run without the GIL, so threads hash in parallel.
     """
-    if os.fstat(fd).st_size <= SMALL_FILE:
-        parts = []
-        while data := os.read(fd, SMALL_FILE + 1):
-            parts.append(data)
-        return hash_bytes(parts[0] if len(parts) == 1 else b"".join(parts))
+    if size is None:
+        size = os.fstat(fd).st_size
+    if size <= SMALL_FILE:
+        return hash_bytes(read_small(fd, size))
     h = hashlib.sha256()
     view = _buffer()
     size = 0

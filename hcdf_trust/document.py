@@ -107,17 +107,17 @@ class Document:
         return list(_walk(self.root))
 
 
+# Elements that can carry a reference; lxml finds them in C, in document order.
+_REFERENCE_TAGS = ("include", "model", "mesh", "stream-profile", "hash", "firmware-manifest-uri", "extension")
+
+
 def _walk(root: etree._Element):
-    stack = [root]
-    while stack:
-        el = stack.pop()
-        tag = el.tag if isinstance(el.tag, str) else None
-        ref = _reference(el, tag) if tag else None
+    for el in root.iter(*_REFERENCE_TAGS):
+        if el.tag != "extension" and any(True for _ in el.iterancestors("extension")):
+            continue  # vendor content: may contain anything, never fetched by us
+        ref = _reference(el, el.tag)
         if ref is not None:
             yield ref
-        if tag == "extension":
-            continue  # vendor content: may contain anything, never fetched by us
-        stack.extend(reversed([c for c in el if isinstance(c.tag, str)]))
 
 
 def _reference(el: etree._Element, tag: str) -> Reference | None:

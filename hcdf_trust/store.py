@@ -125,8 +125,11 @@ class ContentStore:
             InputError: more than ``limit`` bytes.
         """
         tmpdir = self.root / "tmp"
-        tmpdir.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=tmpdir)
+        try:
+            fd, tmp = tempfile.mkstemp(dir=tmpdir)
+        except FileNotFoundError:  # first blob of a new cache: one mkdir, not one per blob
+            tmpdir.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=tmpdir)
         try:
             with os.fdopen(fd, "wb") as f:
                 try:
@@ -143,8 +146,11 @@ class ContentStore:
             dest = self.path_for(hashed.sha256)
             os.chmod(tmp, 0o444)
             try:
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(tmp, dest)
+                try:
+                    os.replace(tmp, dest)
+                except FileNotFoundError:  # the blob's fan-out folder is new
+                    dest.parent.mkdir(parents=True, exist_ok=True)
+                    os.replace(tmp, dest)
             except OSError as exc:  # e.g. a directory planted where the blob goes
                 raise InputError(f"cannot store cache blob {dest}: {exc.strerror}", file=str(dest)) from None
             return hashed, dest

@@ -78,14 +78,16 @@ def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
     docinfo = tree.docinfo
     if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
         raise XmlError("a DOCTYPE is not allowed in HCDF (entities and DTDs are refused)", file=source, line=1)
-    _check_depth(tree.getroot(), source)
+    _check_depth(tree, source)
     return tree
 
 
-def _check_depth(root: etree._Element, source: str) -> None:
-    stack = [(root, 1)]
-    while stack:
-        el, depth = stack.pop()
-        if depth > MAX_DEPTH:
-            raise XmlError(f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=el.sourceline)
-        stack.extend((child, depth + 1) for child in el)
+# Any element MAX_DEPTH + 1 levels down; evaluated by libxml2, not a Python walk.
+_TOO_DEEP = etree.XPath("/" + "/".join(["*"] * (MAX_DEPTH + 1)))
+
+
+def _check_depth(tree: etree._ElementTree, source: str) -> None:
+    # libxml2 alone stops at 256 levels (without huge_tree); we want a lower bound.
+    deep = _TOO_DEEP(tree)
+    if deep:
+        raise XmlError(f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=deep[0].sourceline)

@@ -9,6 +9,7 @@ by the resolver against the pins.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import ssl
 import stat
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urljoin, urlsplit
 
-from ..digest import CHUNK, SMALL_FILE
+from ..digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
 from ..errors import FetchError, InputError, NotFoundError, PathEscapeError
 
 if TYPE_CHECKING:
@@ -34,17 +35,21 @@ DEFAULT_DEADLINE = 600.0
 MAX_REDIRECTS = 5
 
 
-@contextlib.contextmanager
-def open_local(path: Path, root: Path, *, file: str | None = None, line: int | None = None) -> Iterator[int]:
-    """Open a regular file that really lies inside ``root`` and yield its descriptor.
+def open_checked(
+    path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None
+) -> tuple[int, os.stat_result]:
+    """Open a regular file that really lies inside ``root``; return its descriptor and stat.
 
     The symlink check is made on the opened descriptor (``/proc/self/fd``), so a
-    link swapped in between check and use cannot lead outside the root.
+    link swapped in between check and use cannot lead outside the root. The caller
+    closes the descriptor (or uses :func:`open_local`).
 
     Raises:
         NotFoundError, PathEscapeError, InputError (not a regular file, unreadable).
     """
     try:
+        # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
+        # reads from a regular file, the only kind we go on to read.
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise NotFoundError(f"{path}: no such file", file=file, line=line, url=str(path)) from None
@@ -52,9 +57,9 @@ def open_local(path: Path, root: Path, *, file: str | None = None, line: int | N
         # ELOOP: a symlink loop; EACCES etc.
         raise InputError(f"{path}: cannot open: {exc.strerror}", file=file, line=line) from None
     try:
-        real = Path(os.readlink(f"/proc/self/fd/{fd}"))
-        real_root = Path(os.path.realpath(root))
-        if real != real_root and real_root not in real.parents:
+        real = os.readlink(f"/proc/self/fd/{fd}")
+        real_root = _realpath(os.fspath(root))
+        if real != real_root and not real.startswith(real_root.rstrip("/") + "/"):
             raise PathEscapeError(
                 f"{path} resolves to {real}, outside the root {real_root} (symlink escape)",
                 file=file,
@@ -62,24 +67,48 @@ def open_local(path: Path, root: Path, *, file: str | None = None, line: int | N
                 expected=f"a file inside {real_root}",
                 actual=str(real),
             )
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            what = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            what = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file"
             raise InputError(f"{path} is {what}", file=file, line=line)
-        os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, st
+
+
+@contextlib.contextmanager
+def open_local(
+    path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None
+) -> Iterator[int]:
+    """:func:`open_checked` as a context manager that yields the descriptor."""
+    fd, _ = open_checked(path, root, file=file, line=line)
+    try:
         yield fd
     finally:
         os.close(fd)
+
+
+def hash_local(path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
+    """Hash a confined local file in constant memory (the hot path for model files)."""
+    fd, st = open_checked(path, root, file=file, line=line)
+    try:
+        return hash_fd(fd, size=st.st_size)
+    finally:
+        os.close(fd)
+
+
+@functools.lru_cache(maxsize=64)
+def _realpath(root: str) -> str:
+    """A root's real path, once per run: every file under it is checked against it."""
+    return os.path.realpath(root)
 
 
 def read_chunks(fd: int) -> Iterator[bytes]:
     """Yield a regular file's content from ``fd``; one read for small files."""
     size = os.fstat(fd).st_size
     if size <= SMALL_FILE:
-        chunks = []
-        while data := os.read(fd, SMALL_FILE + 1):
-            chunks.append(data)
-        yield b"".join(chunks)
+        yield read_small(fd, size)
         return
     while data := os.read(fd, CHUNK):
         yield data

@@ -211,7 +211,7 @@ def _is_editable(url: str, loc: Location) -> bool:
     """A local file whose identity is its own path (not a mirror copy of a remote URL)."""
     if not url.startswith("file://") or loc.path is None:
         return False
-    return file_url(loc.path) == url or Path(unquote(urlsplit(url).path)) == loc.path
+    return file_url(loc.path) == url or Path(unquote(urlsplit(url).path)) == Path(loc.path)
 
 
 def _explain_unrepairable(err: DigestMismatchError, res: Resolution) -> DigestMismatchError:

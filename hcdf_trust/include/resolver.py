@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
-from ..digest import Hashed, Pin, hash_bytes, hash_chunks, hash_fd, parse_pin
+from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -39,7 +39,7 @@ from ..errors import (
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
-from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, open_local, read_chunks
+from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, hash_local, open_local, read_chunks
 from .locate import Location, Locator, file_url
 
 DEFAULT_MAX_DEPTH = 16
@@ -218,12 +218,12 @@ class _Run:
         doc_path = Path(os.path.abspath(doc_path))
         root_dir = self._confinement_root(doc_path)
         locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
-        root_loc = Location(url=file_url(doc_path), path=doc_path, root=doc_path.parent)
+        root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         data = _read_root(doc_path)
         stub = link_stub_target(doc_path, data)
         if stub is not None:
             doc_path, data = stub, _read_root(stub)
-            root_loc = Location(url=file_url(doc_path), path=doc_path, root=doc_path.parent)
+            root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         lock_path = Path(self.o.lock_path) if self.o.lock_path else doc_path.parent / lockfile.DEFAULT_NAME
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
@@ -392,12 +392,13 @@ class _Run:
         loc = art.location
         data: bytes | None = None
         if loc.path is not None:
-            with open_local(loc.path, loc.root or loc.path.parent, file=file, line=line) as fd:
-                if keep:
+            root = loc.root or os.path.dirname(loc.path)
+            if keep:  # an include: hash and parse the very same bytes
+                with open_local(loc.path, root, file=file, line=line) as fd:
                     data = _read_limited(fd, display_url(art.url))
-                    hashed = hash_bytes(data)
-                else:
-                    hashed = hash_fd(fd)
+                hashed = hash_bytes(data)
+            else:
+                hashed = hash_local(loc.path, root, file=file, line=line)
             self._record(art, hashed, "file" if art.url.startswith("file://") else "mirror")
             return data
         assert loc.remote is not None

@@ -58,7 +58,7 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
     """
     path = Path(os.path.abspath(path))
     locator = Locator.create(root=path.parent)
-    start = Location(url=file_url(path), path=path, root=path.parent)
+    start = Location(url=file_url(path), path=str(path), root=path.parent)
     read: dict[str, tuple[str, Document] | str] = {}  # url -> (display, document) or why not
     edges: list[IncludeEdge] = []
 
