@@ -131,7 +131,14 @@ def main() -> None:
 )
 @click.option("--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket.")
 @click.option("--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256.")
-@click.option("--jobs", "-j", type=click.IntRange(1, 64), default=8, show_default=True, help="Parallel fetches.")
+@click.option(
+    "--jobs",
+    "-j",
+    type=click.IntRange(1, 64),
+    default=16,
+    show_default=True,
+    help="Parallel network fetches (local hashing uses one thread per core).",
+)
 @click.option(
     "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
 )
@@ -184,7 +191,14 @@ def verify(doc: str, as_json: bool, **kw: Any) -> None:
 @resolve_options
 @click.option("--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket.")
 @click.option("--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256.")
-@click.option("--jobs", "-j", type=click.IntRange(1, 64), default=8, show_default=True, help="Parallel fetches.")
+@click.option(
+    "--jobs",
+    "-j",
+    type=click.IntRange(1, 64),
+    default=16,
+    show_default=True,
+    help="Parallel network fetches (local hashing uses one thread per core).",
+)
 @click.option("--write", is_flag=True, help="Edit the files in place (default: only report what would change).")
 @handle_errors
 def pin(doc: str, write: bool, as_json: bool, **kw: Any) -> None:

@@ -16,6 +16,7 @@ flattened document are written by the caller, and only when the run is clean.
 from __future__ import annotations
 
 import os
+import sys
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -43,7 +44,7 @@ from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, hash_local, 
 from .locate import Location, Locator, file_url
 
 DEFAULT_MAX_DEPTH = 16
-DEFAULT_JOBS = 8
+DEFAULT_JOBS = 16
 # Local files and cached blobs at least this large are hashed on a thread per core;
 # smaller ones in the resolving thread (see _Run._plan).
 PARALLEL_MIN_BYTES = 256 << 10
@@ -125,9 +126,6 @@ class Resolution:
     @property
     def ok(self) -> bool:
         return not self.errors
-
-    def display(self, url: str) -> str:
-        return display_url(url)
 
     def lock_entries(self) -> list[lockfile.LockEntry]:
         base = self.lock_path.parent
@@ -324,6 +322,11 @@ class _Run:
         inline, cpu, net = self._plan(artifacts)
         pools: list[ThreadPoolExecutor] = []
         futures = []
+        # Hashing threads drop the GIL for each 1 MiB read and update, then wait for it
+        # while this thread runs Python for small files; at the default 5 ms switch
+        # interval they idle most of that wait. 0.5 ms: 1.07 GB robot 0.59 s -> 0.53 s.
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(switch, 0.0005))
         try:
             for work, workers in ((net, self.o.jobs), (cpu, min(self.o.jobs, _CORES))):
                 if work:
@@ -336,6 +339,7 @@ class _Run:
         finally:
             for pool in pools:
                 pool.shutdown()
+            sys.setswitchinterval(switch)
 
     def _plan(self, artifacts: list[Artifact]) -> tuple[list[Artifact], list[Artifact], list[Artifact]]:
         """Split work into (this thread, one thread per core, up to --jobs threads).
