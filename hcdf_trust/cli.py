@@ -113,6 +113,29 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
+def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Options of the verbs that may fetch (resolve, pin); verify never does."""
+    options = [
+        click.option(
+            "--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket."
+        ),
+        click.option(
+            "--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256."
+        ),
+        click.option(
+            "--jobs",
+            "-j",
+            type=click.IntRange(1, 64),
+            default=16,
+            show_default=True,
+            help="Parallel network fetches (local hashing uses one thread per core).",
+        ),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="hcdf-trust")
 def main() -> None:
@@ -129,16 +152,7 @@ def main() -> None:
 @click.option(
     "--locked", is_flag=True, help="Fail (exit 1) if anything differs from the lock file or is missing from it."
 )
-@click.option("--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket.")
-@click.option("--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256.")
-@click.option(
-    "--jobs",
-    "-j",
-    type=click.IntRange(1, 64),
-    default=16,
-    show_default=True,
-    help="Parallel network fetches (local hashing uses one thread per core).",
-)
+@fetch_options
 @click.option(
     "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
 )
@@ -159,12 +173,12 @@ def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) 
         from .include.flatten import flatten
 
         flat = flatten(res, out_path=out)
-    if not no_lock:
-        res.write_lock()
     if flat is not None and out:
         from .store import atomic_write
 
         atomic_write(out, flat)
+    if not no_lock:
+        res.write_lock()
     wrote = ([] if no_lock else [str(res.lock_path)]) + ([out] if out else [])
     _report(res, as_json=as_json, wrote=[_display_path(p) for p in wrote])
 
@@ -189,16 +203,7 @@ def verify(doc: str, as_json: bool, **kw: Any) -> None:
 @main.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
-@click.option("--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket.")
-@click.option("--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256.")
-@click.option(
-    "--jobs",
-    "-j",
-    type=click.IntRange(1, 64),
-    default=16,
-    show_default=True,
-    help="Parallel network fetches (local hashing uses one thread per core).",
-)
+@fetch_options
 @click.option("--write", is_flag=True, help="Edit the files in place (default: only report what would change).")
 @handle_errors
 def pin(doc: str, write: bool, as_json: bool, **kw: Any) -> None:
