@@ -554,6 +554,8 @@ def check_artifact(
                         actual=sha,
                     )
                 )
+            elif locked:
+                warnings.append(f"{where}: {use.ref.uri} has no sha; the lock file pins it")
             else:
                 warnings.append(f"{where}: {use.ref.uri} is unpinned (sha256 {sha})")
             continue
