@@ -509,16 +509,20 @@ def test_first_declaring_file_sets_the_chain_value(tmp_path):
     assert "a.hcdf declares world-frame=NED" in report.findings[0].message
 
 
-def test_includes_that_cannot_be_read_are_reported_not_fatal(tmp_path):
+def test_includes_that_cannot_be_read_are_reported_and_hostile_ones_refused(tmp_path):
     includes = (
         '  <include uri="missing.hcdf"/>\n  <include uri="../outside.hcdf"/>\n'
         '  <include uri="https://example.invalid/x.hcdf"/>\n'
     )
     root = _write(tmp_path / "root.hcdf", ' body-frame="FLU"', includes)
     report = validate_document(root)
-    assert [(c, s) for c, s, _, _ in _frame_findings(report)] == [("include-unchecked", "warning")] * 3
+    assert [(c, s) for c, s, _, _ in _frame_findings(report)] == [
+        ("include-unchecked", "warning"),
+        ("include-refused", "error"),  # a path out of the root: resolve refuses it too
+        ("include-unchecked", "warning"),
+    ]
     assert [f.line for f in report.findings] == [4, 5, 6]
-    assert report.ok
+    assert not report.ok
 
 
 def test_include_cycle_terminates(tmp_path):

@@ -16,7 +16,7 @@ from pathlib import Path
 from lxml import etree
 
 from ..document import Document
-from ..errors import HcdfTrustError, InputError
+from ..errors import HcdfTrustError, InputError, NotFoundError
 from ..include.fetch import open_local, read_chunks
 from ..include.flatten import SEPARATOR
 from ..include.locate import Location, Locator, file_url
@@ -59,7 +59,7 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
     path = Path(os.path.abspath(path))
     locator = Locator.create(root=path.parent)
     start = Location(url=file_url(path), path=str(path), root=path.parent)
-    read: dict[str, tuple[str, Document] | str] = {}  # url -> (display, document) or why not
+    read: dict[str, tuple[str, Document] | HcdfTrustError] = {}  # url -> (display, document) or why not
     edges: list[IncludeEdge] = []
 
     def visit(loc: Location, doc_root: etree._Element, shown: str, prefix: str, stack: tuple[str, ...]) -> None:
@@ -73,7 +73,7 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
             try:
                 child = locator.locate(uri, loc, file=shown, line=line)
             except HcdfTrustError as exc:
-                edges.append(IncludeEdge(**edge, skipped=exc.message))
+                edges.append(IncludeEdge(**edge, skipped=exc.message, refused=_refused(exc)))
                 continue
             if not child.is_local or child.path is None:
                 edges.append(IncludeEdge(**edge, skipped="not a local file; validate does not fetch"))
@@ -90,10 +90,10 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
                     data = read_local(child.path, child.root or path.parent, source=shown, line=line)
                     read[child.url] = (child_name, Document.from_bytes(data, source=child_name))
                 except HcdfTrustError as exc:
-                    read[child.url] = exc.message
+                    read[child.url] = exc
             found = read[child.url]
-            if isinstance(found, str):
-                edges.append(IncludeEdge(**edge, skipped=found))
+            if isinstance(found, HcdfTrustError):
+                edges.append(IncludeEdge(**edge, skipped=found.message, refused=_refused(found)))
                 continue
             child_name, doc = found
             edges.append(
@@ -109,3 +109,9 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
 
     visit(start, root, source, "", (start.url,))
     return edges
+
+
+def _refused(exc: HcdfTrustError) -> bool:
+    """A missing include is only unchecked; one that escapes its root, is not a
+    regular file or is hostile XML is refused, as resolve would refuse it."""
+    return not isinstance(exc, NotFoundError)

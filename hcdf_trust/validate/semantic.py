@@ -55,8 +55,9 @@ RULES: dict[str, str] = {
     "macsec-key-ref-conflict": "one key-ref is not used with different ciphers or policies",
     "macsec-cipher-unsupported": "a link's or chain's MACsec cipher is among the ciphers its ports declare (warning)",
     "frame-convention-mismatch": "body-frame and world-frame agree across the include chain",
-    "include-unchecked": "an include could not be read (remote, missing, refused, cycle): its names "
+    "include-unchecked": "an include could not be read (remote, missing, cycle, too deep): its names "
     "and frames were not checked (warning)",
+    "include-refused": "an include escapes its root, is not a regular file, or is malformed or hostile XML",
 }
 
 #: how flattening joins an include's name to the names it brings
@@ -106,6 +107,7 @@ class IncludeEdge:
     body_frame: str | None = None
     world_frame: str | None = None
     skipped: str | None = None
+    refused: bool = False  # skipped because it is hostile or unusable, not merely absent
     document: etree._Element | None = field(default=None, compare=False, repr=False)
 
 
@@ -872,7 +874,17 @@ class _Checker:
         """
         edges = list({(e.parent, e.line): e for e in self.edges}.values())  # one per <include>
         for edge in edges:
-            if edge.child is None:
+            if edge.child is None and edge.refused:
+                self.findings.append(
+                    Finding(
+                        "include-refused",
+                        "error",
+                        f"include {edge.uri!r} is refused ({edge.skipped})",
+                        file=edge.parent,
+                        line=edge.line,
+                    )
+                )
+            elif edge.child is None:
                 self.findings.append(
                     Finding(
                         "include-unchecked",
