@@ -299,25 +299,28 @@ class _progress:
         if not self.enabled:
             return None, None
         from rich.console import Console
-        from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
+        from rich.filesize import decimal
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         self.bar = Progress(
             TextColumn("resolving"),
             BarColumn(),
             TextColumn("{task.completed}/{task.total} files"),
-            DownloadColumn(),
+            TextColumn("{task.fields[verified]} hashed"),
+            TimeElapsedColumn(),
             console=Console(stderr=True),
             transient=True,
         )
         self.bar.start()
-        self.task = self.bar.add_task("resolve", total=0)
+        self.task = self.bar.add_task("resolve", total=0, verified=decimal(0))
         self.bytes = 0
 
         def on_start(n: int) -> None:
             self.bar.update(self.task, total=(self.bar.tasks[0].total or 0) + n)
 
         def on_progress(files: int, nbytes: int) -> None:
-            self.bar.advance(self.task, files)
+            self.bytes += nbytes
+            self.bar.update(self.task, advance=files, verified=decimal(self.bytes))
 
         return on_start, on_progress
 
