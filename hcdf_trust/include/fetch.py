@@ -114,6 +114,22 @@ def read_chunks(fd: int) -> Iterator[bytes]:
         yield data
 
 
+def _import_httpx():  # noqa: ANN202 - the module
+    """Import httpx only when a URL is fetched (~90 ms), without its command line.
+
+    httpx's ``__init__`` imports its own CLI (``httpx._main``: click, rich,
+    pygments) when those are installed, as they are here; it falls back to a stub
+    when that import fails. Blocking it saves ~40 ms per run (measured: 160 -> 120 ms
+    for ``python -c "import httpx"``) and changes nothing we use.
+    """
+    import sys
+
+    sys.modules.setdefault("httpx._main", None)  # type: ignore[arg-type]
+    import httpx
+
+    return httpx
+
+
 @dataclass
 class HttpFetcher:
     """HTTPS through httpx: TLS verified, timeouts, size limit, redirect rules.
@@ -143,7 +159,7 @@ class HttpFetcher:
     def _get_client(self) -> httpx.Client:
         with self._client_lock:  # resolver threads race to the first fetch
             if self._client is None:
-                import httpx  # imported here: ~70 ms, only paid when a URL is fetched
+                httpx = _import_httpx()
 
                 ctx = ssl.create_default_context(cafile=self.ca_bundle) if self.ca_bundle else True
                 self._client = httpx.Client(
@@ -173,8 +189,7 @@ class HttpFetcher:
             FetchError: any transport fault (TLS, timeout, redirect rule, HTTP
             status, size limit, connection closed or reset before the end).
         """
-        import httpx
-
+        httpx = _import_httpx()
         client = self._get_client()
         started = time.monotonic()
         current = url
