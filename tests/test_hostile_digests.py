@@ -35,6 +35,12 @@ OTHER = b"glTF stand-in: a different model, also in the cache"
 SUB = b'<hcdf version="1.0" name="sub"/>\n'
 
 
+def _lock_remote_model(work: Path) -> None:
+    """A lock file that pins the remote model of :func:`_remote_doc` to MODEL."""
+    entry = {"kind": "model", "uri": URL, "url": URL, "sha256": sha256(MODEL), "size": len(MODEL)}
+    write_lock(work / "root" / "hcdf.lock", "doc.hcdf", [{**entry, "referenced_from": ["doc.hcdf:2"]}])
+
+
 def _doc(work: Path, *, model_sha: str | None = None, include_sha: str | None = None, model_uri: str = "m.glb") -> Path:
     root = work / "root"
     root.mkdir(parents=True, exist_ok=True)
@@ -266,20 +272,7 @@ def test_tampered_cache_blob_is_detected_and_not_used(cli, tmp_path, monkeypatch
     )
     doc = _remote_doc(work, sha256(MODEL))
     if command == "verify":
-        write_lock(
-            work / "root" / "hcdf.lock",
-            "doc.hcdf",
-            [
-                {
-                    "kind": "model",
-                    "uri": URL,
-                    "url": URL,
-                    "sha256": sha256(MODEL),
-                    "size": len(MODEL),
-                    "referenced_from": ["doc.hcdf:2"],
-                }
-            ],
-        )
+        _lock_remote_model(work)
     monkeypatch.chdir(work)
     blobs_before = _blobs(cache)
     args = ["--cache-dir", cache, "--json"]
@@ -358,20 +351,7 @@ def test_lock_digest_addresses_the_cache_for_an_unpinned_reference(cli, tmp_path
     cache = work / "cache"
     _, blob = ContentStore(cache).ingest([MODEL])
     doc = _remote_doc(work, None)
-    write_lock(
-        work / "root" / "hcdf.lock",
-        "doc.hcdf",
-        [
-            {
-                "kind": "model",
-                "uri": URL,
-                "url": URL,
-                "sha256": sha256(MODEL),
-                "size": len(MODEL),
-                "referenced_from": ["doc.hcdf:2"],
-            }
-        ],
-    )
+    _lock_remote_model(work)
     monkeypatch.chdir(work)
     assert cli("verify", doc, "--cache-dir", cache).exit_code == 0
     os.chmod(blob, 0o644)
@@ -388,20 +368,7 @@ def test_pin_and_lock_disagree(cli, tmp_path, monkeypatch):
     ContentStore(cache).ingest([OTHER])
     ContentStore(cache).ingest([MODEL])
     doc = _remote_doc(work, sha256(OTHER))
-    write_lock(
-        work / "root" / "hcdf.lock",
-        "doc.hcdf",
-        [
-            {
-                "kind": "model",
-                "uri": URL,
-                "url": URL,
-                "sha256": sha256(MODEL),
-                "size": len(MODEL),
-                "referenced_from": ["doc.hcdf:2"],
-            }
-        ],
-    )
+    _lock_remote_model(work)
     monkeypatch.chdir(work)
     result = cli("verify", doc, "--cache-dir", cache, "--json")
     assert result.exit_code == 1, result.stdout
