@@ -21,10 +21,12 @@ demo: $(STAMP)
 ## The whole test suite (what CI runs).
 test: $(STAMP)
 	$(BIN)/ruff check hcdf_trust tests bench
+	$(BIN)/mypy hcdf_trust
 	$(BIN)/pytest -n 2 -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check hcdf_trust tests bench
+	$(BIN)/mypy hcdf_trust
 
 clean:
 	rm -rf $(VENV) examples/out bench/work .pytest_cache

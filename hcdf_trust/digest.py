@@ -8,7 +8,7 @@ import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import Enum
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 from .errors import MalformedDigestError
 
@@ -113,7 +113,7 @@ def hash_stream(stream: BinaryIO, *, sink: BinaryIO | None = None, limit: int | 
     view = _buffer()
     size = 0
     while True:
-        n = stream.readinto(view)  # type: ignore[attr-defined]
+        n = stream.readinto(view)  # type: ignore[attr-defined]  # typing.BinaryIO omits readinto
         if not n:
             break
         size += n
@@ -125,7 +125,13 @@ def hash_stream(stream: BinaryIO, *, sink: BinaryIO | None = None, limit: int | 
     return Hashed(h.hexdigest(), size)
 
 
-def hash_chunks(chunks: Iterable[bytes], *, sink: BinaryIO | None = None, limit: int | None = None) -> Hashed:
+class ByteSink(Protocol):
+    """Where :func:`hash_chunks` copies the bytes: a binary file, a buffer."""
+
+    def write(self, data: bytes, /) -> object: ...
+
+
+def hash_chunks(chunks: Iterable[bytes], *, sink: ByteSink | None = None, limit: int | None = None) -> Hashed:
     """Like :func:`hash_stream` over an iterator of byte chunks (e.g. an HTTP body)."""
     h = hashlib.sha256()
     size = 0

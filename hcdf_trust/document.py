@@ -8,6 +8,7 @@ later dialects (``version="1.2"``, ``"2.0"``, ``<mcu>``, ``<model href>``) walk 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
@@ -15,7 +16,7 @@ from typing import Any
 from lxml import etree
 
 from .errors import XmlError
-from .xml import parse_bytes
+from .xml import parse_bytes, sourceline
 
 
 class Kind(str, Enum):
@@ -82,7 +83,7 @@ class Document:
             raise XmlError(
                 f"not an HCDF document: root element is <{root.tag}>, expected <hcdf>",
                 file=source,
-                line=root.sourceline,
+                line=sourceline(root),
             )
         return cls(source=source, tree=tree, data=data)
 
@@ -111,7 +112,7 @@ class Document:
 _REFERENCE_TAGS = ("include", "model", "mesh", "stream-profile", "hash", "firmware-manifest-uri", "extension")
 
 
-def _walk(root: etree._Element):
+def _walk(root: etree._Element) -> Iterator[Reference]:
     for el in root.iter(*_REFERENCE_TAGS):
         if el.tag != "extension" and any(True for _ in el.iterancestors("extension")):
             continue  # vendor content: may contain anything, never fetched by us
@@ -121,7 +122,7 @@ def _walk(root: etree._Element):
 
 
 def _reference(el: etree._Element, tag: str) -> Reference | None:
-    line = el.sourceline
+    line = sourceline(el)
     if tag == "include":
         return Reference(
             Kind.INCLUDE,
@@ -154,8 +155,7 @@ def _reference(el: etree._Element, tag: str) -> Reference | None:
             active=_bool(el.get("active")),
             element=el,
         )
-    if tag == "hash" and el.getparent() is not None and el.getparent().tag == "software":
-        sw = el.getparent()
+    if tag == "hash" and (sw := el.getparent()) is not None and sw.tag == "software":
         return Reference(
             Kind.FIRMWARE,
             line,

@@ -8,6 +8,8 @@ entity tricks (external, parameter, billion-laughs) never reach the tree.
 
 from __future__ import annotations
 
+from typing import NoReturn, cast
+
 from lxml import etree
 
 from .errors import XmlError
@@ -32,7 +34,8 @@ class _RefuseExternal(etree.Resolver):
     and content oracle) and a FIFO would hang the parser for ever.
     """
 
-    def resolve(self, system_url, public_id, context):  # type: ignore[no-untyped-def]
+    # lxml calls resolve(system_url, public_id, context); lxml-stubs omits ``context``.
+    def resolve(self, system_url: str, public_id: str | None, context: object) -> NoReturn:  # type: ignore[override]
         raise _ExternalLoadRefused(str(system_url))
 
 
@@ -76,7 +79,8 @@ def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
     except ValueError as exc:  # e.g. an encoding declaration lxml cannot honour
         raise XmlError(f"malformed XML: {exc}", file=source) from None
     docinfo = tree.docinfo
-    if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
+    # lxml-stubs' DocInfo lacks ``doctype`` (a str, "" without a DOCTYPE).
+    if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:  # type: ignore[union-attr]
         raise XmlError("a DOCTYPE is not allowed in HCDF (entities and DTDs are refused)", file=source, line=1)
     _check_depth(tree, source)
     return tree
@@ -88,6 +92,15 @@ _TOO_DEEP = etree.XPath("/" + "/".join(["*"] * (MAX_DEPTH + 1)))
 
 def _check_depth(tree: etree._ElementTree, source: str) -> None:
     # libxml2 alone stops at 256 levels (without huge_tree); we want a lower bound.
-    deep = _TOO_DEEP(tree)
+    deep = cast("list[etree._Element]", _TOO_DEEP(tree))  # a location path selects elements
     if deep:
-        raise XmlError(f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=deep[0].sourceline)
+        raise XmlError(f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=sourceline(deep[0]))
+
+
+def sourceline(el: etree._Element) -> int | None:
+    """``el.sourceline``: the line ``el`` starts on, None when unknown.
+
+    lxml-stubs declares the attribute as ``sourceline = ...`` (an Ellipsis), so read
+    it through here wherever its type matters.
+    """
+    return el.sourceline  # type: ignore[return-value]  # lxml-stubs: `sourceline = ...`

@@ -19,6 +19,7 @@ import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING
 from urllib.parse import urljoin, urlsplit
 
@@ -114,7 +115,7 @@ def read_chunks(fd: int) -> Iterator[bytes]:
         yield data
 
 
-def _import_httpx():  # noqa: ANN202 - the module
+def _import_httpx() -> ModuleType:
     """Import httpx only when a URL is fetched (~90 ms), without its command line.
 
     httpx's ``__init__`` imports its own CLI (``httpx._main``: click, rich,
@@ -124,7 +125,7 @@ def _import_httpx():  # noqa: ANN202 - the module
     """
     import sys
 
-    sys.modules.setdefault("httpx._main", None)  # type: ignore[arg-type]
+    sys.modules.setdefault("httpx._main", None)  # type: ignore[arg-type]  # None blocks an import; typeshed omits it
     import httpx
 
     return httpx

@@ -92,14 +92,16 @@ import copy
 import math
 import os
 import posixpath
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from typing import cast
 from urllib.parse import urljoin, urlsplit
 
 from lxml import etree
 
 from ..document import Document, Kind
 from ..errors import FlattenError
+from ..xml import sourceline
 from .locate import _normalise, file_url
 from .resolver import Resolution, display_url
 
@@ -112,8 +114,17 @@ DOCUMENT_KINDS = ("comp", "joint", "group", "state", "network", "transmission", 
 #: Names defined inside a <network>.
 NETWORK_KINDS = ("link", "bus", "chain", "schedule", "mesh")
 METADATA = ("description", "author", "license", "url")
-SECTIONS = (*METADATA, "comp", "joint", "group", "state", "self-collision-disable", "network",
-            "transmission", "material")
+SECTIONS = (
+    *METADATA,
+    "comp",
+    "joint",
+    "group",
+    "state",
+    "self-collision-disable",
+    "network",
+    "transmission",
+    "material",
+)
 _UNKNOWN_SECTION = len(SECTIONS)
 _FORBIDDEN_IN_PREFIX = ("/", ".")
 
@@ -139,9 +150,7 @@ class Pose:
         return cls(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), (0.0, 0.0, 0.0))
 
     @classmethod
-    def from_xyz_rpy(
-        cls, x: float, y: float, z: float, roll: float, pitch: float, yaw: float
-    ) -> Pose:
+    def from_xyz_rpy(cls, x: float, y: float, z: float, roll: float, pitch: float, yaw: float) -> Pose:
         """``R = Rz(yaw)·Ry(pitch)·Rx(roll)`` (fixed axes X, Y, Z, as URDF/SDF)."""
         cr, sr = math.cos(roll), math.sin(roll)
         cp, sp = math.cos(pitch), math.sin(pitch)
@@ -156,11 +165,9 @@ class Pose:
     def compose(self, inner: Pose) -> Pose:
         """``self ∘ inner``: apply ``inner`` first, then ``self``."""
         a, b = self.r, inner.r
-        r = tuple(
-            tuple(sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)) for i in range(3)
-        )
+        r = tuple(tuple(sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)) for i in range(3))
         t = tuple(sum(a[i][k] * inner.t[k] for k in range(3)) + self.t[i] for i in range(3))
-        return Pose(r, t)  # type: ignore[arg-type]
+        return Pose(cast(Matrix, r), cast(Vector, t))  # built over range(3): three long
 
     def rpy(self) -> Vector:
         """Roll, pitch, yaw with pitch in [-π/2, π/2]; stable near gimbal lock.
@@ -193,8 +200,11 @@ def parse_pose(text: str, *, file: str | None = None, line: int | None = None) -
         values = []
     if len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise FlattenError(
-            f"pose {text.strip()!r} is not six numbers \"x y z roll pitch yaw\"",
-            file=file, line=line, expected="x y z roll pitch yaw", actual=text.strip(),
+            f'pose {text.strip()!r} is not six numbers "x y z roll pitch yaw"',
+            file=file,
+            line=line,
+            expected="x y z roll pitch yaw",
+            actual=text.strip(),
         )
     return Pose.from_xyz_rpy(*values)
 
@@ -225,8 +235,12 @@ class _Item:
 
     def copy(self) -> _Item:
         return _Item(
-            copy.deepcopy(self.el), self.source, self.line,
-            [copy.deepcopy(c) for c in self.comments], self.via, self.original,
+            copy.deepcopy(self.el),
+            self.source,
+            self.line,
+            [copy.deepcopy(c) for c in self.comments],
+            self.via,
+            self.original,
         )
 
 
@@ -316,7 +330,7 @@ class _Flattener:
                     continue
                 value = value.strip()
                 if attr not in first:
-                    first[attr] = (value, doc.source, doc.root.sourceline)
+                    first[attr] = (value, doc.source, sourceline(doc.root))
                     continue
                 want, where, line = first[attr]
                 if value != want:
@@ -324,7 +338,10 @@ class _Flattener:
                         f'{attr} mismatch in the include chain: {where} declares {attr}="{want}" '
                         f'but {doc.source} declares {attr}="{value}" (every file in an include '
                         f"chain must use the same {attr})",
-                        file=doc.source, line=doc.root.sourceline, expected=want, actual=value,
+                        file=doc.source,
+                        line=sourceline(doc.root),
+                        expected=want,
+                        actual=value,
                     )
             stack.extend(reversed([child for _, child in self.res.includes.get(url, [])]))
         return {attr: v[0] for attr, v in first.items()}
@@ -348,7 +365,8 @@ class _Flattener:
             if parent is None or parent is not doc.root:
                 raise FlattenError(
                     "<include> must be a child of <hcdf> to be flattened",
-                    file=doc.source, line=el.sourceline,
+                    file=doc.source,
+                    line=sourceline(el),
                 )
         items: list[_Item] = []
         included: list[_Included] = []
@@ -365,12 +383,10 @@ class _Flattener:
                 items.extend(sub.items)
                 included.extend(sub.included)
             elif tag == "include":
-                raise FlattenError(
-                    "<include> was not resolved", file=doc.source, line=child.sourceline
-                )
+                raise FlattenError("<include> was not resolved", file=doc.source, line=sourceline(child))
             elif is_root or tag not in METADATA:
                 copied = self._copy(doc, url, child)
-                items.append(_Item(copied, doc.source, child.sourceline, comments))
+                items.append(_Item(copied, doc.source, sourceline(child), comments))
             comments = []
         if is_root and comments:  # trailing comments of the root document
             items.append(_Item(etree.Element("_trailing"), doc.source, None, comments))
@@ -379,18 +395,18 @@ class _Flattener:
             self.memo[url] = result.copy()
         return result
 
-    def _include(
-        self, doc: Document, el: etree._Element, child_url: str, stack: tuple[str, ...]
-    ) -> _Expansion:
+    def _include(self, doc: Document, el: etree._Element, child_url: str, stack: tuple[str, ...]) -> _Expansion:
         name = (el.get("name") or "").strip()
         if any(c in name for c in _FORBIDDEN_IN_PREFIX) or any(c.isspace() for c in name):
             raise FlattenError(
                 f"include name {name!r} cannot be a prefix: it may not contain '/', '.' or "
                 f"white space (they separate comp/port and comp.element references)",
-                file=doc.source, line=el.sourceline, actual=name,
+                file=doc.source,
+                line=sourceline(el),
+                actual=name,
             )
         pose_text = el.get("pose")
-        pose = parse_pose(pose_text, file=doc.source, line=el.sourceline) if pose_text else None
+        pose = parse_pose(pose_text, file=doc.source, line=sourceline(el)) if pose_text else None
         sub = self._expand(child_url, stack)
         if name:
             _prefix(sub.items, name)
@@ -496,16 +512,15 @@ class _Names:
                 self.defined[tag].add(name)
             if tag == "network":
                 for child in item.el:
-                    if _local(child) in NETWORK_KINDS and child.get("name") is not None:
-                        self.defined[_local(child)].add(child.get("name"))
+                    kind, child_name = _local(child), child.get("name")
+                    if kind in NETWORK_KINDS and child_name is not None:
+                        self.defined[kind].add(child_name)
             if tag == "comp" and name is not None:
-                self.frames[name] = {
-                    f.get("name") for f in item.el if _local(f) == "frame" and f.get("name")
-                }
+                self.frames[name] = {frame for f in item.el if _local(f) == "frame" and (frame := f.get("name"))}
                 for child in item.el:
-                    kind = _local(child)
-                    if kind in self.owners and child.get("name"):
-                        self.owners[kind].setdefault(child.get("name"), []).append(name)
+                    kind, child_name = _local(child), child.get("name")
+                    if kind in self.owners and child_name:
+                        self.owners[kind].setdefault(child_name, []).append(name)
 
     def new(self, kind: str, name: str) -> str:
         return f"{self.prefix}{SEPARATOR}{name}" if name in self.defined[kind] else name
@@ -531,7 +546,7 @@ class _Names:
             return f"{self.new('comp', owners[0])}.{text}"
         return value
 
-    def words(self, value: str, rename) -> str:
+    def words(self, value: str, rename: Callable[[str], str]) -> str:
         words = value.split()
         renamed = [rename(w) for w in words]
         return " ".join(renamed) if renamed != words else value
@@ -544,20 +559,20 @@ def _prefix(items: list[_Item], prefix: str) -> None:
         for el in _walk(item.el):
             _rename_references(el, names)
     for item in items:
-        tag = _local(item.el)
-        if tag in DOCUMENT_KINDS and item.el.get("name") is not None:
+        tag, name = _local(item.el), item.el.get("name")
+        if tag in DOCUMENT_KINDS and name is not None:
             if item.original is None:
-                item.original = item.el.get("name")
-            item.el.set("name", names.new(tag, item.el.get("name")))
+                item.original = name
+            item.el.set("name", names.new(tag, name))
         if tag == "network":
             for child in item.el:
-                kind = _local(child)
-                if kind in NETWORK_KINDS and child.get("name") is not None:
-                    child.set("name", names.new(kind, child.get("name")))
+                kind, child_name = _local(child), child.get("name")
+                if kind in NETWORK_KINDS and child_name is not None:
+                    child.set("name", names.new(kind, child_name))
         item.via = (prefix, *item.via)
 
 
-def _set(el: etree._Element, attr: str, rename) -> None:
+def _set(el: etree._Element, attr: str, rename: Callable[[str], str]) -> None:
     value = el.get(attr)
     if value is not None:
         new = rename(value)
@@ -600,7 +615,7 @@ def _rename_references(el: etree._Element, n: _Names) -> None:
         _set(el, "material", lambda v: n.new("material", v))
     elif tag == "material" and ptag == "visual":
         _set(el, "name", lambda v: n.new("material", v))
-    elif tag == "frame" and ptag == "comp":
+    elif tag == "frame" and ptag == "comp" and parent is not None:
         own = n.frames.get(parent.get("name") or "", set())
         _set(el, "relative-to", lambda v: v if v in own else comp(v))
     elif tag in _DEVICE_TAGS:
@@ -638,7 +653,7 @@ def _place(items: list[_Item], pose: Pose) -> None:
         existing = [c for c in item.el if _local(c) == "pose"]
         inner = Pose.identity()
         if existing:
-            line = existing[0].sourceline
+            line = sourceline(existing[0])
             inner = parse_pose(existing[0].text or "", file=item.source, line=line)
         for c in existing:
             item.el.remove(c)
@@ -663,7 +678,9 @@ def _check_collisions(items: list[_Item]) -> None:
         raise FlattenError(
             f'name collision after prefixing: <{tag} name="{name}"> is defined at '
             f"{_where(other)} and at {_where(item)}",
-            file=item.source, line=item.line, actual=name,
+            file=item.source,
+            line=item.line,
+            actual=name,
         )
 
 
@@ -709,7 +726,7 @@ def _section(item: _Item) -> int:
 
 def _serialize(root_doc: Document, expansion: _Expansion, frames: dict[str, str]) -> bytes:
     src = root_doc.root
-    out = etree.Element(src.tag, nsmap=src.nsmap)
+    out = etree.Element(src.tag, nsmap=src.nsmap)  # type: ignore[arg-type]  # lxml-stubs: a None (default) prefix is allowed
     for key, value in src.attrib.items():
         out.set(key, value)
     for attr, value in frames.items():

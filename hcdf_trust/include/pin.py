@@ -49,6 +49,7 @@ from ..errors import (
     WeakPinError,
 )
 from ..store import atomic_write
+from ..xml import sourceline
 from .locate import Location, file_url
 from .resolver import Artifact, Resolution, ResolveOptions, Use, display_url, resolve
 
@@ -116,9 +117,7 @@ def pin_tree(
     (not even the cache).
     """
     base = options or ResolveOptions()
-    opts = replace(
-        base, accept_mismatch=True, locked=False, write_cache=base.write_cache and write
-    )
+    opts = replace(base, accept_mismatch=True, locked=False, write_cache=base.write_cache and write)
     report = PinReport()
     try:
         res = resolve(doc_path, opts)
@@ -164,13 +163,14 @@ def pin_tree(
         old = res.documents[url].data
         if new == old:
             continue
-        path = Path(os.path.realpath(locations[url].path))  # type: ignore[arg-type]
+        local = locations[url].path
+        assert local is not None  # only local documents are editable, so only they change
+        path = Path(os.path.realpath(local))
         seen = targets.get(path)
         if seen is not None and seen[2] != new:
             report.errors.append(
                 PinEditError(
-                    f"{path} is reached as two documents that need different edits "
-                    "(a symlink?): refusing to edit it",
+                    f"{path} is reached as two documents that need different edits (a symlink?): refusing to edit it",
                     file=display_url(url),
                 )
             )
@@ -182,9 +182,7 @@ def pin_tree(
             report.errors.append(InputError(f"cannot re-read: {exc}", file=display_url(url)))
             continue
         if current != old:
-            report.errors.append(
-                InputError("changed on disk while pinning: run pin again", file=display_url(url))
-            )
+            report.errors.append(InputError("changed on disk while pinning: run pin again", file=display_url(url)))
     if report.errors:
         return report
     for path, (url, _old, new) in targets.items():
@@ -221,9 +219,7 @@ def _explain_unrepairable(err: DigestMismatchError, res: Resolution) -> DigestMi
             if (use.doc, use.ref.line, art.url) != (err.file, err.line, err.url):
                 continue
             if use.ref.kind not in PINNABLE:
-                why = (
-                    f"a <{use.ref.kind.value}> sha is not one pin edits: fix or remove it by hand"
-                )
+                why = f"a <{use.ref.kind.value}> sha is not one pin edits: fix or remove it by hand"
             else:
                 why = "the referencing document is remote, and pin cannot edit it"
     if why is None:
@@ -279,6 +275,7 @@ class _Planner:
         doc = self.res.documents[url]
         edits: list[tuple[Reference, str]] = []
         for use, art in self.uses.get(url, []):
+            actual: str | None
             if use.ref.kind is Kind.INCLUDE and art.url in self.res.documents:
                 actual = self.settle(art.url)
             else:
@@ -334,9 +331,7 @@ _MARKUP = re.compile(
     """,
     re.S | re.X,
 )
-_ATTR = re.compile(
-    rb"""(?P<ws>\s+)(?P<name>[^\s=/>]+)\s*=\s*(?P<q>["'])(?P<value>.*?)(?P=q)""", re.S
-)
+_ATTR = re.compile(rb"""(?P<ws>\s+)(?P<name>[^\s=/>]+)\s*=\s*(?P<q>["'])(?P<value>.*?)(?P=q)""", re.S)
 _TAG_TAIL = re.compile(rb"\s*/?\s*")
 
 
@@ -444,21 +439,23 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
     index = {el: i for i, el in enumerate(elements)}
     splices: list[tuple[int, int, bytes]] = []
     for ref, sha in edits:
-        where = {"file": doc.source, "line": ref.line}
         i = index.get(ref.element)
         if i is None or ref.uri_attr is None:
-            raise PinEditError(f"cannot locate <{ref.kind.value}> in the text", **where)
+            raise PinEditError(f"cannot locate <{ref.kind.value}> in the text", file=doc.source, line=ref.line)
         tag, el = tags[i], elements[i]
         name = tag.name.decode(encoding).rpartition(":")[2]
-        if name != etree.QName(el).localname or not (
-            el.sourceline is None or tag.first_line <= el.sourceline <= tag.last_line
-        ):
+        el_line = sourceline(el)
+        if name != etree.QName(el).localname or not (el_line is None or tag.first_line <= el_line <= tag.last_line):
             raise PinEditError(
-                f"the text at line {tag.first_line} does not match <{ref.kind.value}>", **where
+                f"the text at line {tag.first_line} does not match <{ref.kind.value}>",
+                file=doc.source,
+                line=ref.line,
             )
         uri = tag.attr(ref.uri_attr)
         if uri is None or _attr_text(data[uri.value_start : uri.value_end], encoding) != ref.uri:
-            raise PinEditError(f"cannot locate the {ref.uri_attr} attribute of {ref.uri}", **where)
+            raise PinEditError(
+                f"cannot locate the {ref.uri_attr} attribute of {ref.uri}", file=doc.source, line=ref.line
+            )
         old = tag.attr("sha")
         if old is not None:
             text = data[old.value_start : old.value_end]

@@ -189,7 +189,13 @@ def resolve(
 
 
 class _Run:
-    def __init__(self, options: ResolveOptions, *, on_start, on_progress) -> None:
+    def __init__(
+        self,
+        options: ResolveOptions,
+        *,
+        on_start: Callable[[int], None] | None,
+        on_progress: Reporter | None,
+    ) -> None:
         self.o = options
         self.on_start = on_start
         self.on_progress = on_progress
@@ -358,7 +364,7 @@ class _Run:
         net: list[Artifact] = []
         for art in artifacts:
             try:
-                path = art.location.path
+                path: str | Path | None = art.location.path
                 if path is None:
                     want = self._wanted_sha(art)
                     path = self.store.path_for(want) if want else None

@@ -27,7 +27,7 @@ from lxml import etree
 from ..document import Document
 from ..errors import XmlError
 from ..include.resolver import link_stub_target
-from ..xml import parse_bytes
+from ..xml import parse_bytes, sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
 from .includes import display, local_include_edges, read_local
@@ -83,7 +83,7 @@ def validate_document(
         raise XmlError(
             f"not an HCDF document or stream profile: root element is <{root.tag}>",
             file=source,
-            line=root.sourceline,
+            line=sourceline(root),
         )
     report = ValidationReport(source=source)
     findings: list[Finding] = []
@@ -135,6 +135,6 @@ def _version_mismatch(root: etree._Element, schema: Schema, source: str) -> list
             f"document version {doc_version} but schema {schema.name} is version {schema_version}: "
             "the major versions differ",
             file=source,
-            line=root.sourceline,
+            line=sourceline(root),
         )
     ]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TypedDict
 
 from lxml import etree
 
@@ -20,14 +21,23 @@ from ..errors import HcdfTrustError, InputError, NotFoundError
 from ..include.fetch import open_local, read_chunks
 from ..include.flatten import SEPARATOR
 from ..include.locate import Location, Locator, file_url
-from ..xml import MAX_DOCUMENT_BYTES
+from ..xml import MAX_DOCUMENT_BYTES, sourceline
 from .semantic import IncludeEdge
 
 MAX_INCLUDE_DEPTH = 16
 MAX_INCLUDE_EDGES = 1000
 
 
-def read_local(path: Path, root: Path, *, source: str, line: int | None = None) -> bytes:
+class _EdgeFields(TypedDict):
+    """What every :class:`IncludeEdge` of one ``<include>`` shares."""
+
+    parent: str
+    line: int | None
+    uri: str
+    prefix: str
+
+
+def read_local(path: Path | str, root: Path | str, *, source: str, line: int | None = None) -> bytes:
     """A local document's bytes, confined to ``root`` and bounded in size.
 
     Raises:
@@ -42,7 +52,7 @@ def read_local(path: Path, root: Path, *, source: str, line: int | None = None) 
     return data
 
 
-def display(path: Path) -> str:
+def display(path: Path | str) -> str:
     rel = os.path.relpath(path)
     return str(path) if rel.startswith("..") else rel
 
@@ -65,11 +75,13 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
     def visit(loc: Location, doc_root: etree._Element, shown: str, prefix: str, stack: tuple[str, ...]) -> None:
         for inc in doc_root.findall("include"):
             uri = inc.get("uri")
-            line = inc.sourceline
+            line = sourceline(inc)
             if not uri:
                 continue  # the XSD reports the missing attribute
             name = (inc.get("name") or "").strip()
-            edge = dict(parent=shown, line=line, uri=uri, prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix)
+            edge = _EdgeFields(
+                parent=shown, line=line, uri=uri, prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix
+            )
             try:
                 child = locator.locate(uri, loc, file=shown, line=line)
             except HcdfTrustError as exc:

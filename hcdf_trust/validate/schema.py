@@ -21,15 +21,15 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 from urllib.parse import unquote, urlsplit
 
 from lxml import etree
 
 from ..errors import InputError
 from ..include.fetch import open_local, read_chunks
-from ..xml import parse_bytes
-from .findings import Finding
+from ..xml import parse_bytes, sourceline
+from .findings import Finding, Severity
 
 XS = "http://www.w3.org/2001/XMLSchema"
 MAX_SCHEMA_BYTES = 16 << 20
@@ -61,10 +61,10 @@ class Schema:
         with self._lock:  # the error log belongs to the schema object
             if self.xsd.validate(tree):
                 return []
-            entries = list(self.xsd.error_log)
+            entries = list(self.xsd.error_log)  # type: ignore[call-overload]  # lxml-stubs: _ErrorLog is iterable
         findings = []
         for entry in entries[:MAX_SCHEMA_FINDINGS]:
-            severity = "error" if entry.level >= etree.ErrorLevels.ERROR else "warning"
+            severity: Severity = "error" if entry.level >= etree.ErrorLevels.ERROR else "warning"
             line = _line_of(tree, entry)
             findings.append(Finding("xsd", severity, entry.message, file=source, line=line, path=entry.path or None))
         if len(entries) > MAX_SCHEMA_FINDINGS:
@@ -83,11 +83,11 @@ def _line_of(tree: etree._ElementTree, entry: etree._LogEntry) -> int | None:
     line = entry.line or None
     if line == _LINE_CAP and entry.path:
         try:
-            found = tree.xpath(entry.path)
+            found = cast("list[object]", tree.xpath(entry.path))  # a location path selects a node-set
         except etree.XPathError:
             found = []
-        if found and isinstance(found[0], etree._Element) and found[0].sourceline:
-            line = found[0].sourceline
+        if found and isinstance(found[0], etree._Element) and sourceline(found[0]):
+            line = sourceline(found[0])
     return line
 
 
@@ -179,7 +179,7 @@ def compile_schema(data: bytes, *, name: str, base: Path | None = None) -> Schem
     tree = parse_bytes(data, source=name)
     root = tree.getroot()
     if root.tag != f"{{{XS}}}schema":
-        raise InputError(f"not an XSD: root element is <{root.tag}>", file=name, line=root.sourceline)
+        raise InputError(f"not an XSD: root element is <{root.tag}>", file=name, line=sourceline(root))
     files: dict[Path, bytes] = {}
     _collect_imports(tree, base=base, root=base, name=name, files=files)
     if files:
@@ -215,7 +215,8 @@ class _ServeChecked(etree.Resolver):
     def __init__(self, files: dict[Path, bytes]) -> None:
         self.files = files
 
-    def resolve(self, system_url, public_id, context):  # type: ignore[no-untyped-def]
+    # lxml calls resolve(system_url, public_id, context); lxml-stubs omits ``context``.
+    def resolve(self, system_url: str, public_id: str | None, context: object) -> Any:  # type: ignore[override]
         url = str(system_url)
         path = Path(unquote(urlsplit(url).path)) if url.startswith("file:") else Path(url)
         data = self.files.get(Path(os.path.normpath(path)))
@@ -231,7 +232,7 @@ def _collect_imports(
         location = el.get("schemaLocation")
         if location is None:
             continue  # xs:import by namespace only: libxml2 loads nothing
-        line = el.sourceline
+        line = sourceline(el)
         if base is None or root is None or urlsplit(location).scheme or PurePosixPath(location).is_absolute():
             raise InputError(
                 f"schema import {location!r} refused: imports must be relative paths next to the schema",

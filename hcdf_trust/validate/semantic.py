@@ -24,6 +24,7 @@ from typing import NamedTuple
 from lxml import etree
 
 from ..include.flatten import SEPARATOR
+from ..xml import sourceline
 from .findings import Finding, Severity
 
 #: code -> what the rule checks (also the documentation of the codes)
@@ -238,7 +239,7 @@ class _Checker:
                     f"{n}{INCLUDE_SEPARATOR}" if (n := (el.get("name") or "").strip()) else "",
                     el.get("uri") or "",
                     source,
-                    el.sourceline,
+                    sourceline(el),
                 )
                 for el in root.findall("include")
             ]
@@ -248,7 +249,7 @@ class _Checker:
         self.first_of_form: dict[str, etree._Element] = {}
 
     def add(self, code: str, severity: Severity, message: str, el: etree._Element | None = None) -> None:
-        line = el.sourceline if el is not None else None
+        line = sourceline(el) if el is not None else None
         self.findings.append(Finding(code, severity, message, file=self.source, line=line))
 
     def run(self) -> None:
@@ -494,14 +495,14 @@ class _Checker:
             motor = tr.find("motor")
             if motor is not None:
                 self._motor(motor.get("ref"), motor, f"transmission {tname!r} motor")
-            joint = tr.find("joint")
-            if joint is not None:
+            tr_joint = tr.find("joint")
+            if tr_joint is not None:
                 self._named(
                     self.joints,
-                    joint.get("ref"),
+                    tr_joint.get("ref"),
                     code="unresolved-joint",
                     what=f"transmission {tname!r} joint",
-                    el=joint,
+                    el=tr_joint,
                 )
             for spring in tr.findall("spring"):
                 for attr in ("equilibrium-actuator", "stiffness-actuator"):
@@ -585,7 +586,7 @@ class _Checker:
         cname = chain.get("name")
         info = _Chain(net, chain)
         self.chain_info.append(info)
-        sides: list[tuple[etree._Element, etree._Element | None, etree._Element | None]] = []
+        sides: list[tuple[etree._Element, _Port | None, _Port | None]] = []
         for hop in chain.findall("hop"):
             device = hop.get("device")
             what = f"chain {cname!r} hop"
