@@ -180,7 +180,9 @@ def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) 
     if not no_lock:
         res.write_lock()
     wrote = ([] if no_lock else [str(res.lock_path)]) + ([out] if out else [])
-    _report(res, as_json=as_json, wrote=[_display_path(p) for p in wrote])
+    from .include.locate import display_path
+
+    _report(res, as_json=as_json, wrote=[display_path(p) for p in wrote])
 
 
 @main.command()
@@ -383,13 +385,6 @@ def _summary(res: Any) -> dict[str, int]:
         "fetched": sum(1 for a in arts if a.source == "network"),
         "local": sum(1 for a in arts if a.source in ("file", "mirror")),
     }
-
-
-def _display_path(path: str) -> str:
-    import os
-
-    rel = os.path.relpath(path)
-    return path if rel.startswith("..") else rel
 
 
 def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:

@@ -105,6 +105,23 @@ def _realpath(root: str) -> str:
     return os.path.realpath(root)
 
 
+def read_bounded(fd: int, limit: int, *, source: str, what: str = "document") -> bytes:
+    """A regular file's whole content, refused (never truncated) past ``limit`` bytes.
+
+    Checked before reading (no large read for an oversize file) and after (it may
+    have grown meanwhile).
+
+    Raises:
+        InputError: over the limit.
+    """
+    if os.fstat(fd).st_size > limit:
+        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+    data = b"".join(read_chunks(fd))
+    if len(data) > limit:
+        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+    return data
+
+
 def read_chunks(fd: int) -> Iterator[bytes]:
     """Yield a regular file's content from ``fd``; one read for small files."""
     size = os.fstat(fd).st_size

@@ -44,6 +44,13 @@ def file_url(path: str | os.PathLike[str], *, directory: bool = False) -> str:
     return url + "/" if directory and not url.endswith("/") else url
 
 
+def display_path(path: str | os.PathLike[str]) -> str:
+    """How messages name a local file: relative to the working folder when inside it."""
+    text = os.fspath(path)
+    rel = os.path.relpath(text)
+    return text if rel.startswith("..") else rel
+
+
 def _is_url(text: str) -> bool:
     return "://" in text
 

@@ -40,8 +40,8 @@ from ..errors import (
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
-from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, hash_local, open_local, read_chunks
-from .locate import Location, Locator, file_url
+from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, hash_local, open_local, read_bounded
+from .locate import Location, Locator, display_path, file_url
 
 DEFAULT_MAX_DEPTH = 16
 DEFAULT_JOBS = 16
@@ -159,11 +159,8 @@ def lock_url(url: str, base: Path) -> str:
 
 
 def display_url(url: str) -> str:
-    if url.startswith("file://"):
-        path = unquote(urlsplit(url).path)
-        rel = os.path.relpath(path)
-        return path if rel.startswith("..") else rel
-    return url
+    """How messages name a URL: local files by :func:`display_path`, others as they are."""
+    return display_path(unquote(urlsplit(url).path)) if url.startswith("file://") else url
 
 
 Reporter = Callable[[int, int], None]  # (files done, bytes done) increments
@@ -405,7 +402,7 @@ class _Run:
             root = loc.root or os.path.dirname(loc.path)
             if keep:  # an include: hash and parse the very same bytes
                 with open_local(loc.path, root, file=file, line=line) as fd:
-                    data = _read_limited(fd, display_url(art.url))
+                    data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
                 hashed = hash_local(loc.path, root, file=file, line=line)
@@ -609,24 +606,15 @@ def _read_blob(path: Path, sha256: str, *, file: str, line: int | None, url: str
     """A cache blob's bytes for parsing, hashed again: a blob swapped after it was
     verified (or replaced by a FIFO) must not be parsed under the verified digest."""
     with open_local(path, path.parent, file=file, line=line) as fd:
-        data = _read_limited(fd, url)
+        data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=url)
     if hash_bytes(data).sha256 != sha256:
         raise InputError(f"cache blob {path} changed after it was verified", file=file, line=line, url=url)
     return data
 
 
-def _read_limited(fd: int, source: str) -> bytes:
-    if os.fstat(fd).st_size > MAX_DOCUMENT_BYTES:
-        raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
-    data = b"".join(read_chunks(fd))
-    if len(data) > MAX_DOCUMENT_BYTES:  # it grew while we read it
-        raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
-    return data
-
-
 def _read_root(path: Path) -> bytes:
     with open_local(path, path.parent, file=str(path)) as fd:
-        return _read_limited(fd, display_url(file_url(path)))
+        return read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_path(path))
 
 
 def link_stub_target(path: Path, data: bytes) -> Path | None:

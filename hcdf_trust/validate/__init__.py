@@ -26,11 +26,12 @@ from lxml import etree
 
 from ..document import Document
 from ..errors import XmlError
+from ..include.locate import display_path
 from ..include.resolver import link_stub_target
 from ..xml import parse_bytes, sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
-from .includes import display, local_include_edges, read_local
+from .includes import local_include_edges, read_local
 from .schema import FileSchemaSource, Schema, SchemaSource, compile_schema, load_schema_file
 
 __all__ = [
@@ -70,12 +71,12 @@ def validate_document(
         tree, source = doc.tree, doc.source
     else:
         path = Path(os.path.abspath(doc))
-        data = read_local(path, path.parent, source=display(path))
+        data = read_local(path, path.parent, source=display_path(path))
         stub = link_stub_target(path, data)  # a symlink checked out as a plain file
         if stub is not None:
             path = stub
-            data = read_local(path, path.parent, source=display(path))
-        source = display(path)
+            data = read_local(path, path.parent, source=display_path(path))
+        source = display_path(path)
         tree = parse_bytes(data, source=source)
     root = tree.getroot()
     kind = etree.QName(root).localname

@@ -17,10 +17,10 @@ from typing import TypedDict
 from lxml import etree
 
 from ..document import Document
-from ..errors import HcdfTrustError, InputError, NotFoundError
-from ..include.fetch import open_local, read_chunks
+from ..errors import HcdfTrustError, NotFoundError
+from ..include.fetch import open_local, read_bounded
 from ..include.flatten import SEPARATOR
-from ..include.locate import Location, Locator, file_url
+from ..include.locate import Location, Locator, display_path, file_url
 from ..xml import MAX_DOCUMENT_BYTES, sourceline
 from .semantic import IncludeEdge
 
@@ -44,17 +44,7 @@ def read_local(path: Path | str, root: Path | str, *, source: str, line: int | N
         NotFoundError, PathEscapeError, InputError.
     """
     with open_local(path, root, file=source, line=line) as fd:
-        if os.fstat(fd).st_size > MAX_DOCUMENT_BYTES:
-            raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
-        data = b"".join(read_chunks(fd))
-    if len(data) > MAX_DOCUMENT_BYTES:
-        raise InputError(f"document is over the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
-    return data
-
-
-def display(path: Path | str) -> str:
-    rel = os.path.relpath(path)
-    return str(path) if rel.startswith("..") else rel
+        return read_bounded(fd, MAX_DOCUMENT_BYTES, source=source)
 
 
 def local_include_edges(root: etree._Element, path: Path, *, source: str) -> list[IncludeEdge]:
@@ -97,7 +87,7 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
                 edges.append(IncludeEdge(**edge, skipped="include tree too deep or too large"))
                 continue
             if child.url not in read:
-                child_name = display(child.path)
+                child_name = display_path(child.path)
                 try:
                     data = read_local(child.path, child.root or path.parent, source=shown, line=line)
                     read[child.url] = (child_name, Document.from_bytes(data, source=child_name))

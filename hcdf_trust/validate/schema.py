@@ -27,7 +27,8 @@ from urllib.parse import unquote, urlsplit
 from lxml import etree
 
 from ..errors import InputError
-from ..include.fetch import open_local, read_chunks
+from ..include.fetch import open_local, read_bounded
+from ..include.locate import display_path
 from ..xml import parse_bytes, sourceline
 from .findings import Finding, Severity
 
@@ -144,11 +145,9 @@ def load_schema_file(path: str | os.PathLike[str]) -> Schema:
         NotFoundError, InputError: unreadable, too large, not XML, not a usable XSD.
     """
     p = Path(os.path.abspath(path))
-    shown = _display(p)
+    shown = display_path(p)
     with open_local(p, p.parent, file=shown) as fd:
-        if os.fstat(fd).st_size > MAX_SCHEMA_BYTES:
-            raise InputError(f"schema is over the {MAX_SCHEMA_BYTES}-byte limit", file=shown)
-        data = b"".join(read_chunks(fd))
+        data = read_bounded(fd, MAX_SCHEMA_BYTES, source=shown, what="schema")
     return compile_schema(data, name=shown, base=p.parent)
 
 
@@ -242,16 +241,9 @@ def _collect_imports(
         target = Path(os.path.normpath(base / unquote(location)))
         if target in files:
             continue
-        shown = _display(target)
+        shown = display_path(target)
         with open_local(target, root, file=name, line=line) as fd:
-            if os.fstat(fd).st_size > MAX_SCHEMA_BYTES:
-                raise InputError(f"schema is over the {MAX_SCHEMA_BYTES}-byte limit", file=shown)
-            data = b"".join(read_chunks(fd))
+            data = read_bounded(fd, MAX_SCHEMA_BYTES, source=shown, what="schema")
         files[target] = data
         sub = parse_bytes(data, source=shown)
         _collect_imports(sub, base=target.parent, root=root, name=shown, files=files)
-
-
-def _display(path: Path) -> str:
-    rel = os.path.relpath(path)
-    return str(path) if rel.startswith("..") else rel
