@@ -411,3 +411,26 @@ def test_a_directory_where_a_blob_goes_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match="cannot store cache blob"):
         store.ingest([b"x"])
     assert list((tmp_path / "c" / "tmp").iterdir()) == []
+
+
+def test_a_cache_blob_removed_after_verification_is_an_input_error(tmp_path, monkeypatch):
+    """Another process may delete a blob between the check and its use: a clear error, no traceback."""
+    from hcdf_trust.errors import InputError
+    from hcdf_trust.include import resolver as resolver_module
+
+    work = tmp_path
+    cache = work / "cache"
+    ContentStore(cache).ingest([MODEL])
+    doc = _remote_doc(work, sha256(MODEL))
+    real = ContentStore.verified_path
+
+    def vanishing(self, sha, **kwargs):
+        path = real(self, sha, **kwargs)
+        if path is not None:
+            path.unlink()
+        return path
+
+    monkeypatch.setattr(ContentStore, "verified_path", vanishing)
+    res = resolver_module.resolve(doc, resolver_module.ResolveOptions(cache_dir=str(cache), offline=True))
+    [err] = res.errors
+    assert isinstance(err, InputError) and "vanished after it was verified" in err.message

@@ -414,7 +414,16 @@ class _Run:
             cached = self.store.verified_path(want, repair=self.o.write_cache)
             if cached is not None:
                 data = _read_blob(cached, want, file=file, line=line, url=art.url) if keep else None
-                self._record(art, Hashed(want, cached.stat().st_size), "cache")
+                try:
+                    size = len(data) if data is not None else cached.stat().st_size
+                except OSError as exc:  # removed by another process since it was verified
+                    raise InputError(
+                        f"cache blob {cached} vanished after it was verified: {exc.strerror}",
+                        file=file,
+                        line=line,
+                        url=art.url,
+                    ) from None
+                self._record(art, Hashed(want, size), "cache")
                 return data
         if self.fetcher is None:
             raise OfflineError(
