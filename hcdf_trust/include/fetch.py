@@ -1,30 +1,25 @@
-"""Fetchers: the only code that opens reference targets (local files or HTTPS).
+"""The HTTPS fetcher: the only code that talks to servers (local files: ``localfile.py``).
 
-Both yield the body as byte chunks, so callers hash while streaming in constant
-memory. Checks made here are transport checks (root confinement, file type,
-TLS, redirects, size, time); whether the bytes are the *right* bytes is decided
-by the resolver against the pins.
+It yields the body as byte chunks, so callers hash while streaming in constant
+memory. Checks made here are transport checks (TLS, redirects, size, time);
+whether the bytes are the *right* bytes is decided by the resolver against the pins.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
-import os
 import ssl
-import stat
 import threading
 import time
 import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING
 from urllib.parse import urljoin, urlsplit
 
-from ..digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
-from ..errors import FetchError, InputError, NotFoundError, PathEscapeError
+from ..digest import CHUNK
+from ..errors import FetchError
 
 if TYPE_CHECKING:
     import httpx
@@ -34,102 +29,6 @@ DEFAULT_MAX_BYTES = 4 << 30
 DEFAULT_TIMEOUT = 30.0
 DEFAULT_DEADLINE = 600.0
 MAX_REDIRECTS = 5
-
-
-def open_checked(
-    path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None
-) -> tuple[int, os.stat_result]:
-    """Open a regular file that really lies inside ``root``; return its descriptor and stat.
-
-    The symlink check is made on the opened descriptor (``/proc/self/fd``), so a
-    link swapped in between check and use cannot lead outside the root. The caller
-    closes the descriptor (or uses :func:`open_local`).
-
-    Raises:
-        NotFoundError, PathEscapeError, InputError (not a regular file, unreadable).
-    """
-    try:
-        # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
-        # reads from a regular file, the only kind we go on to read.
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
-    except FileNotFoundError:
-        raise NotFoundError(f"{path}: no such file", file=file, line=line, url=str(path)) from None
-    except OSError as exc:
-        # ELOOP: a symlink loop; EACCES etc.
-        raise InputError(f"{path}: cannot open: {exc.strerror}", file=file, line=line) from None
-    try:
-        real = os.readlink(f"/proc/self/fd/{fd}")
-        real_root = _realpath(os.fspath(root))
-        if real != real_root and not real.startswith(real_root.rstrip("/") + "/"):
-            raise PathEscapeError(
-                f"{path} resolves to {real}, outside the root {real_root} (symlink escape)",
-                file=file,
-                line=line,
-                expected=f"a file inside {real_root}",
-                actual=str(real),
-            )
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            what = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file"
-            raise InputError(f"{path} is {what}", file=file, line=line)
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd, st
-
-
-@contextlib.contextmanager
-def open_local(
-    path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None
-) -> Iterator[int]:
-    """:func:`open_checked` as a context manager that yields the descriptor."""
-    fd, _ = open_checked(path, root, file=file, line=line)
-    try:
-        yield fd
-    finally:
-        os.close(fd)
-
-
-def hash_local(path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
-    """Hash a confined local file in constant memory (the hot path for model files)."""
-    fd, st = open_checked(path, root, file=file, line=line)
-    try:
-        return hash_fd(fd, size=st.st_size)
-    finally:
-        os.close(fd)
-
-
-@functools.lru_cache(maxsize=64)
-def _realpath(root: str) -> str:
-    """A root's real path, once per run: every file under it is checked against it."""
-    return os.path.realpath(root)
-
-
-def read_bounded(fd: int, limit: int, *, source: str, what: str = "document") -> bytes:
-    """A regular file's whole content, refused (never truncated) past ``limit`` bytes.
-
-    Checked before reading (no large read for an oversize file) and after (it may
-    have grown meanwhile).
-
-    Raises:
-        InputError: over the limit.
-    """
-    if os.fstat(fd).st_size > limit:
-        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
-    data = b"".join(read_chunks(fd))
-    if len(data) > limit:
-        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
-    return data
-
-
-def read_chunks(fd: int) -> Iterator[bytes]:
-    """Yield a regular file's content from ``fd``; one read for small files."""
-    size = os.fstat(fd).st_size
-    if size <= SMALL_FILE:
-        yield read_small(fd, size)
-        return
-    while data := os.read(fd, CHUNK):
-        yield data
 
 
 def _import_httpx() -> ModuleType:

@@ -37,10 +37,11 @@ from ..errors import (
     UnpinnedError,
     WeakPinError,
 )
+from ..localfile import hash_local, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
-from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher, hash_local, open_local, read_bounded
+from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher
 from .locate import Location, Locator, display_path, file_url
 
 DEFAULT_MAX_DEPTH = 16

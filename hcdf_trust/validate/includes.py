@@ -18,9 +18,9 @@ from lxml import etree
 
 from ..document import Document
 from ..errors import HcdfTrustError, NotFoundError
-from ..include.fetch import open_local, read_bounded
 from ..include.flatten import SEPARATOR
 from ..include.locate import Location, Locator, display_path, file_url
+from ..localfile import open_local, read_bounded
 from ..xml import MAX_DOCUMENT_BYTES, sourceline
 from .semantic import IncludeEdge
 

@@ -27,8 +27,8 @@ from urllib.parse import unquote, urlsplit
 from lxml import etree
 
 from ..errors import InputError
-from ..include.fetch import open_local, read_bounded
 from ..include.locate import display_path
+from ..localfile import open_local, read_bounded
 from ..xml import parse_bytes, sourceline
 from .findings import Finding, Severity
 

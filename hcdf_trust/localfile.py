@@ -1,0 +1,165 @@
+"""Reading local files safely: regular files only, never blocking, always bounded.
+
+Every local input — documents, includes, model files, the lock file, and later
+keys, configurations, manifests and metadata — is opened here. A FIFO, a device,
+a directory or a symlink to ``/dev/zero`` is refused at once (``O_NONBLOCK`` and an
+``fstat`` on the opened descriptor), and whole-file reads stop at a size cap.
+Kept apart from the HTTPS fetcher so that an offline run never imports ``ssl``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import os
+import stat
+from collections.abc import Iterator
+from pathlib import Path
+
+from .digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
+from .errors import InputError, NotFoundError, PathEscapeError
+
+
+def open_regular(
+    path: Path | str, *, file: str | None = None, line: int | None = None, what: str = "file"
+) -> tuple[int, os.stat_result]:
+    """Open ``path`` read-only without blocking; refuse anything but a regular file.
+
+    The caller closes the descriptor. Symlinks are followed (confinement is
+    :func:`open_checked`'s job), but what they lead to must be a regular file.
+
+    Raises:
+        NotFoundError: it does not exist.
+        InputError: unreadable, a directory, FIFO, socket or device.
+    """
+    fd = _open(path, file=file, line=line, what=what)
+    try:
+        return fd, _regular(fd, path, file=file, line=line)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def open_checked(
+    path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None
+) -> tuple[int, os.stat_result]:
+    """Open a regular file that really lies inside ``root``; return its descriptor and stat.
+
+    The symlink check is made on the opened descriptor (``/proc/self/fd``), so a
+    link swapped in between check and use cannot lead outside the root. The caller
+    closes the descriptor (or uses :func:`open_local`).
+
+    Raises:
+        NotFoundError, PathEscapeError, InputError (not a regular file, unreadable).
+    """
+    fd = _open(path, file=file, line=line, what="file")
+    try:
+        real = os.readlink(f"/proc/self/fd/{fd}")
+        real_root = _realpath(os.fspath(root))
+        if real != real_root and not real.startswith(real_root.rstrip("/") + "/"):
+            raise PathEscapeError(
+                f"{path} resolves to {real}, outside the root {real_root} (symlink escape)",
+                file=file,
+                line=line,
+                expected=f"a file inside {real_root}",
+                actual=str(real),
+            )
+        return fd, _regular(fd, path, file=file, line=line)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _open(path: Path | str, *, file: str | None, line: int | None, what: str) -> int:
+    try:
+        # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
+        # reads from a regular file, the only kind we go on to read.
+        return os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise NotFoundError(f"{path}: no such {what}", file=file, line=line, url=str(path)) from None
+    except OSError as exc:  # ELOOP (a symlink loop), EACCES, ENOTDIR, ...
+        raise InputError(f"{path}: cannot open: {exc.strerror}", file=file, line=line) from None
+
+
+def _regular(fd: int, path: Path | str, *, file: str | None, line: int | None) -> os.stat_result:
+    st = os.fstat(fd)
+    if stat.S_ISREG(st.st_mode):
+        return st
+    mode = st.st_mode
+    if stat.S_ISDIR(mode):
+        raise InputError(f"{path} is a directory", file=file, line=line)
+    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "special"
+    raise InputError(f"{path} is not a regular file ({kind})", file=file, line=line)
+
+
+@contextlib.contextmanager
+def open_local(
+    path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None
+) -> Iterator[int]:
+    """:func:`open_checked` as a context manager that yields the descriptor."""
+    fd, _ = open_checked(path, root, file=file, line=line)
+    try:
+        yield fd
+    finally:
+        os.close(fd)
+
+
+def hash_local(path: Path | str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
+    """Hash a confined local file in constant memory (the hot path for model files)."""
+    fd, st = open_checked(path, root, file=file, line=line)
+    try:
+        return hash_fd(fd, size=st.st_size)
+    finally:
+        os.close(fd)
+
+
+@functools.lru_cache(maxsize=64)
+def _realpath(root: str) -> str:
+    """A root's real path, once per run: every file under it is checked against it."""
+    return os.path.realpath(root)
+
+
+def read_bounded(fd: int, limit: int, *, source: str, what: str = "document") -> bytes:
+    """A regular file's whole content, refused (never truncated) past ``limit`` bytes.
+
+    Checked before reading (no large read for an oversize file) and after (it may
+    have grown meanwhile).
+
+    Raises:
+        InputError: over the limit.
+    """
+    if os.fstat(fd).st_size > limit:
+        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+    data = b"".join(read_chunks(fd))
+    if len(data) > limit:
+        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+    return data
+
+
+def read_input(path: Path | str, *, limit: int, what: str = "file", source: str | None = None) -> bytes:
+    """The whole content of a local input that is not confined to a root (a lock file,
+    a key, a configuration, a manifest): regular file only, never blocking, at most
+    ``limit`` bytes. ``source`` is how errors name it (default: ``path``).
+
+    Raises:
+        NotFoundError: it does not exist.
+        InputError: not a regular file, unreadable, or over ``limit``.
+    """
+    name = source or str(path)
+    fd, _ = open_regular(path, file=name, what=what)
+    try:
+        return read_bounded(fd, limit, source=name, what=what)
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
+    finally:
+        os.close(fd)
+
+
+def read_chunks(fd: int) -> Iterator[bytes]:
+    """Yield a regular file's content from ``fd``; one read for small files."""
+    size = os.fstat(fd).st_size
+    if size <= SMALL_FILE:
+        yield read_small(fd, size)
+        return
+    while data := os.read(fd, CHUNK):
+        yield data
