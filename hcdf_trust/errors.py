@@ -161,3 +161,38 @@ class ErrorGroup(HcdfTrustError):
         super().__init__(f"{len(errors)} error(s); first: {first}", file=first.file, line=first.line)
         self.exit_code = 1 if any(e.exit_code == 1 for e in errors) else 3
         self.code = "errors"
+
+
+# --- warnings: reported, never fatal ---------------------------------------------------
+
+
+class Notice:
+    """A warning about a reference or file: reported (``--json`` as an object), never fatal.
+
+    ``code`` is stable for machines (``unpinned``, ``weak-pin``, ``lock-pins``, ...);
+    ``file``/``line`` name the place, as for errors.
+    """
+
+    __slots__ = ("code", "message", "file", "line", "url")
+
+    def __init__(
+        self, code: str, message: str, *, file: str | None = None, line: int | None = None, url: str | None = None
+    ) -> None:
+        self.code = code
+        self.message = message
+        self.file = file
+        self.line = line
+        self.url = url
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"code": self.code, "message": self.message, "file": self.file, "line": self.line}
+        if self.url is not None:
+            out["url"] = self.url
+        return out
+
+    def __str__(self) -> str:
+        where = f"{self.file}:{self.line}: " if self.file and self.line else f"{self.file}: " if self.file else ""
+        return f"{where}{self.message}"
+
+    def __repr__(self) -> str:
+        return f"Notice({self.code!r}, {str(self)!r})"
