@@ -18,8 +18,9 @@ demo: $(STAMP)
 	$(BIN)/hcdf-trust verify examples/robot/robot.hcdf
 	$(BIN)/hcdf-trust validate examples/out/scout2.flat.hcdf
 
-## The whole test suite (what CI runs).
+## The whole test suite (what CI runs); installs the Debian packages the tests need first.
 test: $(STAMP)
+	bash .ci/install-system-deps
 	$(BIN)/ruff check hcdf_trust tests bench
 	$(BIN)/mypy hcdf_trust
 	$(BIN)/pytest -n 2 -q
