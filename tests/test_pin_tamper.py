@@ -200,6 +200,24 @@ def test_update_names_one_of_two_mismatches(cli, robot, monkeypatch):
     assert_lock_is_what_resolve_writes(cli, robot)
 
 
+def test_update_accepts_new_content_of_an_unpinned_file(cli, robot):
+    """Without a sha the lock entry is the pin: refused until named, then pinned and locked anew."""
+    robot.write(a=None)
+    assert cli("resolve", *robot.args()).exit_code == 0
+    locked = robot.locked()["robot/models/a.glb"]
+    flip_one_byte(robot.models / "a.glb")
+    assert cli("pin", *robot.args("--write")).exit_code == 1
+    r = cli("pin", *robot.args("--write", "--update", "models/a.glb", "--json"))
+    assert r.exit_code == 0, r.stdout + r.stderr
+    (c,) = r.json["changes"]
+    new = sha(robot.models / "a.glb")
+    assert (c["uri"], c["reason"], c["old"], c["new"]) == ("models/a.glb", "outdated", None, new)
+    assert (c["lock"], c["lock_sha256"]) == ("agreed with old", locked)
+    assert r.json["lock_changes"] == [{"url": "robot/models/a.glb", "old": locked, "new": new}]
+    assert robot.pins(robot.doc)["models/a.glb"] == new
+    assert_lock_is_what_resolve_writes(cli, robot)
+
+
 def test_update_by_resolved_url_and_absolute_path(cli, robot):
     robot.write()
     assert cli("resolve", *robot.args()).exit_code == 0

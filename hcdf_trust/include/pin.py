@@ -340,6 +340,9 @@ def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: lis
     """The URLs of the files the user named for update; an unknown name is an error."""
     if update_all:
         return set(res.artifacts)
+    update = list(update)
+    if not update:
+        return set()
     base = res.lock_path.parent
     names: dict[str, set[str]] = {}
     for art in res.artifacts.values():
@@ -349,7 +352,8 @@ def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: lis
         names[art.url] = keys
     out: set[str] = set()
     for value in update:
-        hits = {url for url, keys in names.items() if value in keys or os.path.realpath(value) in keys}
+        real = os.path.realpath(value)
+        hits = {url for url, keys in names.items() if value in keys or real in keys}
         if not hits:
             errors.append(
                 UnknownUpdateError(
@@ -366,7 +370,8 @@ class _Planner:
     def __init__(self, res: Resolution, editable: set[str], lock: dict[str, str], named: set[str]) -> None:
         self.res = res
         self.editable = editable
-        self.lock = lock
+        base = res.lock_path.parent  # the lock's URLs, absolute as the resolution's (no relpath per file)
+        self.lock = {url if "://" in url else file_url(os.path.normpath(base / url)): sha for url, sha in lock.items()}
         self.named = named
         self.uses: dict[str, list[tuple[Use, Artifact]]] = {}
         self.vouched: set[str] = set()
@@ -416,7 +421,7 @@ class _Planner:
 
     def _judge(self, doc_url: str, use: Use, art: Artifact, read: str, settled: str) -> str | None:
         """Apply the rules to one reference: the digest to write into it, or None."""
-        locked = self.lock.get(lock_url(art.url, self.res.lock_path.parent))
+        locked = self.lock.get(art.url)
         uri = use.ref.uri or ""
         editable = doc_url in self.editable and use.ref.kind in PINNABLE
         if not editable and use.pin is not None and not use.pin.matches(read):
@@ -565,7 +570,7 @@ def _protect(
     """Every input of the run except the documents pin edits in place."""
     plan.protect_tree(options.cache_dir or default_cache_dir(), what="the cache")
     for url, loc in locations.items():
-        if loc.path is None or os.path.realpath(loc.path) in edited:
+        if loc.path is None or (url in res.documents and os.path.realpath(loc.path) in edited):
             continue
         if url == res.root_location.url:
             what = "the root document"
@@ -748,7 +753,10 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
         else:
             q = uri.quote
             splices.append((uri.end, uri.end, b" sha=" + q + sha.encode("ascii") + q))
-    out = data
-    for start, end, new in sorted(splices, reverse=True):
-        out = out[:start] + new + out[end:]
-    return out
+    parts: list[bytes] = []
+    pos = 0
+    for start, end, new in sorted(splices):
+        parts += (data[pos:start], new)
+        pos = end
+    parts.append(data[pos:])
+    return b"".join(parts)
