@@ -18,7 +18,7 @@ from lxml import etree
 
 from hcdf_trust.digest import Pin
 from hcdf_trust.document import Document
-from hcdf_trust.include.pin import apply_pins, reason_for, scan_start_tags
+from hcdf_trust.include.pin import apply_pins, decide, scan_start_tags
 
 PINNED_TAGS = ("include", "model", "stream-profile")
 SHA_ATTR = re.compile(rb"""\s+sha\s*=\s*(?:"[^"]*"|'[^']*')""")
@@ -138,42 +138,60 @@ def tree(tmp_path):
 
 
 def run_args(tmp_path: Path) -> list[str | Path]:
-    return ["--cache-dir", tmp_path / "cache"]
+    """A cache and a lock outside the robot's folder, so snapshots of it see only the documents."""
+    return ["--cache-dir", tmp_path / "cache", "--lock", tmp_path / "x.lock"]
 
 
 def test_original_tree_does_not_resolve(cli, tree, tmp_path):
     """Sanity: the tree really needs pin (resolve exits 1 on its outdated pins)."""
     _, docs = tree
-    r = cli("resolve", docs["root"], "--lock", tmp_path / "x.lock", *run_args(tmp_path))
+    r = cli("resolve", docs["root"], *run_args(tmp_path))
     assert r.exit_code == 1, r.stderr
+
+
+def test_outdated_pins_are_refused_unless_named(cli, tree, tmp_path):
+    """The tree's wrong full pins are digest mismatches until --all (or --update) names them."""
+    folder, docs = tree
+    before = snapshot(folder)
+    r = cli("pin", docs["root"], "--write", "--json", *run_args(tmp_path))
+    assert r.exit_code == 1, r.stdout + r.stderr
+    refused = sorted((Path(e["file"]).name, e["line"]) for e in r.json["errors"])
+    assert [name for name, _ in refused] == ["arm.hcdf", "root.hcdf", "sensor.hcdf"], refused
+    assert {e["code"] for e in r.json["errors"]} == {"digest-mismatch"}
+    assert all("--update" in e["message"] and e["expected"] == WRONG for e in r.json["errors"])
+    assert r.json["wrote"] == []
+    assert snapshot(folder) == before and not (tmp_path / "x.lock").exists()
 
 
 def test_dry_run_reports_every_repair_and_writes_nothing(cli, tree, tmp_path):
     folder, docs = tree
     before = snapshot(folder)
-    r = cli("pin", docs["root"], "--json", *run_args(tmp_path))
+    r = cli("pin", docs["root"], "--all", "--json", *run_args(tmp_path))
     assert r.exit_code == 0, r.stdout + r.stderr
     out = r.json
     assert out["ok"] is True and out["wrote"] == []
+    planned = sorted(Path(p).name for p in out["planned"])
+    assert planned == ["arm.hcdf", "lens.hcdf", "root.hcdf", "sensor.hcdf", "x.lock"]
     got = sorted((Path(c["file"]).name, c["uri"], c["reason"]) for c in out["changes"])
     assert got == sorted(
         [
             ("root.hcdf", "models/base.glb", "missing"),
             ("root.hcdf", "arm.hcdf", "missing"),
             ("root.hcdf", "arm.hcdf", "outdated"),
-            ("root.hcdf", "sensor.hcdf", "outdated"),  # outdated only because sensor is edited
+            ("root.hcdf", "sensor.hcdf", "include-edited"),  # a correct pin, but sensor is edited
             ("arm.hcdf", "models/arm.glb", "weak"),
             ("arm.hcdf", "models/gripper.glb", "outdated"),
             ("arm.hcdf", "profiles/imu.xml", "missing"),
             ("sensor.hcdf", "models/cam.glb", "missing"),
             ("sensor.hcdf", "models/cam.glb", "outdated"),
-            ("sensor.hcdf", "parts/lens.hcdf", "outdated"),  # lens is edited
+            ("sensor.hcdf", "parts/lens.hcdf", "include-edited"),
             ("lens.hcdf", "../models/lens.glb", "missing"),
         ]
     )
     for c in out["changes"]:
         assert re.fullmatch(r"[0-9a-f]{64}", c["new"])
-    assert snapshot(folder) == before
+    assert all(c["lock"] == "no entry" and c["lock_sha256"] is None for c in out["changes"])
+    assert snapshot(folder) == before and not (tmp_path / "x.lock").exists()
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("*.glb"))
 
 
@@ -181,11 +199,11 @@ def test_write_pins_every_reference_with_a_minimal_edit(cli, tree, tmp_path):
     folder, docs = tree
     (docs["arm"]).chmod(0o640)
     before = snapshot(folder)
-    r = cli("pin", docs["root"], "--write", "--json", *run_args(tmp_path))
+    r = cli("pin", docs["root"], "--write", "--all", "--json", *run_args(tmp_path))
     assert r.exit_code == 0, r.stdout + r.stderr
     assert len(r.json["changes"]) == 11
     assert sorted(Path(p).name for p in r.json["wrote"]) == [
-        "arm.hcdf", "lens.hcdf", "root.hcdf", "sensor.hcdf"
+        "arm.hcdf", "lens.hcdf", "root.hcdf", "sensor.hcdf", "x.lock"
     ]
     after = snapshot(folder)
     assert after.keys() == before.keys()  # no stray temporary files
@@ -218,9 +236,11 @@ def test_write_pins_every_reference_with_a_minimal_edit(cli, tree, tmp_path):
     assert decoy in after["root.hcdf"]
     assert os.stat(docs["arm"]).st_mode & 0o777 == 0o640
 
-    # 3. a plain resolve now passes, and a second pin has nothing left to do
-    r = cli("resolve", docs["root"], "--lock", tmp_path / "x.lock", *run_args(tmp_path))
+    # 3. the lock is already what resolve writes, and a second pin has nothing left to do
+    lock = (tmp_path / "x.lock").read_bytes()
+    r = cli("resolve", docs["root"], "--locked", *run_args(tmp_path))
     assert r.exit_code == 0, r.stderr
+    assert (tmp_path / "x.lock").read_bytes() == lock
     r = cli("pin", docs["root"], "--write", "--json", *run_args(tmp_path))
     assert r.exit_code == 0, r.stdout + r.stderr
     assert r.json["changes"] == [] and r.json["wrote"] == []
@@ -269,11 +289,11 @@ def test_symlinked_document_is_edited_through_the_link(cli, tree, tmp_path):
     real = folder / "parts" / "lens-real.hcdf"
     docs["lens"].rename(real)
     docs["lens"].symlink_to("lens-real.hcdf")
-    r = cli("pin", docs["root"], "--write", *run_args(tmp_path))
+    r = cli("pin", docs["root"], "--write", "--all", *run_args(tmp_path))
     assert r.exit_code == 0, r.stderr
     assert docs["lens"].is_symlink()
     assert b'sha="' in real.read_bytes()
-    r = cli("resolve", docs["root"], "--lock", tmp_path / "x.lock", *run_args(tmp_path))
+    r = cli("resolve", docs["root"], "--locked", *run_args(tmp_path))
     assert r.exit_code == 0, r.stderr
 
 
@@ -292,7 +312,7 @@ def test_file_changed_after_reading_is_not_overwritten(tree, monkeypatch):
 
     monkeypatch.setattr(pin_module, "resolve", racing_resolve)
     before = snapshot(folder)
-    report = pin_module.pin_tree(docs["root"], write=True)
+    report = pin_module.pin_tree(docs["root"], write=True, update_all=True)
     assert len(report.errors) == 1 and "sensor.hcdf" in str(report.errors[0])
     assert "changed on disk" in str(report.errors[0])
     assert report.written == []
@@ -332,8 +352,8 @@ def test_remote_documents_are_not_edited(tmp_path):
     assert [(c.uri, c.reason) for c in report.changes] == [
         ("https://robots.invalid/sub.hcdf", "missing")
     ]
-    assert len(report.warnings) == 1 and "models/m.glb" in report.warnings[0]
-    assert "remote" in report.warnings[0]
+    assert len(report.warnings) == 1 and "models/m.glb" in str(report.warnings[0])
+    assert "remote" in str(report.warnings[0]) and report.warnings[0].code == "pin-remote"
     assert snapshot(site) == site_before
     assert etree.parse(str(root)).find("include").get("sha") == sha(sub)
 
@@ -341,13 +361,28 @@ def test_remote_documents_are_not_edited(tmp_path):
 # -- the text layer, directly -------------------------------------------------------
 
 
-def test_reason_for():
+def test_decide():
     full = hashlib.sha256(b"x").hexdigest()
-    assert reason_for(None, full) == "missing"
-    assert reason_for(Pin(full[:10]), full) == "weak"
-    assert reason_for(Pin(WRONG), full) == "outdated"
-    assert reason_for(Pin(WRONG[:10]), full) == "outdated"
-    assert reason_for(Pin(full), full) is None
+    edited = hashlib.sha256(b"x, edited").hexdigest()
+
+    def d(pin, *, settled=full, locked=None, vouched=False, named=False):
+        return decide(pin, read=full, settled=settled, locked=locked, vouched=vouched, named=named)
+
+    assert d(None) == ("missing", None)
+    assert d(Pin(full[:10])) == ("weak", None)
+    assert d(Pin(full)) == (None, None)
+    assert d(Pin(full), settled=edited) == ("include-edited", None)
+    # a pin that disagrees with the content: refused unless named
+    for pin in (Pin(WRONG), Pin(WRONG[:10])):
+        assert d(pin) == (None, "pin-differs")
+        assert d(pin, locked=full) == (None, "pin-differs")
+        assert d(pin, named=True) == ("outdated", None)
+    # without a full pin the lock entry is the pin
+    for pin in (None, Pin(full[:10])):
+        assert d(pin, locked=full) == (("missing" if pin is None else "weak"), None)
+        assert d(pin, locked=WRONG) == (None, "lock-differs")
+        assert d(pin, locked=WRONG, named=True) == ("outdated", None)
+        assert d(pin, locked=WRONG, vouched=True)[1] is None  # another reference pins the content in full
 
 
 def test_scanner_skips_comments_cdata_and_processing_instructions():

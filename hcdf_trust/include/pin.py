@@ -2,19 +2,42 @@
 
 Each repair is a minimal text edit of one attribute in the document's raw bytes:
 comments, formatting, attribute order and quoting stay as they were; the XML is
-never re-serialized. The run has four steps:
+never re-serialized.
 
-1. Resolve the tree with ``accept_mismatch`` so that an outdated include pin does
-   not stop the walk. Digest mismatches and weak pins on references pin can edit
-   are what it repairs; every other error (missing file, malformed XML, transport,
-   path escape, a bad ``sha`` text, ...) stops the run and nothing is written.
+The rules (:func:`decide`, pure), for each reference and the file it names:
+
+- A *missing* or *weak* pin is filled in with the full digest, provided the content
+  agrees with the lock. A reference without a full pin is pinned by its lock entry
+  (trust on first use), so content that differs from that entry is refused as
+  tampered, never blessed.
+- A pin (full or weak) that disagrees with the content, or content that differs
+  from the lock entry of a reference without a full pin, is replaced only when the
+  user names the file (``update``: the uri as written, its URL or its path) or asks
+  for ``update_all``. Otherwise it is a digest-mismatch error (exit 1) and nothing
+  is written.
+- A correct pin of an include that this run edits is replaced by the digest of the
+  edited bytes (reason ``include-edited``).
+
+Every change reports its old and new digests and how the lock entry related to
+them (:func:`lock_agreement`). The run has five steps:
+
+1. Resolve the tree with ``accept_mismatch`` so that a disagreeing pin does not
+   stop the walk. Whether content agrees with its pins and its lock entry is
+   decided again here, by the rules above; every other error (missing file,
+   malformed XML, transport, path escape, a bad ``sha`` text, an unreadable lock,
+   ...) stops the run.
 2. Settle documents bottom-up over the include tree: a document's own digest
    changes when it is edited, so each including document's pin of it is computed
    from the child's *edited* bytes. After ``pin --write`` a plain ``resolve`` passes.
 3. Locate each reference's start tag in the raw bytes (by element order, checked
    against lxml's ``sourceline``) and its attributes within that tag only.
-4. With ``write``, check that no file changed since it was read, then replace each
-   edited file atomically, leaves first, keeping its permission bits.
+4. Plan the outputs with :class:`~hcdf_trust.outputs.OutputPlan`: the edited
+   documents (in place, keeping their permission bits) and the lock file, rendered
+   exactly as a following plain ``resolve`` writes it. Every other input (the
+   tree's other documents, the verified artifacts, the cache) is protected, so the
+   lock cannot land on one.
+5. With ``write``, check that no edited document and not the lock changed since it
+   was read, then commit: every file is written, or none.
 
 Which references get a ``sha``: ``<include>``, ``<model uri|href>`` and
 ``<stream-profile>``. Not ``<geometry><mesh>`` (the schema has no ``sha`` there;
@@ -23,7 +46,6 @@ the lock file pins meshes), and not ``<software><hash>`` (firmware).
 Remote documents (https, or served from a ``--mirror``) cannot be edited: a
 missing or weak pin in one is skipped with a warning in :attr:`PinReport.warnings`;
 a wrong pin in one stays a digest-mismatch error (exit 1), as it is for ``resolve``.
-The lock file is not touched: run ``hcdf-trust resolve`` afterwards to refresh it.
 """
 
 from __future__ import annotations
@@ -33,6 +55,7 @@ import html
 import os
 import re
 import stat
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -46,18 +69,38 @@ from ..errors import (
     DigestMismatchError,
     HcdfTrustError,
     InputError,
+    IntegrityError,
+    Notice,
     WeakPinError,
 )
-from ..store import atomic_write
-from ..xml import sourceline
-from .locate import Location, file_url
-from .resolver import Artifact, Resolution, ResolveOptions, Use, display_url, resolve
+from ..localfile import read_input
+from ..outputs import OutputError, OutputPlan
+from ..store import default_cache_dir
+from ..xml import MAX_DOCUMENT_BYTES, sourceline
+from . import lockfile
+from .locate import Location, display_path, file_url
+from .resolver import Artifact, Resolution, ResolveOptions, Use, display_url, lock_url, resolve
 
 PINNABLE = frozenset({Kind.INCLUDE, Kind.MODEL, Kind.STREAM_PROFILE})
 
+# Why a sha is written.
 MISSING = "missing"
 WEAK = "weak"
-OUTDATED = "outdated"
+OUTDATED = "outdated"  # the content disagreed with the pin or the lock; replaced because the user named it
+INCLUDE_EDITED = "include-edited"  # the pin matched the include as read; this run edits the include
+
+# Why a change is refused unless the user names the file.
+PIN_DIFFERS = "pin-differs"
+LOCK_DIFFERS = "lock-differs"
+
+# How the lock entry related to a change.
+AGREED_WITH_OLD = "agreed with old"
+AGREED_WITH_NEW = "agreed with new"
+NO_ENTRY = "no entry"
+DISAGREED_WITH_BOTH = "disagreed with both"
+
+# Larger than any lock file lockfile.load accepts; read only to notice a concurrent change.
+_LOCK_READ_LIMIT = 256 << 20
 
 
 @dataclass(frozen=True)
@@ -69,9 +112,11 @@ class PinChange:
     kind: str
     uri: str
     url: str  # what the uri resolves to
-    reason: str  # missing | weak | outdated
+    reason: str  # missing | weak | outdated | include-edited
     old: str | None  # the sha text as written, None when absent
     new: str  # the full SHA-256 written
+    lock: str  # agreed with old | agreed with new | no entry | disagreed with both
+    lock_sha256: str | None  # the lock entry's digest, None when the lock has none
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -83,14 +128,30 @@ class PinChange:
             "reason": self.reason,
             "old": self.old,
             "new": self.new,
+            "lock": self.lock,
+            "lock_sha256": self.lock_sha256,
         }
+
+
+@dataclass(frozen=True)
+class LockChange:
+    """One lock entry that is (or would be) added, changed or dropped."""
+
+    url: str  # as the lock file writes it
+    old: str | None  # None: a new entry
+    new: str | None  # None: no longer referenced
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"url": self.url, "old": self.old, "new": self.new}
 
 
 @dataclass
 class PinReport:
     changes: list[PinChange] = field(default_factory=list)
+    lock_changes: list[LockChange] = field(default_factory=list)
     errors: list[HcdfTrustError] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
+    warnings: list[Notice] = field(default_factory=list)
+    planned: list[str] = field(default_factory=list)  # the files ``write`` writes (or wrote)
     written: list[str] = field(default_factory=list)
 
     @property
@@ -104,13 +165,25 @@ class PinEditError(InputError):
     code = "pin-edit"
 
 
+class UnknownUpdateError(InputError):
+    """An ``--update`` name matches no reference of the tree."""
+
+    code = "update-unknown"
+
+
 def pin_tree(
     doc_path: str | os.PathLike[str],
     options: ResolveOptions | None = None,
     *,
     write: bool = False,
+    update: Iterable[str] = (),
+    update_all: bool = False,
 ) -> PinReport:
-    """Compute (and with ``write``, apply) every ``sha`` repair in ``doc_path``'s tree.
+    """Compute (and with ``write``, apply) every ``sha`` repair in ``doc_path``'s tree, and its lock.
+
+    ``update`` names files whose disagreeing pins or lock entries may be replaced
+    by their current content (the uri as written, the resolved URL or a path);
+    ``update_all`` allows it for every file.
 
     Never raises for content errors: they are returned in :attr:`PinReport.errors`,
     and then no file is written. Without ``write`` nothing is written anywhere
@@ -124,28 +197,33 @@ def pin_tree(
     except HcdfTrustError as exc:
         report.errors.append(exc)
         return report
+    try:
+        lock_raw, lock = _read_lock(res.lock_path)
+    except HcdfTrustError as exc:
+        report.errors.append(exc)
+        return report
 
-    # step 1: which errors pin repairs, and which stop it
+    # step 1: which errors pin decides again, and which stop it
     locations = _locations(res)
     editable = {url for url, loc in locations.items() if _is_editable(url, loc)}
-    repairable = {
-        (use.doc, use.ref.line, art.url)
+    decided = {
+        (use.doc, use.ref.line, art.url): use.ref.kind in PINNABLE and use.doc_url in editable
         for art in res.artifacts.values()
+        if art.sha256 is not None
         for use in art.uses
-        if use.ref.kind in PINNABLE and use.doc_url in editable
     }
     for err in res.errors:
-        if isinstance(err, DigestMismatchError | WeakPinError):
-            if (err.file, err.line, err.url) in repairable:
-                continue
-            if isinstance(err, DigestMismatchError):
-                err = _explain_unrepairable(err, res)
+        key = (err.file, err.line, err.url)
+        if key in decided and isinstance(err, IntegrityError):
+            if not isinstance(err, WeakPinError) or decided[key]:
+                continue  # pins and lock versus content: decided by the rules above
         report.errors.append(err)
+    named = _named(res, update, update_all, report.errors)
     if report.errors:
         return report
 
-    # step 2: settle documents bottom-up
-    planner = _Planner(res, editable)
+    # steps 2 and 3: settle documents bottom-up, editing their text
+    planner = _Planner(res, editable, lock, named)
     try:
         planner.settle(res.root_location.url)
     except HcdfTrustError as exc:
@@ -153,47 +231,79 @@ def pin_tree(
     report.warnings.extend(planner.warnings)
     report.errors.extend(planner.errors)
     report.changes = sorted(planner.changes, key=lambda c: (c.file, c.line or 0, c.uri))
+    if report.errors:
+        return report
+
+    # step 4: plan the edited documents and the lock, every other input protected
+    entries = _lock_entries(res, planner)
+    lock_new = lockfile.render(entries, root=lock_url(res.root_location.url, res.lock_path.parent))
+    report.lock_changes = _lock_diff(lock, {e.url: e.sha256 for e in entries})
+    targets = _targets(res, planner, locations, report.errors)
+    plan = OutputPlan()
+    if not report.errors:
+        _protect(plan, res, locations, base, edited=set(targets))
+        try:
+            for path, (url, _old, new) in targets.items():
+                plan.add(path, new, flag="document", mode=stat.S_IMODE(os.stat(path).st_mode))
+                report.planned.append(display_url(url))
+            if lock_new != lock_raw:
+                plan.add(res.lock_path, lock_new, flag="--lock")
+                report.planned.append(display_path(res.lock_path))
+        except OutputError as exc:
+            report.errors.append(exc)
+        except OSError as exc:
+            report.errors.append(InputError(f"cannot stat: {exc.strerror}", file=exc.filename))
     if report.errors or not write:
         return report
 
-    # step 4: write, leaves first, only if every file is still what was read
-    targets: dict[Path, tuple[str, bytes, bytes]] = {}
-    for url in planner.order:
-        new = planner.new_bytes[url]
-        old = res.documents[url].data
-        if new == old:
-            continue
-        local = locations[url].path
-        assert local is not None  # only local documents are editable, so only they change
-        path = Path(os.path.realpath(local))
-        seen = targets.get(path)
-        if seen is not None and seen[2] != new:
-            report.errors.append(
-                PinEditError(
-                    f"{path} is reached as two documents that need different edits (a symlink?): refusing to edit it",
-                    file=display_url(url),
-                )
-            )
-        targets[path] = (url, old, new)
-    for path, (url, old, _new) in targets.items():
-        try:
-            current = path.read_bytes()
-        except OSError as exc:
-            report.errors.append(InputError(f"cannot re-read: {exc}", file=display_url(url)))
-            continue
-        if current != old:
-            report.errors.append(InputError("changed on disk while pinning: run pin again", file=display_url(url)))
+    # step 5: write everything or nothing, only if nothing changed since it was read
+    report.errors.extend(_changed_since_read(targets, res.lock_path, lock_raw))
     if report.errors:
         return report
-    for path, (url, _old, new) in targets.items():
-        try:
-            mode = stat.S_IMODE(os.stat(path).st_mode)
-            atomic_write(path, new, mode=mode)
-        except OSError as exc:
-            report.errors.append(InputError(f"cannot write: {exc}", file=display_url(url)))
-            return report
-        report.written.append(display_url(url))
+    try:
+        plan.commit()
+    except OutputError as exc:
+        report.errors.append(exc)
+        return report
+    report.written = list(report.planned)
     return report
+
+
+# -- the rules (pure) ----------------------------------------------------------------
+
+
+def decide(
+    pin: Pin | None, *, read: str, settled: str, locked: str | None, vouched: bool, named: bool
+) -> tuple[str | None, str | None]:
+    """``(reason, None)`` to write ``settled``, ``(None, refusal)``, or ``(None, None)``. Pure.
+
+    ``read`` is the digest of the content as read, ``settled`` after this run's edits
+    (they differ only for an include this run edits), ``locked`` the lock entry's
+    digest, ``vouched`` whether some reference to the same file has a full pin equal
+    to ``read``, ``named`` whether the user named the file for update.
+    """
+    if pin is not None and not pin.matches(read):
+        return (OUTDATED, None) if named else (None, PIN_DIFFERS)
+    if pin is None or not pin.is_full:
+        if locked is not None and locked != read and not vouched:
+            return (OUTDATED, None) if named else (None, LOCK_DIFFERS)
+        return (MISSING if pin is None else WEAK), None
+    return (INCLUDE_EDITED if settled != read else None), None
+
+
+def lock_agreement(old: Pin | None, new: str, locked: str | None) -> str:
+    """How the lock entry related to a change from ``old`` to ``new``. Pure.
+
+    For a reference without a sha the lock entry was its pin, so a lock entry other
+    than ``new`` counts as agreeing with the old state.
+    """
+    if locked is None:
+        return NO_ENTRY
+    if locked == new:
+        return AGREED_WITH_NEW
+    if old is None or old.matches(locked):
+        return AGREED_WITH_OLD
+    return DISAGREED_WITH_BOTH
 
 
 # -- the tree ------------------------------------------------------------------------
@@ -212,56 +322,72 @@ def _is_editable(url: str, loc: Location) -> bool:
     return file_url(loc.path) == url or Path(unquote(urlsplit(url).path)) == Path(loc.path)
 
 
-def _explain_unrepairable(err: DigestMismatchError, res: Resolution) -> DigestMismatchError:
-    why = None
+def _read_lock(path: Path, *, parse: bool = True) -> tuple[bytes | None, dict[str, str]]:
+    """The lock file's bytes (None when there is none) and its digests by lock URL.
+
+    Raises:
+        HcdfTrustError: it cannot be read, or (with ``parse``) is not a valid lock file.
+    """
+    if not os.path.lexists(path):
+        return None, {}
+    raw = read_input(path, limit=_LOCK_READ_LIMIT, what="lock file", source=display_path(path))
+    if not parse:
+        return raw, {}
+    return raw, {url: entry.sha256 for url, entry in lockfile.load(path).items()}
+
+
+def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: list[HcdfTrustError]) -> set[str]:
+    """The URLs of the files the user named for update; an unknown name is an error."""
+    if update_all:
+        return set(res.artifacts)
+    update = list(update)
+    if not update:
+        return set()
+    base = res.lock_path.parent
+    names: dict[str, set[str]] = {}
     for art in res.artifacts.values():
-        for use in art.uses:
-            if (use.doc, use.ref.line, art.url) != (err.file, err.line, err.url):
-                continue
-            if use.ref.kind not in PINNABLE:
-                why = f"a <{use.ref.kind.value}> sha is not one pin edits: fix or remove it by hand"
-            else:
-                why = "the referencing document is remote, and pin cannot edit it"
-    if why is None:
-        return err
-    return DigestMismatchError(
-        f"{err.message} ({why})",
-        file=err.file,
-        line=err.line,
-        url=err.url,
-        expected=err.expected,
-        actual=err.actual,
-    )
-
-
-def reason_for(pin: Pin | None, actual: str) -> str | None:
-    """Why a pin needs rewriting to ``actual``, or None if it is already a full match. Pure."""
-    if pin is None:
-        return MISSING
-    if not pin.matches(actual):
-        return OUTDATED
-    if not pin.is_full:
-        return WEAK
-    return None
+        keys = {u.ref.uri for u in art.uses if u.ref.uri} | {art.url, display_url(art.url), lock_url(art.url, base)}
+        if art.location.path is not None:
+            keys.add(os.path.realpath(art.location.path))
+        names[art.url] = keys
+    out: set[str] = set()
+    for value in update:
+        real = os.path.realpath(value)
+        hits = {url for url, keys in names.items() if value in keys or real in keys}
+        if not hits:
+            errors.append(
+                UnknownUpdateError(
+                    f"--update {value!r} names no file of the tree (give the uri as written, its URL or its path)"
+                )
+            )
+        out |= hits
+    return out
 
 
 class _Planner:
     """Post-order over the include DAG (cycles are resolve errors, so none reach here)."""
 
-    def __init__(self, res: Resolution, editable: set[str]) -> None:
+    def __init__(self, res: Resolution, editable: set[str], lock: dict[str, str], named: set[str]) -> None:
         self.res = res
         self.editable = editable
+        base = res.lock_path.parent  # the lock's URLs, absolute as the resolution's (no relpath per file)
+        self.lock = {url if "://" in url else file_url(os.path.normpath(base / url)): sha for url, sha in lock.items()}
+        self.named = named
         self.uses: dict[str, list[tuple[Use, Artifact]]] = {}
+        self.vouched: set[str] = set()
         for art in res.artifacts.values():
+            if art.sha256 is None:
+                continue  # an error stopped the run before this is reached
+            if any(u.pin is not None and u.pin.is_full and u.pin.hex == art.sha256 for u in art.uses):
+                self.vouched.add(art.url)
             for use in art.uses:
-                if use.ref.kind in PINNABLE:
-                    self.uses.setdefault(use.doc_url, []).append((use, art))
+                self.uses.setdefault(use.doc_url, []).append((use, art))
         self.digest: dict[str, str] = {}
         self.new_bytes: dict[str, bytes] = {}
         self.order: list[str] = []  # leaves first
         self.active: set[str] = set()
         self.changes: list[PinChange] = []
-        self.warnings: list[str] = []
+        self.warnings: list[Notice] = []
         self.errors: list[HcdfTrustError] = []
 
     def settle(self, url: str) -> str:
@@ -275,34 +401,12 @@ class _Planner:
         doc = self.res.documents[url]
         edits: list[tuple[Reference, str]] = []
         for use, art in self.uses.get(url, []):
-            actual: str | None
-            if use.ref.kind is Kind.INCLUDE and art.url in self.res.documents:
-                actual = self.settle(art.url)
-            else:
-                actual = art.sha256
-            if actual is None:  # cannot happen in a clean resolution
-                continue
-            reason = reason_for(use.pin, actual)
-            if reason is None:
-                continue
-            change = PinChange(
-                file=use.doc,
-                line=use.ref.line,
-                kind=use.ref.kind.value,
-                uri=use.ref.uri or "",
-                url=display_url(art.url),
-                reason=reason,
-                old=use.ref.sha,
-                new=actual,
-            )
-            if url in self.editable:
-                edits.append((use.ref, actual))
-                self.changes.append(change)
-            else:
-                self.warnings.append(
-                    f"{use.doc}:{use.ref.line}: {change.uri} needs a pin ({reason}: sha256 "
-                    f"{actual}) but {use.doc} is remote: pin cannot edit it"
-                )
+            read = art.sha256
+            assert read is not None
+            settled = self.settle(art.url) if use.ref.kind is Kind.INCLUDE and art.url in self.res.documents else read
+            sha = self._judge(url, use, art, read, settled)
+            if sha is not None:
+                edits.append((use.ref, sha))
         data = doc.data
         if edits:
             try:
@@ -314,6 +418,191 @@ class _Planner:
         sha = hashlib.sha256(data).hexdigest()
         self.digest[url] = sha
         return sha
+
+    def _judge(self, doc_url: str, use: Use, art: Artifact, read: str, settled: str) -> str | None:
+        """Apply the rules to one reference: the digest to write into it, or None."""
+        locked = self.lock.get(art.url)
+        uri = use.ref.uri or ""
+        editable = doc_url in self.editable and use.ref.kind in PINNABLE
+        if not editable and use.pin is not None and not use.pin.matches(read):
+            if use.ref.kind not in PINNABLE:
+                why = f"a <{use.ref.kind.value}> sha is not one pin edits: fix or remove it by hand"
+            else:
+                why = "the referencing document is remote, and pin cannot edit it"
+            self.errors.append(self._mismatch(f"{uri}: digest mismatch ({why})", use, art, use.pin.hex, read))
+            return None
+        reason, refused = decide(
+            use.pin,
+            read=read,
+            settled=settled,
+            locked=locked,
+            vouched=art.url in self.vouched,
+            named=art.url in self.named,
+        )
+        hint = f"if the new content is intended, run pin again with --update {uri} (or --all)"
+        if refused == PIN_DIFFERS:
+            assert use.pin is not None
+            said = _lock_says(use.pin, read, locked)
+            self.errors.append(
+                self._mismatch(
+                    f"{uri}: digest mismatch: the content is not what the sha pins ({said}); {hint}",
+                    use,
+                    art,
+                    use.pin.hex,
+                    read,
+                )
+            )
+            return None
+        if refused == LOCK_DIFFERS:
+            assert locked is not None
+            lock_name = display_path(self.res.lock_path)
+            self.errors.append(
+                self._mismatch(
+                    f"{uri} changed since it was locked in {lock_name} (without a full sha, the lock entry is its "
+                    f"pin); {hint}",
+                    use,
+                    art,
+                    locked,
+                    read,
+                )
+            )
+            return None
+        if reason is None or use.ref.kind not in PINNABLE:
+            return None  # nothing to write, or a file that only the lock pins (a mesh)
+        if not editable:
+            self.warnings.append(
+                Notice(
+                    "pin-remote",
+                    f"{uri} needs a pin ({reason}: sha256 {settled}) but {use.doc} is remote: pin cannot edit it",
+                    file=use.doc,
+                    line=use.ref.line,
+                    url=display_url(art.url),
+                )
+            )
+            return None
+        self.changes.append(
+            PinChange(
+                file=use.doc,
+                line=use.ref.line,
+                kind=use.ref.kind.value,
+                uri=uri,
+                url=display_url(art.url),
+                reason=reason,
+                old=use.ref.sha,
+                new=settled,
+                lock=lock_agreement(use.pin, settled, locked),
+                lock_sha256=locked,
+            )
+        )
+        return settled
+
+    @staticmethod
+    def _mismatch(message: str, use: Use, art: Artifact, expected: str, actual: str) -> DigestMismatchError:
+        return DigestMismatchError(
+            message, file=use.doc, line=use.ref.line, url=art.url, expected=expected, actual=actual
+        )
+
+
+def _lock_says(pin: Pin, read: str, locked: str | None) -> str:
+    if locked is None:
+        return "the lock has no entry for it"
+    if pin.matches(locked):
+        return "the lock agrees with the sha: the file changed after it was pinned"
+    if locked == read:
+        return "the lock has the new content"
+    return f"the lock has a third digest, {locked}"
+
+
+# -- the outputs ---------------------------------------------------------------------
+
+
+def _lock_entries(res: Resolution, planner: _Planner) -> list[lockfile.LockEntry]:
+    """What a plain ``resolve`` locks after the edits: edited includes by their new bytes."""
+    base = res.lock_path.parent
+    edited = {
+        lock_url(url, base): (planner.digest[url], len(data))
+        for url, data in planner.new_bytes.items()
+        if data != res.documents[url].data
+    }
+    entries = []
+    for entry in res.lock_entries():
+        new = edited.get(entry.url)
+        entries.append(entry if new is None else replace(entry, sha256=new[0], size=new[1]))
+    return entries
+
+
+def _lock_diff(old: dict[str, str], new: dict[str, str]) -> list[LockChange]:
+    return [
+        LockChange(url, old.get(url), new.get(url))
+        for url in sorted(set(old) | set(new))
+        if old.get(url) != new.get(url)
+    ]
+
+
+def _targets(
+    res: Resolution, planner: _Planner, locations: dict[str, Location], errors: list[HcdfTrustError]
+) -> dict[str, tuple[str, bytes, bytes]]:
+    """The edited documents by real path: (url, bytes as read, new bytes), leaves first."""
+    targets: dict[str, tuple[str, bytes, bytes]] = {}
+    for url in planner.order:
+        new = planner.new_bytes[url]
+        old = res.documents[url].data
+        if new == old:
+            continue
+        local = locations[url].path
+        assert local is not None  # only local documents are editable, so only they change
+        path = os.path.realpath(local)
+        seen = targets.get(path)
+        if seen is not None and seen[2] != new:
+            errors.append(
+                PinEditError(
+                    f"{path} is reached as two documents that need different edits (a symlink?): refusing to edit it",
+                    file=display_url(url),
+                )
+            )
+        targets[path] = (url, old, new)
+    return targets
+
+
+def _protect(
+    plan: OutputPlan, res: Resolution, locations: dict[str, Location], options: ResolveOptions, *, edited: set[str]
+) -> None:
+    """Every input of the run except the documents pin edits in place."""
+    plan.protect_tree(options.cache_dir or default_cache_dir(), what="the cache")
+    for url, loc in locations.items():
+        if loc.path is None or (url in res.documents and os.path.realpath(loc.path) in edited):
+            continue
+        if url == res.root_location.url:
+            what = "the root document"
+        elif url in res.documents:
+            what = "a document of the include tree"
+        else:
+            what = "a verified artifact"
+        plan.protect(loc.path, what=what)
+
+
+def _changed_since_read(
+    targets: dict[str, tuple[str, bytes, bytes]], lock_path: Path, lock_raw: bytes | None
+) -> list[HcdfTrustError]:
+    """An error for each edited document, and the lock, whose bytes are no longer those read."""
+    errors: list[HcdfTrustError] = []
+    for path, (url, old, _new) in targets.items():
+        try:
+            current = read_input(path, limit=MAX_DOCUMENT_BYTES, source=display_url(url), what="document")
+        except HcdfTrustError as exc:
+            errors.append(InputError(f"cannot re-read: {exc.message}", file=display_url(url)))
+            continue
+        if current != old:
+            errors.append(InputError("changed on disk while pinning: run pin again", file=display_url(url)))
+    try:
+        lock_now, _ = _read_lock(lock_path, parse=False)
+    except HcdfTrustError as exc:
+        errors.append(exc)
+    else:
+        if lock_now != lock_raw:
+            shown = display_path(lock_path)
+            errors.append(InputError("the lock file changed on disk while pinning: run pin again", file=shown))
+    return errors
 
 
 # -- the text edit -------------------------------------------------------------------
@@ -464,7 +753,10 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
         else:
             q = uri.quote
             splices.append((uri.end, uri.end, b" sha=" + q + sha.encode("ascii") + q))
-    out = data
-    for start, end, new in sorted(splices, reverse=True):
-        out = out[:start] + new + out[end:]
-    return out
+    parts: list[bytes] = []
+    pos = 0
+    for start, end, new in sorted(splices):
+        parts += (data[pos:start], new)
+        pos = end
+    parts.append(data[pos:])
+    return b"".join(parts)
