@@ -26,10 +26,9 @@ import os
 import sys
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, unquote, urlsplit
 
 from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
@@ -158,18 +157,20 @@ class Resolution:
     def lock_entries(self) -> list[lockfile.LockEntry]:
         """The lock file's entries for every artifact that was hashed."""
         to_lock = self._urls.to_lock
+        docs: dict[str, str] = {}  # a document's lock url, once per document
         entries = []
         for art in self.artifacts.values():
             if art.sha256 is None or art.size is None:
                 continue
+            refs = set()
+            for use in art.uses:
+                ref = docs.get(use.doc_url)
+                if ref is None:
+                    ref = docs[use.doc_url] = to_lock(use.doc_url)
+                refs.add(ref)
             entries.append(
                 lockfile.LockEntry(
-                    kind=art.kind.value,
-                    uri=art.uri,
-                    url=to_lock(art.url),
-                    sha256=art.sha256,
-                    size=art.size,
-                    referenced_from=tuple(sorted({to_lock(u.doc_url) for u in art.uses})),
+                    art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, tuple(sorted(refs))
                 )
             )
         return entries
@@ -202,7 +203,8 @@ class LockUrls:
         if rel is None:
             path = unquote(folder[len("file://") :]) or "/"
             rel = self._rel[folder] = Path(os.path.relpath(path, self.base)).as_posix()
-        name = unquote(name)
+        if "%" in name:
+            name = unquote(name)
         return name if rel == "." else f"{rel}/{name}"
 
     def from_lock(self, url: str) -> str:
@@ -416,7 +418,9 @@ class _Run:
         if self.on_start:
             self.on_start(len(artifacts))
         inline, cpu, net = self._plan(artifacts)
-        pools: list[ThreadPoolExecutor] = []
+        if cpu or net:  # concurrent.futures (and logging) only when there is parallel work
+            from concurrent.futures import ThreadPoolExecutor
+        pools: list[Any] = []
         futures = []
         # Hashing threads drop the GIL for each 1 MiB read and update, then wait for it
         # while this thread runs Python for small files; at the default 5 ms switch
