@@ -222,3 +222,17 @@ def test_warnings_are_objects_in_json_and_lines_for_humans(cli, tree):
     assert "warning: " in r.stderr and "robot.hcdf:4: b.glb has a weak pin (32 bits)" in r.stderr
     r = resolve(cli, tree)  # the lock now pins the unpinned reference
     assert {w["code"] for w in r.json["warnings"]} == {"lock-pins", "weak-pin"}
+
+
+def test_update_matches_the_lock_url_when_no_uri_is_spelled_that_way(cli, tmp_path):
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "m.glb").write_bytes(b"v1")
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "p.hcdf").write_text(HEAD + model("../models/m.glb", name="p") + "</hcdf>\n")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(HEAD + '<include uri="parts/p.hcdf" name="p"/>\n</hcdf>\n')
+    assert resolve(cli, doc).exit_code == 0
+    (tmp_path / "models" / "m.glb").write_bytes(b"v2")
+    assert resolve(cli, doc).exit_code == 1
+    assert resolve(cli, doc, "--update", "models/m.glb").exit_code == 0
+    assert shas(doc)["models/m.glb"] == sha(b"v2")
