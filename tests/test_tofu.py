@@ -236,3 +236,27 @@ def test_update_matches_the_lock_url_when_no_uri_is_spelled_that_way(cli, tmp_pa
     assert resolve(cli, doc).exit_code == 1
     assert resolve(cli, doc, "--update", "models/m.glb").exit_code == 0
     assert shas(doc)["models/m.glb"] == sha(b"v2")
+
+
+def test_remote_unpinned_reference_is_pinned_by_the_lock(cli, tls, https_server, tmp_path):
+    url = https_server.add("/m.glb", b"remote-v1")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(HEAD + model(url) + "</hcdf>\n")
+
+    def run(cache: str, *extra: str):
+        return cli("resolve", doc, "--ca-bundle", tls.ca_pem, "--cache-dir", tmp_path / cache, "--json", *extra)
+
+    assert run("c1").exit_code == 0
+    assert shas(doc)[url] == sha(b"remote-v1")
+    https_server.add("/m.glb", b"remote-v2")  # the server now serves other bytes
+    assert run("c1").exit_code == 0  # the cache holds what the lock pins: no fetch
+    assert https_server.hits["/m.glb"] == 1
+    r = run("c2")  # a fresh cache fetches the new bytes: refused, not re-pinned, not cached
+    assert r.exit_code == 1
+    [e] = r.json["errors"]
+    assert e["code"] == "lock-drift" and (e["expected"], e["actual"]) == (sha(b"remote-v1"), sha(b"remote-v2"))
+    assert not (tmp_path / "c2" / "sha256").exists() or not any((tmp_path / "c2" / "sha256").rglob(sha(b"remote-v2")))
+    assert shas(doc)[url] == sha(b"remote-v1")
+    r = run("c1", "--update")  # an update looks at the server, not at the cache
+    assert r.exit_code == 0, r.stdout
+    assert shas(doc)[url] == sha(b"remote-v2")

@@ -154,6 +154,10 @@ class Resolution:
         """``url`` as the lock file writes it (see :class:`LockUrls`)."""
         return self._urls.to_lock(url)
 
+    def absolute_url(self, lock_url: str) -> str:
+        """A URL as the lock file writes it, back to the absolute URL artifacts are keyed by."""
+        return self._urls.from_lock(lock_url)
+
     def lock_entries(self) -> list[lockfile.LockEntry]:
         """The lock file's entries for every artifact that was hashed."""
         to_lock = self._urls.to_lock
@@ -332,8 +336,8 @@ class _Run:
                 expected=root,
                 actual=lock.root,
             )
-        from_lock = res._urls.from_lock
-        self.lock = {from_lock(url): e for url, e in lock.entries.items()}
+        absolute = res.absolute_url
+        self.lock = {absolute(url): e for url, e in lock.entries.items()}
         names = set(self.o.update)
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, e.url}}
 
@@ -567,7 +571,7 @@ class _Run:
             if use.pin is not None and use.pin.is_full:
                 return use.pin.hex
         entry = self.lock.get(art.url)
-        if entry is None or (self._is_updating(art) and not self.o.locked):
+        if entry is None or (self._is_updating(art) and not (self.o.locked or self.o.offline)):
             return None  # an update looks for the content as it is now, not in the cache
         if all(u.pin is None or u.pin.matches(entry.sha256) for u in art.uses):
             return entry.sha256
