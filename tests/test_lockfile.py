@@ -271,3 +271,22 @@ def test_lock_write_computes_relative_paths_once_per_folder(tmp_path, monkeypatc
     lock = json.loads(data)
     assert {a["url"] for a in lock["artifacts"]} == {f"models/m{i} %.glb" for i in range(300)}
     assert {r for a in lock["artifacts"] for r in a["referenced_from"]} == {"robot.hcdf"}
+
+
+@pytest.mark.parametrize(
+    "path",
+    ["robot/m.glb", "robot/models/a b%20c.glb", "robot/mödels/ü.glb", "other/x.glb", "m.glb", "robot/a/b/c/d.glb"],
+)
+def test_lock_urls_match_relpath(tmp_path, path):
+    """The per-folder shortcut gives what os.path.relpath gives per file."""
+    from hcdf_trust.include.locate import file_url
+    from hcdf_trust.include.resolver import LockUrls
+
+    base = tmp_path / "robot"
+    target = tmp_path / path
+    urls = LockUrls(base)
+    url = file_url(target)
+    rel = urls.to_lock(url)
+    assert rel == Path(os.path.relpath(target, base)).as_posix()
+    assert urls.to_lock(url) == rel  # remembered
+    assert urls.to_lock("https://h.example/a%20b.glb") == "https://h.example/a%20b.glb"

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-from urllib.parse import quote, unquote, urlsplit
+from urllib.parse import unquote, urlsplit
 
 from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
 from ..document import Document, Kind, Reference
@@ -154,10 +154,6 @@ class Resolution:
         """``url`` as the lock file writes it (see :class:`LockUrls`)."""
         return self._urls.to_lock(url)
 
-    def absolute_url(self, lock_url: str) -> str:
-        """A URL as the lock file writes it, back to the absolute URL artifacts are keyed by."""
-        return self._urls.from_lock(lock_url)
-
     def lock_entries(self) -> list[lockfile.LockEntry]:
         """The lock file's entries for every artifact that was hashed."""
         to_lock = self._urls.to_lock
@@ -188,18 +184,21 @@ class Resolution:
 
 
 class LockUrls:
-    """Local URLs relative to the lock file's folder and back; remote URLs as they are.
+    """Local URLs relative to the lock file's folder; remote URLs as they are.
 
-    ``os.path.relpath`` and ``normpath`` cost microseconds: they run once per
-    distinct folder, and each file's name is joined to its folder's answer.
+    ``os.path.relpath`` costs microseconds: it runs once per distinct folder, and
+    each file's name is joined to its folder's answer (and remembered).
     """
 
     def __init__(self, base: Path) -> None:
         self.base = os.path.abspath(base)
         self._rel: dict[str, str] = {}
-        self._abs: dict[str, str] = {}
+        self._memo: dict[str, str] = {}
 
     def to_lock(self, url: str) -> str:
+        done = self._memo.get(url)
+        if done is not None:
+            return done
         if not url.startswith("file://"):
             return url
         folder, _, name = url.rpartition("/")
@@ -209,18 +208,8 @@ class LockUrls:
             rel = self._rel[folder] = Path(os.path.relpath(path, self.base)).as_posix()
         if "%" in name:
             name = unquote(name)
-        return name if rel == "." else f"{rel}/{name}"
-
-    def from_lock(self, url: str) -> str:
-        if "://" in url:
-            return url
-        folder, _, name = url.rpartition("/")
-        if name in ("", ".", ".."):
-            return file_url(os.path.normpath(os.path.join(self.base, url)))
-        absolute = self._abs.get(folder)
-        if absolute is None:
-            absolute = self._abs[folder] = file_url(os.path.normpath(os.path.join(self.base, folder))).rstrip("/")
-        return f"{absolute}/{quote(name)}"
+        done = self._memo[url] = name if rel == "." else f"{rel}/{name}"
+        return done
 
 
 def lock_url(url: str, base: Path) -> str:
@@ -268,9 +257,9 @@ class _Run:
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
         self._fetcher: HttpFetcher | None = None
-        self.lock: dict[str, lockfile.LockEntry] = {}  # by absolute URL
+        self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
-        self._updating: set[str] = set()  # URLs re-pinned by --update
+        self._updating: set[str] = set()  # lock urls re-pinned by --update
 
     def fetcher(self) -> HttpFetcher:
         """The HTTPS fetcher, created (and fetch.py, ssl, httpx imported) at the first remote fetch."""
@@ -336,16 +325,18 @@ class _Run:
                 expected=root,
                 actual=lock.root,
             )
-        absolute = res.absolute_url
-        self.lock = {absolute(url): e for url, e in lock.entries.items()}
+        self.lock = lock.entries
         names = set(self.o.update)
-        self._updating = {url for url, e in self.lock.items() if names & {e.uri, e.url}}
+        self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
+
+    def _entry(self, art: Artifact) -> lockfile.LockEntry | None:
+        return self.lock.get(self.res.lock_url(art.url)) if self.lock else None
 
     def _is_updating(self, art: Artifact) -> bool:
         """Does ``--update`` re-pin this artifact? (All, or named by its lock url or a uri as written.)"""
         return (
             self.o.update_all
-            or art.url in self._updating
+            or self.res.lock_url(art.url) in self._updating
             or (bool(self.o.update) and any(u.ref.uri in self.o.update for u in art.uses))
         )
 
@@ -570,7 +561,7 @@ class _Run:
         for use in art.uses:
             if use.pin is not None and use.pin.is_full:
                 return use.pin.hex
-        entry = self.lock.get(art.url)
+        entry = self._entry(art)
         if entry is None or (self._is_updating(art) and not (self.o.locked or self.o.offline)):
             return None  # an update looks for the content as it is now, not in the cache
         if all(u.pin is None or u.pin.matches(entry.sha256) for u in art.uses):
@@ -588,7 +579,7 @@ class _Run:
         mismatch = any(u.pin is not None and not u.pin.matches(sha) for u in art.uses)
         if mismatch and not self.o.accept_mismatch:
             return False
-        entry = self.lock.get(art.url)
+        entry = self._entry(art)
         if self.o.locked:
             return entry is not None and (entry.sha256, entry.size) == (sha, size)
         if entry is None or _full_pin_matches(art, sha) or self._is_updating(art):
@@ -634,7 +625,7 @@ class _Run:
                 continue
             if art.sha256 is None:
                 continue  # never reached (an error elsewhere stopped the walk)
-            entry = self.lock.get(art.url)
+            entry = self._entry(art)
             errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=self.o.locked)
             res.errors.extend(errors)
             res.warnings.extend(warnings)
@@ -664,8 +655,7 @@ class _Run:
         if self.o.locked:
             actual = {e.url: e for e in res.lock_entries()}
             failed = {res.lock_url(a.url) for a in res.artifacts.values() if a.sha256 is None}
-            locked = {res.lock_url(url): e for url, e in self.lock.items()}
-            locked = {url: e for url, e in locked.items() if url not in failed}
+            locked = {url: e for url, e in self.lock.items() if url not in failed}
             where = {res.lock_url(a.url): (a.uses[0].doc, a.uses[0].ref.line) for a in res.artifacts.values()}
             res.errors.extend(lockfile.compare(locked, actual, lock_path=display_path(res.lock_path), where=where))
         self._check_update_names()
