@@ -423,7 +423,7 @@ def bench_startup(args: argparse.Namespace, rows: list[Row]) -> None:
     sha = hashlib.sha256(sub.read_bytes()).hexdigest()
     doc = tree / "robot.hcdf"
     write_doc(doc, model_xml("robot", [], [("arm.hcdf", sha, "left"), ("arm.hcdf", sha, "right")]))
-    locked = spawn([CLI, "resolve", doc, "--cache-dir", cache])  # writes hcdf.lock
+    locked = spawn([CLI, "resolve", doc, "--cache-dir", cache])  # writes robot.hcdf.lock
     if locked.rc != 0:
         raise SystemExit(f"bench: resolve of the startup tree failed:\n{locked.stderr}")
     n = args.startup_runs

@@ -64,7 +64,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options shared by every verb that resolves a document tree."""
     options = [
         click.option(
-            "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: hcdf.lock beside DOC]."
+            "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC]."
         ),
         click.option(
             "--cache-dir",
@@ -157,16 +157,32 @@ def main() -> None:
     "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
 )
 @click.option("--no-lock", is_flag=True, help="Do not write the lock file.")
+@click.option(
+    "--update",
+    "update",
+    multiple=True,
+    is_flag=False,
+    flag_value="",
+    metavar="[URI]",
+    help="Accept new content for a reference the lock pins: --update alone re-pins every entry, "
+    "--update URI (repeatable; the uri as written or the lock's url) only that one. Put it after DOC.",
+)
 @handle_errors
-def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) -> None:
+def resolve(doc: str, out: str | None, no_lock: bool, update: tuple[str, ...], as_json: bool, **kw: Any) -> None:
     """Fetch every file DOC references, verify its SHA-256, cache it, write the lock file.
 
     Relative references resolve against the referencing document, or against
-    --base. Nothing is written unless every reference verifies.
+    --base. Nothing is written unless every reference verifies. The lock is the
+    pin of every reference without a full sha (trust on first use): content that
+    changed since it was locked fails (exit 1) until accepted with --update.
+    With --locked the lock is checked, never written.
     """
     from .include.resolver import ResolveOptions
 
-    options = ResolveOptions(**kw)
+    if update and kw["locked"]:
+        raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
+    options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
+    no_lock = no_lock or options.locked
     res = _run_resolve(doc, options, as_json=as_json)
     flat = None
     if out:
@@ -317,8 +333,7 @@ def _run_resolve(doc: str, options: Any, *, as_json: bool) -> Any:
         res = do_resolve(doc, options, on_start=on_start, on_progress=on_progress)
     if not res.ok:
         if not as_json:
-            for w in res.warnings:
-                click.echo(f"warning: {w}", err=True)
+            _warn(res.warnings)
         fail(res.errors, as_json=as_json, payload=_payload(res))
     return res
 
@@ -366,16 +381,15 @@ class _progress:
 
 def _payload(res: Any) -> dict[str, Any]:
     from .document import Kind
-    from .include.resolver import display_url, lock_url
+    from .include.resolver import display_url
 
-    base = res.lock_path.parent
     artifacts = []
     for art in sorted(res.artifacts.values(), key=lambda a: a.url):
         artifacts.append(
             {
                 "kind": art.kind.value,
                 "uri": art.uri,
-                "url": lock_url(art.url, base),
+                "url": res.lock_url(art.url),
                 "sha256": art.sha256,
                 "size": art.size,
                 "pin": art.pin_status,
@@ -400,9 +414,14 @@ def _payload(res: Any) -> dict[str, Any]:
         "firmware": firmware,
         "extensions": extensions,
         "summary": _summary(res),
-        "warnings": list(res.warnings),
+        "warnings": [w.to_dict() for w in res.warnings],
         "errors": [e.to_dict() for e in res.errors],
     }
+
+
+def _warn(warnings: list[Any]) -> None:
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
 
 
 def _summary(res: Any) -> dict[str, int]:
@@ -426,8 +445,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
         payload["wrote"] = wrote
         emit_json(payload)
         return
-    for w in res.warnings:
-        click.echo(f"warning: {w}", err=True)
+    _warn(res.warnings)
     s = _summary(res)
     click.echo(
         f"{s['references']} references to {s['files']} files: {s['pinned']} pinned, {s['weak']} weak, "

@@ -475,7 +475,7 @@ def test_frame_mismatch_names_both_files_and_values_and_writes_nothing(cli, tmp_
     assert "robot.hcdf" in err and "parts/drone_arm.hcdf" in err
     assert '"FLU"' in err and '"FRD"' in err
     assert not out.exists()
-    assert not (root / "hcdf.lock").exists()
+    assert not (root / "robot.hcdf.lock").exists()
 
 
 def test_frames_mismatch_across_a_silent_middle_file(cli, tmp_path):

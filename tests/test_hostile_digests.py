@@ -38,7 +38,7 @@ SUB = b'<hcdf version="1.0" name="sub"/>\n'
 def _lock_remote_model(work: Path) -> None:
     """A lock file that pins the remote model of :func:`_remote_doc` to MODEL."""
     entry = {"kind": "model", "uri": URL, "url": URL, "sha256": sha256(MODEL), "size": len(MODEL)}
-    write_lock(work / "root" / "hcdf.lock", "doc.hcdf", [{**entry, "referenced_from": ["doc.hcdf:2"]}])
+    write_lock(work / "root" / "doc.hcdf.lock", "doc.hcdf", [{**entry, "referenced_from": ["doc.hcdf:2"]}])
 
 
 def _doc(work: Path, *, model_sha: str | None = None, include_sha: str | None = None, model_uri: str = "m.glb") -> Path:
@@ -88,7 +88,7 @@ def test_malformed_sha_is_an_input_error(cli, tmp_path, monkeypatch, case, where
         sibling = {"model": ("include", "sub.hcdf", SUB, 2), "include": ("model", "m.glb", MODEL, 3)}
         kind, uri, data, line = sibling[where]
         write_lock(
-            work / "root" / "hcdf.lock",
+            work / "root" / "doc.hcdf.lock",
             "doc.hcdf",
             [
                 {
@@ -138,7 +138,7 @@ def test_upper_case_full_pins_are_verified_and_locked_lower_case(cli, tmp_path, 
     result = cli("resolve", doc, "--offline", "--cache-dir", work / "cache", "--strict", "--json")
     assert result.exit_code == 0, result.stdout
     assert {a["uri"]: a["pin"] for a in result.json["artifacts"]} == {"m.glb": "full", "sub.hcdf": "full"}
-    lock = json.loads((work / "root" / "hcdf.lock").read_text())
+    lock = json.loads((work / "root" / "doc.hcdf.lock").read_text())
     assert {a["uri"]: a["sha256"] for a in lock["artifacts"]} == {"m.glb": sha256(MODEL), "sub.hcdf": sha256(SUB)}
     # And verify accepts the tree it locked.
     assert cli("verify", doc, "--cache-dir", work / "cache").exit_code == 0
@@ -165,7 +165,7 @@ def test_upper_case_weak_pin_is_weak(cli, tmp_path, monkeypatch):
     result = cli("resolve", doc, "--offline", "--no-lock", "--cache-dir", work / "cache", "--json")
     assert result.exit_code == 0
     assert {a["uri"]: a["pin"] for a in result.json["artifacts"]}["m.glb"] == "weak"
-    assert any("weak pin (32 bits)" in w for w in result.json["warnings"])
+    assert any("weak pin (32 bits)" in w["message"] for w in result.json["warnings"])
     strict = cli("resolve", doc, "--offline", "--no-lock", "--cache-dir", work / "cache", "--strict", "--json")
     assert strict.exit_code == 1
     assert [e["code"] for e in strict.json["errors"]] == ["weak-pin"]
@@ -175,7 +175,7 @@ def test_upper_case_lock_digests_verify(cli, tmp_path, monkeypatch):
     work = tmp_path / "work"
     doc = _doc(work)
     write_lock(
-        work / "root" / "hcdf.lock",
+        work / "root" / "doc.hcdf.lock",
         "doc.hcdf",
         [
             {
@@ -206,13 +206,22 @@ def test_upper_case_lock_digests_verify(cli, tmp_path, monkeypatch):
 def test_malformed_lock_digest_is_an_input_error(cli, tmp_path, monkeypatch, lock_sha, pattern):
     work = tmp_path / "work"
     doc = _doc(work)
-    lock = work / "root" / "hcdf.lock"
+    lock = work / "root" / "doc.hcdf.lock"
     lock.write_text(
         json.dumps(
             {
-                "lock_version": 1,
+                "lock_version": 2,
                 "root": "doc.hcdf",
-                "artifacts": [{"kind": "model", "uri": "m.glb", "url": "m.glb", "sha256": lock_sha, "size": 1}],
+                "artifacts": [
+                    {
+                        "kind": "model",
+                        "uri": "m.glb",
+                        "url": "m.glb",
+                        "sha256": lock_sha,
+                        "size": 1,
+                        "referenced_from": ["doc.hcdf"],
+                    }
+                ],
             }
         )
     )
@@ -283,7 +292,7 @@ def test_tampered_cache_blob_is_detected_and_not_used(cli, tmp_path, monkeypatch
     if command == "resolve":  # verify only reads; resolve also drops the bad blob
         assert not blob.exists(), "a blob whose content no longer matches its name was kept"
     assert _blobs(cache) <= blobs_before, "a new cache blob was written"
-    assert not (work / "root" / "hcdf.lock").exists() or command == "verify"
+    assert not (work / "root" / "doc.hcdf.lock").exists() or command == "verify"
 
 
 def test_verified_path_refuses_a_blob_that_does_not_match_its_name(tmp_path):

@@ -171,7 +171,7 @@ def test_hostile_reference_path(cli, tree, monkeypatch, case, kind, command):
     uri = setup(tree)
     doc = _write_doc(tree, kind, uri)
     if command == "verify":
-        write_lock(tree.root / "hcdf.lock", "doc.hcdf", [])
+        write_lock(tree.root / "doc.hcdf.lock", "doc.hcdf", [])
     monkeypatch.chdir(tree.work)
     before = snapshot(tree.work)
     with fifo_watchdog(tree.fifo) as watch:
@@ -196,7 +196,7 @@ def test_hostile_path_human_message(cli, tree, monkeypatch, command):
     """Without --json: one "error:" line on stderr naming file, line and the escape."""
     doc = _write_doc(tree, "include", "../outside/secret.hcdf")
     if command == "verify":
-        write_lock(tree.root / "hcdf.lock", "doc.hcdf", [])
+        write_lock(tree.root / "doc.hcdf.lock", "doc.hcdf", [])
     monkeypatch.chdir(tree.work)
     result = cli(*command_args(command, doc, tree.work))
     assert result.exit_code == 3
@@ -356,7 +356,7 @@ def test_include_changed_while_read_is_locked_as_parsed(cli, tree, monkeypatch, 
     result = cli("resolve", doc, "--offline", "--cache-dir", tree.work / "cache", "--jobs", "1")
     assert swapped, "the race was not staged: resolver no longer opens includes via open_local"
     assert result.exit_code == 0, result.stderr
-    arts = _lock_by_uri(tree.root / "hcdf.lock")
+    arts = _lock_by_uri(tree.root / "doc.hcdf.lock")
     parsed = SUB_A if moment == "after-read" else SUB_B
     followed, not_followed = ("a.glb", "b.glb") if parsed is SUB_A else ("b.glb", "a.glb")
     assert arts["sub.hcdf"]["sha256"] == sha256(parsed)

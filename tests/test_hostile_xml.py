@@ -228,7 +228,7 @@ def test_hostile_root_document(cli, ctx, monkeypatch, case, command):
     doc = ctx.work / "doc.hcdf"
     doc.write_bytes(make(ctx))
     if command == "verify":
-        write_lock(ctx.work / "hcdf.lock", "doc.hcdf", [])
+        write_lock(ctx.work / "doc.hcdf.lock", "doc.hcdf", [])
     monkeypatch.chdir(ctx.work)
     before = snapshot(ctx.work)
     result = _run(cli, command_args(command, doc, ctx.work), ctx)
@@ -246,7 +246,7 @@ def test_hostile_included_document(cli, ctx, monkeypatch, case, command):
     if command == "verify":
         # The lock pins exactly these bytes, so verify gets as far as parsing them.
         write_lock(
-            ctx.work / "hcdf.lock",
+            ctx.work / "root.hcdf.lock",
             "root.hcdf",
             [{"uri": "sub.hcdf", "sha256": sha256(hostile), "size": len(hostile), "referenced_from": ["root.hcdf:3"]}],
         )
@@ -270,7 +270,7 @@ def test_hostile_included_document_json(cli, ctx, monkeypatch, case):
     codes = {e["code"] for e in payload["errors"]}
     assert codes == {"xml"}, payload["errors"]
     assert all(e["file"].endswith("sub.hcdf") for e in payload["errors"])
-    assert not (ctx.work / "hcdf.lock").exists()
+    assert not (ctx.work / "root.hcdf.lock").exists()
 
 
 # --- a 100 MB attribute: refused by size, before it is read into memory ---------------
@@ -338,7 +338,7 @@ def test_100mb_attribute_bounded_time_and_memory(tmp_path, big_attribute, comman
         os.link(big_attribute, work / "sub.hcdf")
         if command == "verify":
             write_lock(
-                work / "hcdf.lock",
+                work / "root.hcdf.lock",
                 "root.hcdf",
                 [
                     {
@@ -350,7 +350,7 @@ def test_100mb_attribute_bounded_time_and_memory(tmp_path, big_attribute, comman
                 ],
             )
     if command == "verify" and where == "root":
-        write_lock(work / "hcdf.lock", "doc.hcdf", [])
+        write_lock(work / "doc.hcdf.lock", "doc.hcdf", [])
     # The same command on a tiny document is the baseline (imports, interpreter).
     _, base_rss, _, _ = _measure(command_args(command, small, work), work)
     before = snapshot(work)

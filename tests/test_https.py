@@ -127,7 +127,7 @@ def test_fetch_over_tls_verifies_sha256_caches_and_locks(https_server, resolve, 
     assert art["size"] == len(data)
     assert art["source"] == "network"
     assert cache_blobs(cache) == {sha(data): data}
-    assert url in (work / "hcdf.lock").read_text()
+    assert url in (work / "robot.hcdf.lock").read_text()
     assert https_server.hits["/models/arm.glb"] == 1
 
 
@@ -148,7 +148,7 @@ def test_bad_certificate_is_refused(serve, resolve, work, cache, kind, words):
         assert word in message, result.stderr
     assert srv.hits["/a.glb"] == 0  # no request was ever sent over the rejected channel
     assert cache_blobs(cache) == {}
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 def test_system_trust_store_does_not_trust_the_test_ca(https_server, cli, work, cache, monkeypatch):
@@ -204,7 +204,7 @@ def test_redirect_to_http_is_refused(https_server, http_server, resolve, work, c
     assert "redirect from https down to http is refused" in result.stderr
     assert http_server.total_hits == 0  # the downgrade target was never contacted
     assert cache_blobs(cache) == {}
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 def test_redirect_to_file_url_is_refused(https_server, resolve, tmp_path, work, cache):
@@ -253,7 +253,7 @@ def test_oversize_body_is_aborted_and_nothing_is_cached(https_server, resolve, w
     assert result.exit_code == 3, result.stderr
     assert "limit" in result.stderr
     assert cache_blobs(cache) == {}
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 def test_body_exactly_at_the_limit_is_accepted(https_server, resolve, work, cache):
@@ -277,7 +277,7 @@ def test_content_length_longer_than_the_body_is_an_error(https_server, resolve, 
     (err,) = result.json["errors"]
     assert err["code"] == "fetch"
     assert cache_blobs(cache) == {}
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 def test_content_length_shorter_than_the_body_truncates_and_the_pin_catches_it(https_server, resolve, work, cache):
@@ -295,7 +295,7 @@ def test_content_length_shorter_than_the_body_truncates_and_the_pin_catches_it(h
     assert err["expected"] == sha(data)
     assert err["actual"] == sha(data[:30_000])
     assert cache_blobs(cache) == {}  # neither the full nor the truncated content
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 @pytest.mark.parametrize("scheme", ["https", "http"])
@@ -313,7 +313,7 @@ def test_connection_reset_mid_body_is_a_network_error(serve, resolve, work, cach
     (err,) = result.json["errors"]
     assert err["code"] == "fetch"
     assert cache_blobs(cache) == {}
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 @pytest.mark.parametrize("cut", [False, True], ids=["whole", "truncated"])
@@ -333,7 +333,7 @@ def test_body_delimited_only_by_connection_close_is_refused(https_server, resolv
     assert result.exit_code == 3, result.stderr
     assert "Content-Length" in result.stderr
     assert cache_blobs(cache) == {}
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 def test_gzip_encoded_body_is_decoded_and_hashed_as_the_file(https_server, resolve, work, cache):
@@ -494,7 +494,7 @@ def test_each_file_is_fetched_once_and_a_second_resolve_fetches_nothing(https_se
     first = resolve(doc, "--json")
 
     assert first.exit_code == 0, first.stdout
-    lock = (work / "hcdf.lock").read_bytes()
+    lock = (work / "robot.hcdf.lock").read_bytes()
     assert dict(https_server.hits) == {"/sub.hcdf": 1, "/models/arm.glb": 1, "/profiles/p.xml": 1}
     arm = next(a for a in first.json["artifacts"] if a["url"].endswith("/models/arm.glb"))
     assert len(arm["referenced_from"]) == 5  # two lines of robot.hcdf, three of sub.hcdf
@@ -506,7 +506,7 @@ def test_each_file_is_fetched_once_and_a_second_resolve_fetches_nothing(https_se
     assert https_server.total_hits == 3  # nothing new: everything came from the cache
     assert second.json["summary"]["fetched"] == 0
     assert second.json["summary"]["from_cache"] == 3
-    assert (work / "hcdf.lock").read_bytes() == lock  # same tree, same lock, byte for byte
+    assert (work / "robot.hcdf.lock").read_bytes() == lock  # same tree, same lock, byte for byte
 
 
 def test_cached_blob_that_was_tampered_with_is_fetched_again(https_server, resolve, work, cache):
@@ -540,7 +540,7 @@ def test_offline_with_an_empty_cache_fails_clearly_and_opens_no_socket(https_ser
     assert err["line"] == line_of(doc, "a.glb")
     assert no_sockets == []
     assert https_server.total_hits == 0
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 def test_offline_resolves_from_a_warm_cache_without_a_socket(https_server, resolve, work, monkeypatch):
@@ -631,7 +631,7 @@ def test_mirror_to_a_loopback_server(serve, resolve, tmp_path, work, monkeypatch
     assert https_server.hits["/models/a.glb"] == 1
     assert "example.invalid" not in looked_up
     assert result.json["artifacts"][0]["url"] == logical  # the lock keeps the logical URL
-    assert logical in (work / "hcdf.lock").read_text()
+    assert logical in (work / "robot.hcdf.lock").read_text()
 
 
 def test_mirror_to_a_folder_needs_no_network(resolve, tmp_path, work, no_sockets):
@@ -671,7 +671,7 @@ def test_digest_mismatch_over_https_names_file_line_expected_actual(https_server
     assert f"{doc.name}:{err['line']}" in human.stderr
     assert pinned in human.stderr and sha(served) in human.stderr
     assert sha(served) not in cache_blobs(cache)  # the good file may be cached; the bad never
-    assert not (work / "hcdf.lock").exists()
+    assert not (work / "robot.hcdf.lock").exists()
 
 
 # -- parallel fetch ---------------------------------------------------------------------------

@@ -20,7 +20,7 @@ def test_readme_opens_with_the_two_commands():
 
 def test_readme_library_example_runs(tmp_path, monkeypatch, capsys):
     shutil.copytree(PROJECT / "examples" / "robot", tmp_path / "examples" / "robot")
-    lock = tmp_path / "examples" / "robot" / "hcdf.lock"
+    lock = tmp_path / "examples" / "robot" / "robot.hcdf.lock"
     committed = lock.read_bytes()
     lock.unlink()
     monkeypatch.chdir(tmp_path)

@@ -67,12 +67,12 @@ def test_each_distinct_file_is_listed_once_with_all_its_references(cli, tree):
 
 def test_lock_file_is_deterministic_and_records_everything(cli, tree):
     assert resolve(cli, tree).exit_code == 0
-    lock_path = tree["root"] / "hcdf.lock"
+    lock_path = tree["root"] / "robot.hcdf.lock"
     first = lock_path.read_bytes()
     assert resolve(cli, tree).exit_code == 0
     assert lock_path.read_bytes() == first
     lock = json.loads(first)
-    assert lock["lock_version"] == 1
+    assert lock["lock_version"] == 2
     for art in lock["artifacts"]:
         assert set(art) == {"kind", "uri", "url", "sha256", "size", "referenced_from"}
         assert art["sha256"] == sha((tree["root"] / art["url"]).read_bytes())
@@ -91,7 +91,7 @@ def test_mismatch_names_file_line_expected_actual_and_writes_nothing(cli, tree):
     for e in errs:
         assert e["expected"] == sha(data) and e["actual"] == sha(tree["glb"].read_bytes())
         assert e["line"] >= 2
-    assert not (tree["root"] / "hcdf.lock").exists()
+    assert not (tree["root"] / "robot.hcdf.lock").exists()
     assert not (tree["root"] / "flat.hcdf").exists()
 
 
@@ -111,7 +111,7 @@ def test_weak_pin_is_reported_and_refused_by_strict(cli, tmp_path):
     r = cli("resolve", doc, "--json")
     assert r.exit_code == 0
     assert r.json["artifacts"][0]["pin"] == "weak"
-    assert any("32 bits" in w for w in r.json["warnings"])
+    assert any("32 bits" in w["message"] for w in r.json["warnings"])
     r = cli("resolve", doc, "--json", "--strict", "--no-lock")
     assert r.exit_code == 1 and r.json["errors"][0]["code"] == "weak-pin"
     doc.write_text(hcdf(model("m.glb", "00000000")))
@@ -168,7 +168,7 @@ def test_locked_reports_new_and_removed_artifacts(cli, tree):
 
 def test_verify_is_offline_and_writes_nothing(cli, tree):
     assert resolve(cli, tree).exit_code == 0
-    lock = tree["root"] / "hcdf.lock"
+    lock = tree["root"] / "robot.hcdf.lock"
     before = {p: p.stat().st_mtime_ns for p in tree["root"].rglob("*")}
     r = cli("verify", tree["doc"], "--cache-dir", tree["cache"], "--json")
     assert r.exit_code == 0 and r.json["ok"]
@@ -201,7 +201,7 @@ def test_include_cycle_is_an_error_naming_the_chain(cli, tmp_path):
     assert e["code"] == "include-cycle"
     assert "b.hcdf → c.hcdf → b.hcdf" in e["message"].replace(f"{tmp_path}/", "")
     assert e["file"].endswith("c.hcdf")
-    assert not (tmp_path / "hcdf.lock").exists()
+    assert not (tmp_path / "a.hcdf.lock").exists()
 
 
 def test_cycle_between_documents_first_reached_by_different_paths(cli, tmp_path):
@@ -278,7 +278,7 @@ def test_mirror_to_a_local_folder_keeps_the_logical_url(cli, tmp_path):
     assert r.exit_code == 0, r.stdout
     [a] = r.json["artifacts"]
     assert a["url"] == "https://models.example.invalid/models/m.glb" and a["source"] == "mirror"
-    lock = json.loads((tmp_path / "hcdf.lock").read_text())
+    lock = json.loads((tmp_path / "r.hcdf.lock").read_text())
     assert lock["artifacts"][0]["url"] == "https://models.example.invalid/models/m.glb"
 
 

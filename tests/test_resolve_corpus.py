@@ -78,7 +78,7 @@ def test_humanoid_resolves_with_its_stream_profile_unpinned(cli, tmp_path):
     assert profile["sha256"] == sha256_file(HCDFORMAT / "examples" / "profiles" / "operational.streams.xml")
     assert len(profile["referenced_from"]) == 2  # two networks name the same file: fetched once
     assert r.json["summary"]["unpinned"] == 1
-    assert any("unpinned" in w for w in r.json["warnings"])
+    assert any("unpinned" in w["message"] for w in r.json["warnings"])
 
 
 def test_test_minimal_missing_include_with_non_digest_sha_exits_3(cli, tmp_path):

@@ -1,34 +1,59 @@
-"""The lock file: every artifact of a document tree, its digest and size.
+"""The lock file: every artifact of one root document's tree, its digest and size.
 
-JSON, sorted keys, one artifact per object, sorted by URL: deterministic and
-diff-friendly. Local URLs are written relative to the lock file's folder so the
-lock survives moving the checkout. ``lock_version`` changes on any format change.
+Format (``lock_version`` 2): one JSON object with sorted keys ``artifacts``,
+``lock_version`` and ``root``. ``artifacts`` holds one object per distinct file,
+sorted by URL, one per line (diff-friendly, and rendered with the C JSON encoder).
+Each has ``kind``, ``uri`` (as first written), ``url``, ``sha256``, ``size`` and
+``referenced_from`` (the documents that reference it, without line numbers, so
+moving a reference is not a change). Local URLs, ``root`` and ``referenced_from``
+are relative to the lock file's folder, so the lock survives moving the checkout.
+
+The loader accepts exactly what :func:`render` writes: anything else (wrong types,
+missing or extra keys, duplicate URLs or keys, floats, NaN, deep nesting, over
+:data:`MAX_LOCK_BYTES`) is a :class:`LockFileError` (exit 3).
 """
 
 from __future__ import annotations
 
 import json
+import operator
 import os
-from dataclasses import dataclass, field
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from json.encoder import encode_basestring  # the C escaper json itself uses
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple, NoReturn
 
-from ..digest import is_full_sha256
-from ..errors import LockDriftError, LockFileError
-from ..store import atomic_write
+from ..errors import InputError, LockDriftError, LockFileError, NotFoundError
+from ..localfile import read_input
 
-LOCK_VERSION = 1
-DEFAULT_NAME = "hcdf.lock"
+LOCK_VERSION = 2
+SUFFIX = ".lock"
+# ~300 bytes per artifact: room for ~100,000 files. A larger file is refused unread.
+MAX_LOCK_BYTES = 32 << 20
+KINDS = frozenset({"include", "model", "mesh", "stream-profile", "firmware-manifest"})
+_KEYS = frozenset({"kind", "uri", "url", "sha256", "size", "referenced_from"})
+_TOP = frozenset({"artifacts", "lock_version", "root"})
+_SHA = re.compile(r"[0-9a-fA-F]{64}\Z")
+itemgetter = operator.itemgetter("kind", "uri", "url", "sha256", "size", "referenced_from")
 
 
-@dataclass(frozen=True)
-class LockEntry:
+def default_path(doc: str | os.PathLike[str]) -> Path:
+    """``<DOC filename>.lock`` beside DOC: two roots in one folder never share a lock."""
+    p = Path(doc)
+    return p.with_name(p.name + SUFFIX)
+
+
+class LockEntry(NamedTuple):
+    """One artifact of the lock (a named tuple: 10,000 of them are built per run)."""
+
     kind: str
     uri: str
     url: str
     sha256: str
     size: int
-    referenced_from: tuple[str, ...] = field(default=())
+    referenced_from: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -41,88 +66,197 @@ class LockEntry:
         }
 
 
+@dataclass(frozen=True)
+class Lock:
+    """A loaded lock file: the root document it belongs to and its entries by URL."""
+
+    root: str
+    entries: dict[str, LockEntry]
+
+
 def render(entries: list[LockEntry], *, root: str) -> bytes:
-    doc = {
-        "lock_version": LOCK_VERSION,
-        "root": root,
-        "artifacts": [e.to_dict() for e in sorted(entries, key=lambda e: (e.url, e.kind))],
-    }
-    return (json.dumps(doc, indent=2, sort_keys=True, ensure_ascii=False) + "\n").encode()
+    """The lock file's bytes: deterministic, valid JSON, one artifact per line.
+
+    Each artifact line is exactly ``json.dumps(entry.to_dict(), sort_keys=True,
+    ensure_ascii=False)``, built from json's own C string escaper (the indenting
+    encoder is pure Python: 10,000 entries cost more than resolving them).
+    """
+    lines = [_entry_json(e) for e in sorted(entries, key=lambda e: (e.url, e.kind))]
+    body = ",\n".join(lines)
+    artifacts = f"[\n{body}\n]" if lines else "[]"
+    text = f'{{"artifacts": {artifacts},\n"lock_version": {LOCK_VERSION},\n"root": {encode_basestring(root)}}}\n'
+    return text.encode()
 
 
-def write(path: str | os.PathLike[str], entries: list[LockEntry], *, root: str) -> None:
-    atomic_write(path, render(entries, root=root))
+def _entry_json(e: LockEntry) -> str:
+    esc = encode_basestring
+    refs = ", ".join(map(esc, e.referenced_from))
+    return (
+        f'{{"kind": {esc(e.kind)}, "referenced_from": [{refs}], "sha256": {esc(e.sha256)}, '
+        f'"size": {int(e.size)}, "uri": {esc(e.uri)}, "url": {esc(e.url)}}}'
+    )
 
 
-def load(path: str | os.PathLike[str]) -> dict[str, LockEntry]:
-    """Read a lock file, keyed by URL.
+def load(path: str | os.PathLike[str]) -> Lock:
+    """Read and check a lock file.
 
     Raises:
-        LockFileError: missing, unreadable, not JSON, or an unknown format version.
+        LockFileError: missing, not a regular file, over :data:`MAX_LOCK_BYTES`,
+            not JSON, an unknown ``lock_version``, or any shape :func:`render` does not write.
     """
-    p = Path(path)
+    name = os.fspath(path)
     try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise LockFileError(f"lock file {p} does not exist (run resolve without --locked first)", file=str(p)) from None
-    except OSError as exc:
-        raise LockFileError(f"cannot read lock file: {exc.strerror}", file=str(p)) from None
+        raw = read_input(name, limit=MAX_LOCK_BYTES, what="lock file")
+    except NotFoundError:
+        hint = "run resolve without --locked first"
+        raise LockFileError(f"lock file {name} does not exist ({hint})", file=name) from None
+    except InputError as exc:  # FIFO, device, directory, too large, unreadable
+        raise LockFileError(f"cannot read lock file: {exc.message}", file=name) from None
     try:
-        doc = json.loads(raw)
-        version = doc["lock_version"]
-        if version != LOCK_VERSION:
-            raise LockFileError(
-                f"unsupported lock_version {version!r}", file=str(p), expected=str(LOCK_VERSION), actual=str(version)
-            )
-        entries = {}
-        for item in doc["artifacts"]:
-            entry = LockEntry(
-                kind=str(item["kind"]),
-                uri=str(item["uri"]),
-                url=str(item["url"]),
-                sha256=str(item["sha256"]).lower(),
-                size=int(item["size"]),
-                referenced_from=tuple(str(r) for r in item.get("referenced_from", [])),
-            )
-            if not is_full_sha256(entry.sha256):
-                raise LockFileError(f"artifact {entry.url}: sha256 is not a full digest", file=str(p))
-            entries[entry.url] = entry
-        return entries
-    except LockFileError:
-        raise
-    except (ValueError, KeyError, TypeError) as exc:
-        raise LockFileError(f"malformed lock file: {exc}", file=str(p)) from None
+        text = raw.decode()
+        doc = json.loads(text, parse_float=_no_float, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
+    except RecursionError:
+        _bad(name, "nested too deeply")
+    except _Malformed as exc:
+        _bad(name, str(exc))
+    except UnicodeDecodeError as exc:
+        _bad(name, f"not UTF-8: {exc.reason} at byte {exc.start}")
+    except ValueError as exc:  # JSONDecodeError, an integer too large to convert
+        _bad(name, f"not JSON: {exc}")
+    return _check(doc, name)
 
 
-def compare(locked: dict[str, LockEntry], actual: dict[str, LockEntry], *, lock_path: str) -> list[LockDriftError]:
-    """Every difference between the lock and what the tree resolves to now. Pure."""
+def _check(doc: object, name: str) -> Lock:
+    if not isinstance(doc, dict):
+        _bad(name, f"expected a JSON object, found {_type(doc)}")
+    version = doc.get("lock_version")
+    if version != LOCK_VERSION or type(version) is not int:
+        hint = f"delete {name} and run `hcdf-trust resolve` to lock the tree again (trust on first use)"
+        raise LockFileError(
+            f"unsupported lock_version {json.dumps(version)} (this version reads and writes {LOCK_VERSION}): {hint}",
+            file=name,
+            expected=str(LOCK_VERSION),
+            actual=json.dumps(version),
+        )
+    if doc.keys() != _TOP:
+        _bad(name, f"top-level keys must be {sorted(_TOP)}, found {sorted(doc)}")
+    root, items = doc["root"], doc["artifacts"]
+    if type(root) is not str or not root:
+        _bad(name, f"root must be a non-empty string, found {_type(root)}")
+    if type(items) is not list:
+        _bad(name, f"artifacts must be a list, found {_type(items)}")
+    entries: dict[str, LockEntry] = {}
+    for i, item in enumerate(items):
+        if type(item) is not dict or item.keys() != _KEYS:
+            keys = sorted(item) if type(item) is dict else _type(item)
+            _bad(name, f"artifact {i}: expected an object with keys {sorted(_KEYS)}, found {keys}")
+        kind, uri, url, sha, size, refs = itemgetter(item)
+        if type(url) is not str or not url:
+            _bad(name, f"artifact {i}: url must be a non-empty string")
+        if type(kind) is not str or kind not in KINDS:
+            _bad(name, f"artifact {url}: kind must be one of {sorted(KINDS)}, found {kind!r}")
+        if type(uri) is not str or not uri:
+            _bad(name, f"artifact {url}: uri must be a non-empty string")
+        if type(sha) is not str or not _SHA.match(sha):
+            _bad(name, f"artifact {url}: sha256 is not a full digest (64 hex digits), found {sha!r}")
+        if type(size) is not int or size < 0:
+            _bad(name, f"artifact {url}: size must be a non-negative integer, found {size!r}")
+        if type(refs) is not list or not all(type(r) is str and r for r in refs):
+            _bad(name, f"artifact {url}: referenced_from must be a list of document paths")
+        if url in entries:
+            _bad(name, f"artifact {url} is listed twice")
+        entries[url] = LockEntry(kind, uri, url, sha.lower(), size, tuple(refs))
+    return Lock(root=root, entries=entries)
+
+
+class _Malformed(ValueError):
+    pass
+
+
+def _no_float(text: str) -> NoReturn:
+    raise _Malformed(f"number {text[:40]} is not an integer")
+
+
+def _no_constant(text: str) -> NoReturn:
+    raise _Malformed(f"{text} is not a number")
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        dup = next(k for k, _ in pairs if k in seen or seen.add(k))  # type: ignore[func-returns-value]
+        raise _Malformed(f"key {dup!r} appears twice in one object")
+    return out
+
+
+def _type(value: object) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", int: "an integer"}.get(
+        type(value), "null" if value is None else type(value).__name__
+    )
+
+
+def _bad(name: str, why: str) -> NoReturn:
+    raise LockFileError(f"malformed lock file: {why}", file=name)
+
+
+Where = Mapping[str, tuple[str | None, int | None]]
+
+
+def compare(
+    locked: dict[str, LockEntry], actual: dict[str, LockEntry], *, lock_path: str, where: Where
+) -> list[LockDriftError]:
+    """Every difference between the lock and what the tree resolves to now. Pure.
+
+    Digest and size are compared; ``uri`` and ``referenced_from`` are not (moving or
+    respelling a reference is not drift). ``where`` maps a URL to the file and line
+    of its first reference in the current parse, for the messages.
+    """
     errors: list[LockDriftError] = []
     for url, now in sorted(actual.items()):
         before = locked.get(url)
-        where = now.referenced_from[0] if now.referenced_from else None
-        file, line = _split_where(where)
+        file, line = where.get(url, (None, None))
         if before is None:
             errors.append(
                 LockDriftError(f"{now.uri} is not in the lock file {lock_path}", file=file, line=line, url=url)
             )
-        elif before.sha256 != now.sha256:
-            errors.append(
-                LockDriftError(
-                    f"{now.uri} changed since it was locked",
-                    file=file,
-                    line=line,
-                    url=url,
-                    expected=before.sha256,
-                    actual=now.sha256,
-                )
-            )
+        else:
+            drift = drift_error(before, now.sha256, now.size, uri=now.uri, url=url, file=file, line=line)
+            if drift is not None:
+                errors.append(drift)
     for url in sorted(set(locked) - set(actual)):
         errors.append(LockDriftError(f"{url} is in the lock file but no longer referenced", file=lock_path, url=url))
     return errors
 
 
-def _split_where(where: str | None) -> tuple[str | None, int | None]:
-    if not where:
-        return None, None
-    file, _, line = where.rpartition(":")
-    return (file, int(line)) if line.isdigit() else (where, None)
+def drift_error(
+    before: LockEntry,
+    sha256: str,
+    size: int,
+    *,
+    uri: str,
+    url: str,
+    file: str | None,
+    line: int | None,
+    hint: str = "",
+) -> LockDriftError | None:
+    """The error for content that differs from its lock entry (digest or size), or None. Pure."""
+    if before.sha256 != sha256:
+        return LockDriftError(
+            f"{uri} changed since it was locked{hint}",
+            file=file,
+            line=line,
+            url=url,
+            expected=before.sha256,
+            actual=sha256,
+        )
+    if before.size != size:
+        return LockDriftError(
+            f"{uri} changed since it was locked (its size differs){hint}",
+            file=file,
+            line=line,
+            url=url,
+            expected=f"{before.size} bytes",
+            actual=f"{size} bytes",
+        )
+    return None

@@ -99,8 +99,6 @@ AGREED_WITH_NEW = "agreed with new"
 NO_ENTRY = "no entry"
 DISAGREED_WITH_BOTH = "disagreed with both"
 
-# Larger than any lock file lockfile.load accepts; read only to notice a concurrent change.
-_LOCK_READ_LIMIT = 256 << 20
 
 
 @dataclass(frozen=True)
@@ -207,10 +205,11 @@ def pin_tree(
     locations = _locations(res)
     editable = {url for url, loc in locations.items() if _is_editable(url, loc)}
     decided = {
-        (use.doc, use.ref.line, art.url): use.ref.kind in PINNABLE and use.doc_url in editable
+        (use.doc, use.ref.line, url): use.ref.kind in PINNABLE and use.doc_url in editable
         for art in res.artifacts.values()
         if art.sha256 is not None
         for use in art.uses
+        for url in (art.url, res.lock_url(art.url))  # lock drift names the lock's url
     }
     for err in res.errors:
         key = (err.file, err.line, err.url)
@@ -236,7 +235,7 @@ def pin_tree(
 
     # step 4: plan the edited documents and the lock, every other input protected
     entries = _lock_entries(res, planner)
-    lock_new = lockfile.render(entries, root=lock_url(res.root_location.url, res.lock_path.parent))
+    lock_new = lockfile.render(entries, root=res.lock_url(res.root_location.url))
     report.lock_changes = _lock_diff(lock, {e.url: e.sha256 for e in entries})
     targets = _targets(res, planner, locations, report.errors)
     plan = OutputPlan()
@@ -330,10 +329,10 @@ def _read_lock(path: Path, *, parse: bool = True) -> tuple[bytes | None, dict[st
     """
     if not os.path.lexists(path):
         return None, {}
-    raw = read_input(path, limit=_LOCK_READ_LIMIT, what="lock file", source=display_path(path))
+    raw = read_input(path, limit=lockfile.MAX_LOCK_BYTES, what="lock file", source=display_path(path))
     if not parse:
         return raw, {}
-    return raw, {url: entry.sha256 for url, entry in lockfile.load(path).items()}
+    return raw, {url: entry.sha256 for url, entry in lockfile.load(path).entries.items()}
 
 
 def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: list[HcdfTrustError]) -> set[str]:
@@ -527,7 +526,7 @@ def _lock_entries(res: Resolution, planner: _Planner) -> list[lockfile.LockEntry
     entries = []
     for entry in res.lock_entries():
         new = edited.get(entry.url)
-        entries.append(entry if new is None else replace(entry, sha256=new[0], size=new[1]))
+        entries.append(entry if new is None else entry._replace(sha256=new[0], size=new[1]))
     return entries
 
 

@@ -6,8 +6,14 @@ The run has three steps:
    parallel, checked against their pins and parsed before the next level.
 2. Fetch every other artifact (models, meshes, stream profiles, firmware
    manifests) in parallel, hashing while streaming.
-3. Decide, in pure functions over digests and pins (:func:`check_artifact`,
+3. Decide, in pure functions over digests, pins and the lock (:func:`check_artifact`,
    :func:`lockfile.compare`), which errors and warnings the tree has.
+
+Trust on first use: the lock is the pin of every reference without a full pin. A
+lock entry that disagrees with the content is an error (``changed since it was
+locked``) unless that reference is being updated (``update_all``/``update``); a
+full pin in the document that matches the content is authoritative, and the lock
+follows it. New references are added to the lock, unreferenced ones dropped.
 
 Nothing is written here except verified cache blobs; the lock file and the
 flattened document are written by the caller, and only when the run is clean.
@@ -15,13 +21,14 @@ flattened document are written by the caller, and only when the run is clean.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
@@ -33,18 +40,25 @@ from ..errors import (
     IncludeCycleError,
     IncludeDepthError,
     InputError,
+    LockFileError,
+    Notice,
     OfflineError,
     UnpinnedError,
     WeakPinError,
 )
 from ..localfile import hash_local, open_local, read_bounded
-from ..store import ContentStore, default_cache_dir
+from ..store import ContentStore, atomic_write, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
-from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher
 from .locate import Location, Locator, display_path, file_url
 
+if TYPE_CHECKING:
+    from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
+
 DEFAULT_MAX_DEPTH = 16
+# The fetcher's defaults (fetch.py), repeated so that an offline run never imports it.
+DEFAULT_MAX_BYTES = 4 << 30
+DEFAULT_TIMEOUT = 30.0
 DEFAULT_JOBS = 16
 # Local files and cached blobs at least this large are hashed on a thread per core;
 # smaller ones in the resolving thread (see _Run._plan).
@@ -65,6 +79,10 @@ class ResolveOptions:
     cache_dir: str | None = None
     lock_path: str | None = None
     locked: bool = False
+    # Trust on first use: re-pin every lock entry (update_all) or those named here
+    # (the uri as written, or the lock's url) to the content found now.
+    update_all: bool = False
+    update: tuple[str, ...] = ()
     offline: bool = False
     allow_http: bool = False
     strict: bool = False
@@ -122,41 +140,81 @@ class Resolution:
     includes: dict[str, list[tuple[Reference, str]]] = field(default_factory=dict)
     others: list[tuple[str, Reference]] = field(default_factory=list)  # firmware hashes, extensions
     errors: list[HcdfTrustError] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
+    warnings: list[Notice] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         return not self.errors
 
+    @functools.cached_property
+    def _urls(self) -> LockUrls:
+        return LockUrls(self.lock_path.parent)
+
+    def lock_url(self, url: str) -> str:
+        """``url`` as the lock file writes it (see :class:`LockUrls`)."""
+        return self._urls.to_lock(url)
+
     def lock_entries(self) -> list[lockfile.LockEntry]:
-        base = self.lock_path.parent
+        """The lock file's entries for every artifact that was hashed."""
+        to_lock = self._urls.to_lock
+        docs: dict[str, str] = {}  # a document's lock url, once per document
         entries = []
         for art in self.artifacts.values():
             if art.sha256 is None or art.size is None:
                 continue
+            refs = set()
+            for use in art.uses:
+                ref = docs.get(use.doc_url)
+                if ref is None:
+                    ref = docs[use.doc_url] = to_lock(use.doc_url)
+                refs.add(ref)
             entries.append(
                 lockfile.LockEntry(
-                    kind=art.kind.value,
-                    uri=art.uri,
-                    url=lock_url(art.url, base),
-                    sha256=art.sha256,
-                    size=art.size,
-                    referenced_from=tuple(sorted({f"{lock_url(u.doc_url, base)}:{u.ref.line}" for u in art.uses})),
+                    art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, tuple(sorted(refs))
                 )
             )
         return entries
 
+    def render_lock(self) -> bytes:
+        """The lock file's bytes for this tree (what :meth:`write_lock` writes)."""
+        return lockfile.render(self.lock_entries(), root=self.lock_url(self.root_location.url))
+
     def write_lock(self) -> None:
-        lockfile.write(
-            self.lock_path, self.lock_entries(), root=lock_url(self.root_location.url, self.lock_path.parent)
-        )
+        atomic_write(self.lock_path, self.render_lock())
+
+
+class LockUrls:
+    """Local URLs relative to the lock file's folder; remote URLs as they are.
+
+    ``os.path.relpath`` costs microseconds: it runs once per distinct folder, and
+    each file's name is joined to its folder's answer (and remembered).
+    """
+
+    def __init__(self, base: Path) -> None:
+        self.base = os.path.abspath(base)
+        self._rel: dict[str, str] = {}
+        self._memo: dict[str, str] = {}
+
+    def to_lock(self, url: str) -> str:
+        done = self._memo.get(url)
+        if done is not None:
+            return done
+        if not url.startswith("file://"):
+            return url
+        folder, _, name = url.rpartition("/")
+        rel = self._rel.get(folder)
+        if rel is None:
+            path = unquote(folder[len("file://") :]) or "/"
+            rel = self._rel[folder] = Path(os.path.relpath(path, self.base)).as_posix()
+        if "%" in name:
+            name = unquote(name)
+        done = self._memo[url] = name if rel == "." else f"{rel}/{name}"
+        return done
 
 
 def lock_url(url: str, base: Path) -> str:
     """Local URLs relative to the lock file's folder; remote URLs as they are."""
-    if url.startswith("file://"):
-        return Path(os.path.relpath(unquote(urlsplit(url).path), base)).as_posix()
-    return url
+    return LockUrls(base).to_lock(url)
 
 
 def display_url(url: str) -> str:
@@ -198,26 +256,36 @@ class _Run:
         self.on_start = on_start
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
-        self.fetcher: HttpFetcher | None = None
-        if not options.offline:
-            self.fetcher = HttpFetcher(
-                ca_bundle=options.ca_bundle,
-                allow_http=options.allow_http,
-                timeout=options.timeout,
-                max_bytes=options.max_bytes,
-                max_connections=max(1, options.jobs),
-            )
-        self.lock: dict[str, lockfile.LockEntry] = {}
+        self._fetcher: HttpFetcher | None = None
+        self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
+        self._updating: set[str] = set()  # lock urls re-pinned by --update
+
+    def fetcher(self) -> HttpFetcher:
+        """The HTTPS fetcher, created (and fetch.py, ssl, httpx imported) at the first remote fetch."""
+        with self._lock:
+            if self._fetcher is None:
+                from .fetch import HttpFetcher
+
+                o = self.o
+                self._fetcher = HttpFetcher(
+                    ca_bundle=o.ca_bundle,
+                    allow_http=o.allow_http,
+                    timeout=o.timeout,
+                    max_bytes=o.max_bytes,
+                    max_connections=max(1, o.jobs),
+                )
+            return self._fetcher
 
     def close(self) -> None:
-        if self.fetcher is not None:
-            self.fetcher.close()
+        if self._fetcher is not None:
+            self._fetcher.close()
 
     # -- step 0: the root document and the lock --------------------------------------
 
     def run(self, doc_path: Path) -> Resolution:
         doc_path = Path(os.path.abspath(doc_path))
+        lock_path = Path(self.o.lock_path) if self.o.lock_path else lockfile.default_path(doc_path)
         root_dir = self._confinement_root(doc_path)
         locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
         root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
@@ -227,19 +295,9 @@ class _Run:
             doc_path, data = stub, _read_root(stub)
             root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         root = Document.from_bytes(data, source=display_url(root_loc.url))
-        lock_path = Path(self.o.lock_path) if self.o.lock_path else doc_path.parent / lockfile.DEFAULT_NAME
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
         res.documents[root_loc.url] = root
-        if self.o.locked or lock_path.exists():
-            try:
-                loaded = lockfile.load(lock_path)
-            except HcdfTrustError as exc:
-                if self.o.locked:
-                    raise
-                res.warnings.append(f"ignoring unreadable lock file: {exc}")
-                loaded = {}
-            base = lock_path.parent
-            self.lock = {_absolute(url, base): e for url, e in loaded.items()}
+        self._load_lock(res)
         self.res = res
         self.locator = locator
         self._walk_includes(root_loc)
@@ -250,6 +308,37 @@ class _Run:
         self._find_cycles()
         self._check_all()
         return res
+
+    def _load_lock(self, res: Resolution) -> None:
+        """Read the lock (every verb): a lock that exists but cannot be used stops the run,
+        since under trust on first use it is the pin of every unpinned reference."""
+        path = res.lock_path
+        if not self.o.locked and not os.path.lexists(path):
+            return  # first use: nothing locked yet
+        lock = lockfile.load(path)
+        root = res.lock_url(res.root_location.url)
+        if lock.root != root:
+            raise LockFileError(
+                f"lock file {display_path(path)} belongs to {lock.root}, not to {root}"
+                " (each root document has its own lock: <DOC>.lock, or pass --lock)",
+                file=display_path(path),
+                expected=root,
+                actual=lock.root,
+            )
+        self.lock = lock.entries
+        names = set(self.o.update)
+        self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
+
+    def _entry(self, art: Artifact) -> lockfile.LockEntry | None:
+        return self.lock.get(self.res.lock_url(art.url)) if self.lock else None
+
+    def _is_updating(self, art: Artifact) -> bool:
+        """Does ``--update`` re-pin this artifact? (All, or named by its lock url or a uri as written.)"""
+        return (
+            self.o.update_all
+            or self.res.lock_url(art.url) in self._updating
+            or (bool(self.o.update) and any(u.ref.uri in self.o.update for u in art.uses))
+        )
 
     def _confinement_root(self, doc_path: Path) -> Path:
         if self.o.root:
@@ -324,7 +413,9 @@ class _Run:
         if self.on_start:
             self.on_start(len(artifacts))
         inline, cpu, net = self._plan(artifacts)
-        pools: list[ThreadPoolExecutor] = []
+        if cpu or net:  # concurrent.futures (and logging) only when there is parallel work
+            from concurrent.futures import ThreadPoolExecutor
+        pools: list[Any] = []
         futures = []
         # Hashing threads drop the GIL for each 1 MiB read and update, then wait for it
         # while this thread runs Python for small files; at the default 5 ms switch
@@ -426,7 +517,7 @@ class _Run:
                     ) from None
                 self._record(art, Hashed(want, size), "cache")
                 return data
-        if self.fetcher is None:
+        if self.o.offline:
             raise OfflineError(
                 f"{art.url} is not in the cache or a mirror, and --offline forbids the network"
                 + ("" if want else " (it has no full pin or lock entry to find it in the cache by)"),
@@ -442,7 +533,7 @@ class _Run:
                 url=art.url,
             )
         limit = min(self.o.max_bytes, MAX_DOCUMENT_BYTES) if keep else self.o.max_bytes
-        with self.fetcher.open(loc.remote, file=file, line=line) as chunks:
+        with self.fetcher().open(loc.remote, file=file, line=line) as chunks:
             if self.o.write_cache:
                 try:
                     hashed, path = self.store.ingest(
@@ -470,23 +561,30 @@ class _Run:
         for use in art.uses:
             if use.pin is not None and use.pin.is_full:
                 return use.pin.hex
-        entry = self.lock.get(art.url)
-        if entry is not None and all(u.pin is None or u.pin.matches(entry.sha256) for u in art.uses):
+        entry = self._entry(art)
+        if entry is None or (self._is_updating(art) and not (self.o.locked or self.o.offline)):
+            return None  # an update looks for the content as it is now, not in the cache
+        if all(u.pin is None or u.pin.matches(entry.sha256) for u in art.uses):
             return entry.sha256
         return None
 
     def _acceptable(self, art: Artifact, hashed: Hashed | None = None) -> bool:
-        """May this content be cached and (for includes) parsed? Pins, and the lock under --locked."""
+        """May this content be cached and (for includes) parsed? Its pins, and the lock
+        where the lock is its pin (always under --locked; else unless a full pin in the
+        document matches or the reference is being updated)."""
         sha = hashed.sha256 if hashed is not None else art.sha256
+        size = hashed.size if hashed is not None else art.size
         if sha is None:
             return False
         mismatch = any(u.pin is not None and not u.pin.matches(sha) for u in art.uses)
         if mismatch and not self.o.accept_mismatch:
             return False
+        entry = self._entry(art)
         if self.o.locked:
-            entry = self.lock.get(art.url)
-            return entry is not None and entry.sha256 == sha
-        return True
+            return entry is not None and (entry.sha256, entry.size) == (sha, size)
+        if entry is None or _full_pin_matches(art, sha) or self._is_updating(art):
+            return True
+        return (entry.sha256, entry.size) == (sha, size)
 
     # -- step 3: decisions -----------------------------------------------------------
 
@@ -527,35 +625,77 @@ class _Run:
                 continue
             if art.sha256 is None:
                 continue  # never reached (an error elsewhere stopped the walk)
-            errors, warnings = check_artifact(art, self.lock.get(art.url), strict=self.o.strict, locked=self.o.locked)
+            entry = self._entry(art)
+            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=self.o.locked)
             res.errors.extend(errors)
             res.warnings.extend(warnings)
+            if entry is not None and not self.o.locked and art.pin_status != "full" and not self._is_updating(art):
+                assert art.size is not None
+                use = art.uses[0]
+                drift = lockfile.drift_error(
+                    entry,
+                    art.sha256,
+                    art.size,
+                    uri=art.uri,
+                    url=res.lock_url(art.url),
+                    file=use.doc,
+                    line=use.ref.line,
+                    hint=f"; `resolve --update {art.uri}` accepts the new content",
+                )
+                if drift is not None:
+                    res.errors.append(drift)
         for source, ref in res.others:
             if ref.kind is Kind.FIRMWARE and ref.sha:
                 try:
                     parse_pin(ref.sha, file=source, line=ref.line)
                 except HcdfTrustError as exc:
-                    res.warnings.append(f"firmware {ref.name!r}: {exc}")
+                    res.warnings.append(
+                        Notice("bad-digest", f"firmware {ref.name!r}: {exc.message}", file=source, line=ref.line)
+                    )
         if self.o.locked:
-            base = res.lock_path.parent
             actual = {e.url: e for e in res.lock_entries()}
-            failed = {lock_url(a.url, base) for a in res.artifacts.values() if a.sha256 is None}
-            locked = {lock_url(url, base): e for url, e in self.lock.items()}
-            locked = {url: e for url, e in locked.items() if url not in failed}
-            res.errors.extend(lockfile.compare(locked, actual, lock_path=str(res.lock_path)))
+            failed = {res.lock_url(a.url) for a in res.artifacts.values() if a.sha256 is None}
+            locked = {url: e for url, e in self.lock.items() if url not in failed}
+            where = {res.lock_url(a.url): (a.uses[0].doc, a.uses[0].ref.line) for a in res.artifacts.values()}
+            res.errors.extend(lockfile.compare(locked, actual, lock_path=display_path(res.lock_path), where=where))
+        self._check_update_names()
+
+    def _check_update_names(self) -> None:
+        """Every ``--update`` name must be a uri as written or a lock url (like ``cargo update -p``)."""
+        if not self.o.update:
+            return
+        known = {e.uri for e in self.lock.values()} | {e.url for e in self.lock.values()}
+        for art in self.res.artifacts.values():
+            known.add(self.res.lock_url(art.url))
+            known.update(u.ref.uri for u in art.uses if u.ref.uri)
+        for name in self.o.update:
+            if name not in known:
+                self.res.errors.append(
+                    InputError(
+                        f"--update {name}: no reference has this uri and no lock entry this url",
+                        file=display_path(self.res.lock_path),
+                        expected="a uri as written in a document, or a url of the lock file",
+                        actual=name,
+                    )
+                )
+
+
+def _full_pin_matches(art: Artifact, sha: str) -> bool:
+    """A full pin in a document names this content: it is authoritative over the lock."""
+    return any(u.pin is not None and u.pin.is_full and u.pin.matches(sha) for u in art.uses)
 
 
 def check_artifact(
     art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool
-) -> tuple[list[HcdfTrustError], list[str]]:
+) -> tuple[list[HcdfTrustError], list[Notice]]:
     """Every pin of every use of one artifact against its actual digest. Pure."""
     errors: list[HcdfTrustError] = []
-    warnings: list[str] = []
+    warnings: list[Notice] = []
     sha = art.sha256
     assert sha is not None
     for use in art.uses:
         pin = use.pin
-        where = f"{use.doc}:{use.ref.line}"
+        where = functools.partial(Notice, file=use.doc, line=use.ref.line, url=art.url)
         if pin is None:
             if locked and lock_entry is None:
                 errors.append(
@@ -564,13 +704,14 @@ def check_artifact(
                         file=use.doc,
                         line=use.ref.line,
                         url=art.url,
+                        expected="a sha attribute or a lock entry",
                         actual=sha,
                     )
                 )
-            elif locked:
-                warnings.append(f"{where}: {use.ref.uri} has no sha; the lock file pins it")
+            elif lock_entry is not None:
+                warnings.append(where("lock-pins", f"{use.ref.uri} has no sha; the lock file pins it"))
             else:
-                warnings.append(f"{where}: {use.ref.uri} is unpinned (sha256 {sha})")
+                warnings.append(where("unpinned", f"{use.ref.uri} is unpinned (sha256 {sha})"))
             continue
         if not pin.matches(sha):
             errors.append(
@@ -597,7 +738,7 @@ def check_artifact(
                     )
                 )
             else:
-                warnings.append(f"{where}: {use.ref.uri} has a weak pin ({bits} bits): sha256 {sha}")
+                warnings.append(where("weak-pin", f"{use.ref.uri} has a weak pin ({bits} bits): sha256 {sha}"))
     return errors, warnings
 
 
@@ -647,7 +788,3 @@ def _chain(parent: dict[str, str | None], url: str) -> list[str]:
         out.append(cur)
         cur = parent.get(cur)
     return list(reversed(out))
-
-
-def _absolute(url: str, base: Path) -> str:
-    return url if "://" in url else file_url(os.path.normpath(base / url))

@@ -1,0 +1,58 @@
+"""Start-up cost: a run imports only what it needs (no ssl/httpx without a remote fetch)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from .conftest import PROJECT
+
+# The modules a local run must not pay for: TLS and HTTP (fetch.py), the progress bar
+# without a terminal, and the thread pool when every file is small.
+HEAVY = ("ssl", "_ssl", "httpx", "httpcore", "hcdf_trust.include.fetch", "rich")
+
+PROBE = """
+import json, sys
+from hcdf_trust.cli import main
+try:
+    main(sys.argv[1:])
+except SystemExit as exc:
+    code = exc.code
+print(json.dumps({"code": code, "modules": sorted(sys.modules)}), file=sys.stderr)
+"""
+
+
+def _modules_after(*args: str) -> tuple[int, set[str]]:
+    proc = subprocess.run(
+        [sys.executable, "-c", PROBE, *args], capture_output=True, text=True, cwd=PROJECT, timeout=60
+    )
+    report = json.loads(proc.stderr.strip().splitlines()[-1])
+    return report["code"], set(report["modules"])
+
+
+def test_local_resolve_imports_neither_ssl_nor_httpx(tmp_path):
+    # not --offline: a tree with no remote reference must not load the fetcher either
+    lock = tmp_path / "robot.hcdf.lock"
+    code, modules = _modules_after(
+        "resolve", "examples/robot/robot.hcdf", "--lock", str(lock), "--cache-dir", str(tmp_path / "c")
+    )
+    assert code == 0 and lock.exists()
+    assert "click" in modules and "hcdf_trust.include.resolver" in modules  # the probe ran the verb
+    assert not modules & set(HEAVY), sorted(modules & set(HEAVY))
+    code, modules = _modules_after("verify", "examples/robot/robot.hcdf", "--lock", str(lock))
+    assert code == 0
+    assert not modules & set(HEAVY), sorted(modules & set(HEAVY))
+
+
+def test_importing_the_cli_loads_no_network_code():
+    code, modules = _modules_after("--version")
+    assert code == 0
+    assert not modules & {*HEAVY, "lxml", "hcdf_trust.include.resolver"}
+
+
+def test_resolver_defaults_are_the_fetchers():
+    """resolver.py repeats fetch.py's defaults so that it need not import it."""
+    from hcdf_trust.include import fetch, resolver
+
+    assert (resolver.DEFAULT_MAX_BYTES, resolver.DEFAULT_TIMEOUT) == (fetch.DEFAULT_MAX_BYTES, fetch.DEFAULT_TIMEOUT)
