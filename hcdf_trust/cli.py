@@ -164,24 +164,24 @@ def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) 
     Relative references resolve against the referencing document, or against
     --base. Nothing is written unless every reference verifies.
     """
+    from .include.locate import display_path
     from .include.resolver import ResolveOptions
+    from .outputs import OutputPlan, protect_inputs
 
     options = ResolveOptions(**kw)
     res = _run_resolve(doc, options, as_json=as_json)
-    flat = None
+    # Every output is checked against every input before any is written; all land or none.
+    plan = OutputPlan()
+    protect_inputs(plan, res, doc=doc, options=options)
+    if no_lock:
+        plan.protect(res.lock_path, what="the lock file")
+    else:
+        plan.add(res.lock_path, res.lock_bytes(), flag="--lock")
     if out:
         from .include.flatten import flatten
 
-        flat = flatten(res, out_path=out)
-    if flat is not None and out:
-        from .store import atomic_write
-
-        atomic_write(out, flat)
-    if not no_lock:
-        res.write_lock()
-    wrote = ([] if no_lock else [str(res.lock_path)]) + ([out] if out else [])
-    from .include.locate import display_path
-
+        plan.add(out, flatten(res, out_path=out), flag="--out")
+    wrote = plan.commit()
     _report(res, as_json=as_json, wrote=[display_path(p) for p in wrote])
 
 

@@ -146,10 +146,22 @@ class Resolution:
             )
         return entries
 
+    def lock_bytes(self) -> bytes:
+        """The lock file's content for this tree (write it through an ``OutputPlan``)."""
+        return lockfile.render(self.lock_entries(), root=lock_url(self.root_location.url, self.lock_path.parent))
+
     def write_lock(self) -> None:
-        lockfile.write(
-            self.lock_path, self.lock_entries(), root=lock_url(self.root_location.url, self.lock_path.parent)
-        )
+        """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.
+
+        Raises:
+            OutputError: it is an input of this tree, or cannot be written.
+        """
+        from ..outputs import OutputPlan, protect_inputs
+
+        plan = OutputPlan()
+        protect_inputs(plan, self)
+        plan.add(self.lock_path, self.lock_bytes(), flag="lock file")
+        plan.commit()
 
 
 def lock_url(url: str, base: Path) -> str:
