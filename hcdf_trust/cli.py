@@ -83,6 +83,8 @@ def _mirror(ctx: click.Context, param: click.Parameter, values: tuple[str, ...])
         prefix, sep, target = value.partition("=")
         if not sep or not prefix or not target:
             raise click.BadParameter(f"{redact(value)!r} is not PREFIX=DIR|URL")
+        if not _is_url(prefix):  # it would never match a reference, silently
+            raise click.BadParameter(f"prefix {redact(prefix)!r} is not a URL prefix (https://host/...)")
         if _is_url(target):
             _check_url(target, ctx, what="target")
         else:
@@ -120,6 +122,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
         click.option(
             "--base",
             callback=_base,
+            metavar="DIR|URL",
             help="Existing folder, or https URL, that relative references resolve against "
             "(default: the referencing document).",
         ),

@@ -73,6 +73,13 @@ def test_mirror_targets_are_checked(cli, robot, target, says):
     assert says in result.stderr
 
 
+@pytest.mark.parametrize("prefix", ["models.example/", "models/", "="])
+def test_a_mirror_prefix_must_be_a_url(cli, robot, prefix):
+    Path("m").mkdir()
+    result = resolve(cli, robot, "--mirror", f"{prefix}=m")
+    assert result.exit_code == 2, result.stderr
+
+
 @pytest.mark.parametrize("order", ["before", "after"])
 def test_an_http_mirror_is_accepted_with_allow_http_in_any_order(cli, robot, order):
     mirror = ("--mirror", "https://models.example/=http://127.0.0.1:9/")
