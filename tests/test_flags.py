@@ -292,3 +292,15 @@ def test_a_usage_error_about_a_credentialed_url_is_redacted(cli, robot):
     result = resolve(cli, robot, "--mirror", f"https://models.example/=http://user:{SECRET}@mirror.example/")
     assert result.exit_code == 2 and "***@mirror.example" in result.stderr
     _assert_no_secret(result)
+
+
+def test_a_redirect_to_a_url_with_credentials_is_refused(cli, https_server, tls, tmp_path):
+    data = b"model bytes"
+    https_server.add("/a.glb", data)
+    url = https_server.redirect("/r.glb", f"https://user:{SECRET}@127.0.0.1:{https_server.port}/a.glb")
+    doc = _doc_with(tmp_path, url)
+    result = cli("resolve", doc, "--ca-bundle", tls.ca_pem, "--cache-dir", tmp_path / "c", "--no-lock", "--json")
+    assert result.exit_code == 3, result.stdout
+    assert "redirect to a URL with credentials is refused" in result.json["errors"][0]["message"]
+    assert https_server.hits["/a.glb"] == 0
+    _assert_no_secret(result)

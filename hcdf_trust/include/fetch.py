@@ -21,6 +21,7 @@ from urllib.parse import urljoin, urlsplit
 from ..digest import CHUNK
 from ..errors import FetchError, InputError
 from ..localfile import read_input
+from .locate import redact
 
 if TYPE_CHECKING:
     import httpx
@@ -127,6 +128,13 @@ class HttpFetcher:
                             )
                         current = urljoin(current, location)
                         self._check_scheme(current, original_scheme, url, file=file, line=line)
+                        if "@" in urlsplit(current).netloc:  # httpx would send them as Basic auth
+                            raise FetchError(
+                                f"{url}: redirect to a URL with credentials is refused ({redact(current)})",
+                                file=file,
+                                line=line,
+                                url=url,
+                            )
                         continue
                     if response.status_code != 200:
                         raise FetchError(f"{current}: HTTP {response.status_code}", file=file, line=line, url=url)
