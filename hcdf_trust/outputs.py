@@ -7,7 +7,8 @@ its outputs here first:
 1. :meth:`OutputPlan.protect` / :meth:`OutputPlan.protect_tree` name the inputs
    (documents, verified artifacts, the cache, keys) that no output may replace;
    :func:`protect_inputs` names every input of a :class:`~hcdf_trust.include.resolver.Resolution`.
-2. :meth:`OutputPlan.add` checks a destination at once, by resolved path and by
+2. :meth:`OutputPlan.add` checks a destination at once: its folder is resolved as
+   the kernel resolves it, and an existing file is compared with the inputs by
    inode, so neither a symlink nor ``..`` nor a hard link gets around the check.
 3. :meth:`OutputPlan.commit` writes every output to a temporary file in its
    destination folder and fsyncs it; only when all are ready is each renamed into
