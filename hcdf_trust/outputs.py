@@ -119,7 +119,9 @@ class OutputPlan:
             raise OutputError(f"{flag} {shown} is a directory", file=shown)
         hit = self._input_at(st) if st is not None and not edit else None
         if hit is not None:
-            raise OutputError(f"{flag} {shown} is {hit.what} ({hit.path}): refusing to overwrite an input", file=shown)
+            named = _display(hit.path)
+            also = f" ({named})" if named != os.path.normpath(shown) else ""
+            raise OutputError(f"{flag} {shown} is {hit.what}{also}: refusing to overwrite an input", file=shown)
         if st is not None and not stat.S_ISREG(st.st_mode):
             raise OutputError(f"{flag} {shown} exists and is not a regular file ({_kind(st.st_mode)})", file=shown)
         for tree in self._trees:
@@ -212,6 +214,12 @@ def _destination(text: str, *, flag: str) -> Path:
         raise OutputError(f"{flag} {text} is a directory", file=text)
     folder = os.path.dirname(os.path.join(os.getcwd(), text))
     return Path(os.path.realpath(folder)) / name
+
+
+def _display(path: str) -> str:
+    """A path relative to the working folder when inside it (as ``locate.display_path``)."""
+    rel = os.path.relpath(path)
+    return path if rel.startswith("..") else rel
 
 
 def _kind(mode: int) -> str:
