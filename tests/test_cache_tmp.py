@@ -16,6 +16,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -164,6 +165,27 @@ def test_ingest_holds_the_lock_while_it_writes(tmp_path):
     hashed, path = store.ingest(chunks())
     assert seen == [0, True]
     assert path is not None and path.read_bytes() == b"firstsecond" and hashed.sha256 == sha(b"firstsecond")
+    assert list(store.tmp_dir.iterdir()) == []
+
+
+def test_a_writer_whose_new_file_is_swept_before_it_locks_it_takes_another(tmp_path, monkeypatch):
+    """The race between creating a temporary file and locking it: a concurrent sweep
+    that wins it unlinks the file, and the writer must notice, not write into the void."""
+    store = ContentStore(tmp_path / "cache")
+    real_mkstemp = tempfile.mkstemp
+    made: list[str] = []
+
+    def mkstemp_then_sweep(*args, **kw):
+        fd, name = real_mkstemp(*args, **kw)
+        made.append(name)
+        if len(made) == 1:
+            assert store.sweep_tmp() == 1  # another run's sweep, between mkstemp and flock
+        return fd, name
+
+    monkeypatch.setattr(tempfile, "mkstemp", mkstemp_then_sweep)
+    hashed, path = store.ingest([b"first", b"second"])
+    assert len(made) == 2
+    assert path is not None and path.read_bytes() == b"firstsecond"
     assert list(store.tmp_dir.iterdir()) == []
 
 
