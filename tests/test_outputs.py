@@ -426,33 +426,23 @@ def _limit_file_size(limit: int):
     return apply
 
 
-def test_a_full_disk_writes_nothing(work):
-    """The lock (~3 KB) fits under the limit, the flat document (~9 KB) does not:
-    neither is renamed into place, no temporary file is left, and no traceback."""
+def test_a_full_disk_writes_nothing(cli, work, tmp_path):
+    """A file size limit between the lock's size and the flat document's: the lock is
+    staged, the flat document fails with EFBIG; neither is renamed into place, no
+    temporary file is left, and there is no traceback."""
+    scratch = tmp_path / "scratch"
+    assert run(cli, lock=str(scratch / "robot.lock"), out=str(scratch / "robot.flat.hcdf")).exit_code == 0
+    lock_size, flat_size = (scratch / "robot.lock").stat().st_size, (scratch / "robot.flat.hcdf").stat().st_size
+    assert lock_size + 1024 < flat_size, "the test needs a flat document larger than the lock"
+    shutil.rmtree(scratch)
     env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
     before = contents(work)
     proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "hcdf_trust.cli",
-            "resolve",
-            "robot/robot.hcdf",
-            "--offline",
-            "--cache-dir",
-            "cache",
-            "--lock",
-            "locks/robot.lock",
-            "--out",
-            "dist/robot.flat.hcdf",
-        ],
-        cwd=work,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        preexec_fn=_limit_file_size(4096),
-    )
+        [sys.executable, "-m", "hcdf_trust.cli", "resolve", "robot/robot.hcdf", "--offline", "--cache-dir", "cache",
+         "--lock", "locks/robot.lock", "--out", "dist/robot.flat.hcdf"],
+        cwd=work, env=env, capture_output=True, text=True, timeout=60,
+        preexec_fn=_limit_file_size((lock_size + flat_size) // 2),
+    )  # fmt: skip
     assert proc.returncode == 3, proc.stderr
     assert "cannot write --out dist/robot.flat.hcdf: File too large" in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -461,11 +451,11 @@ def test_a_full_disk_writes_nothing(work):
 
 @pytest.fixture
 def full_tmpfs(tmp_path) -> Iterator[Path]:
-    """A 12 KiB tmpfs (3 pages): the lock (1 page) fits, the flat document (3 pages) then
-    does not, a real ENOSPC. Needs the right to mount: skipped otherwise."""
+    """An 8 KiB tmpfs (2 pages): the lock (1 page) fits, the flat document (over 4 KiB)
+    then does not, a real ENOSPC. Needs the right to mount: skipped otherwise."""
     mnt = tmp_path / "full"
     mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=12k", "tmpfs", mnt], capture_output=True).returncode:
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8k", "tmpfs", mnt], capture_output=True).returncode:
         pytest.skip("cannot mount a tmpfs here")
     try:
         yield mnt
