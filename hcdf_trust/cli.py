@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import functools
 import json
+import math
+import os
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -50,18 +52,64 @@ def handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+def _is_url(text: str) -> bool:
+    return "://" in text
+
+
+def _check_url(value: str, ctx: click.Context, *, what: str) -> None:
+    """A flag's URL must be https (or http under --allow-http). Credentials are left to
+    the library, which refuses them with exit 3; messages show URLs redacted."""
+    from .include.locate import redact
+
+    scheme = value.partition("://")[0].lower()
+    if scheme == "https" or (scheme == "http" and ctx.params.get("allow_http")):
+        return
+    hint = " (plain http needs --allow-http)" if scheme == "http" and "allow_http" in ctx.params else ""
+    raise click.BadParameter(f"{what} {redact(value)!r} is not an https:// URL{hint}")
+
+
+def _check_folder(value: str, *, what: str) -> None:
+    if not os.path.exists(value):
+        raise click.BadParameter(f"{what} {value!r} does not exist")
+    if not os.path.isdir(value):
+        raise click.BadParameter(f"{what} {value!r} is not a folder")
+
+
 def _mirror(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    from .include.locate import redact
+
     out = []
     for value in values:
         prefix, sep, target = value.partition("=")
         if not sep or not prefix or not target:
-            raise click.BadParameter(f"{value!r} is not PREFIX=DIR|URL")
+            raise click.BadParameter(f"{redact(value)!r} is not PREFIX=DIR|URL")
+        if not _is_url(prefix):  # it would never match a reference, silently
+            raise click.BadParameter(f"prefix {redact(prefix)!r} is not a URL prefix (https://host/...)")
+        if _is_url(target):
+            _check_url(target, ctx, what="target")
+        else:
+            _check_folder(target, what="target")
         out.append((prefix, target))
     return tuple(out)
 
 
+def _base(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    if value is not None:
+        if _is_url(value):
+            _check_url(value, ctx, what="URL")
+        else:
+            _check_folder(value, what="folder")
+    return value
+
+
+def _seconds(ctx: click.Context, param: click.Parameter, value: float) -> float:
+    if not math.isfinite(value) or value <= 0:
+        raise click.BadParameter(f"{value} is not a finite number of seconds > 0")
+    return value
+
+
 def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Options shared by every verb that resolves a document tree."""
+    """Options of every verb that resolves a document tree (resolve, verify, pin); none is about the network."""
     options = [
         click.option(
             "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC]."
@@ -72,11 +120,15 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
         ),
         click.option(
-            "--base", help="Folder or URL that relative references resolve against (default: the referencing document)."
+            "--base",
+            callback=_base,
+            metavar="DIR|URL",
+            help="Existing folder, or https URL, that relative references resolve against "
+            "(default: the referencing document).",
         ),
         click.option(
             "--root",
-            type=click.Path(file_okay=False),
+            type=click.Path(exists=True, file_okay=False),
             help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
         ),
         click.option(
@@ -85,26 +137,15 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             multiple=True,
             callback=_mirror,
             metavar="PREFIX=DIR|URL",
-            help="Rewrite a URL prefix to a local folder or another server (repeatable).",
+            help="Rewrite a URL prefix to an existing folder or an https URL (repeatable).",
         ),
         click.option(
-            "--ca-bundle",
-            type=click.Path(dir_okay=False, exists=True),
-            envvar="HCDF_TRUST_CA_BUNDLE",
-            help="PEM file of CA certificates to trust for https [env: HCDF_TRUST_CA_BUNDLE].",
-        ),
-        click.option(
-            "--timeout", type=float, default=30.0, show_default=True, help="Seconds without data before a fetch fails."
-        ),
-        click.option(
-            "--max-size",
-            "max_bytes",
-            type=int,
-            default=4 << 30,
+            "--max-depth",
+            type=click.IntRange(min=1),
+            default=16,
             show_default=True,
-            help="Largest body accepted from a server, in bytes.",
+            help="Deepest include nesting accepted.",
         ),
-        click.option("--max-depth", type=int, default=16, show_default=True, help="Deepest include nesting accepted."),
         click.option("--strict", is_flag=True, help="Refuse weak pins (hex prefixes shorter than 64 digits)."),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout."),
     ]
@@ -114,13 +155,16 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Options of the verbs that may fetch (resolve, pin); verify never does."""
+    """Options of the verbs that may fetch (resolve, pin); verify never does, and neither offers nor reads them."""
     options = [
         click.option(
             "--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket."
         ),
         click.option(
-            "--allow-http", is_flag=True, help="Allow plain http:// for references pinned with a full SHA-256."
+            "--allow-http",
+            is_flag=True,
+            is_eager=True,  # read by the --base and --mirror checks, whatever the order on the command line
+            help="Allow plain http:// for references pinned with a full SHA-256.",
         ),
         click.option(
             "--jobs",
@@ -129,6 +173,28 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
             default=16,
             show_default=True,
             help="Parallel network fetches (local hashing uses one thread per core).",
+        ),
+        click.option(
+            "--ca-bundle",
+            type=click.Path(dir_okay=False, exists=True),
+            envvar="HCDF_TRUST_CA_BUNDLE",
+            help="PEM file of CA certificates to trust for https [env: HCDF_TRUST_CA_BUNDLE].",
+        ),
+        click.option(
+            "--timeout",
+            type=float,
+            default=30.0,
+            show_default=True,
+            callback=_seconds,
+            help="Seconds without data before a fetch fails.",
+        ),
+        click.option(
+            "--max-size",
+            "max_bytes",
+            type=click.IntRange(min=1),
+            default=4 << 30,
+            show_default=True,
+            help="Largest body accepted from a server, in bytes.",
         ),
     ]
     for option in reversed(options):
@@ -177,27 +243,27 @@ def resolve(doc: str, out: str | None, no_lock: bool, update: tuple[str, ...], a
     changed since it was locked fails (exit 1) until accepted with --update.
     With --locked the lock is checked, never written.
     """
+    from .include.locate import display_path
     from .include.resolver import ResolveOptions
+    from .outputs import OutputPlan, protect_inputs
 
     if update and kw["locked"]:
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
     no_lock = no_lock or options.locked
     res = _run_resolve(doc, options, as_json=as_json)
-    flat = None
+    # Every output is checked against every input before any is written; all land or none.
+    plan = OutputPlan()
+    protect_inputs(plan, res, doc=doc, options=options)
+    if no_lock:
+        plan.protect(res.lock_path, what="the lock file")
+    else:
+        plan.add(res.lock_path, res.render_lock(), flag="--lock")
     if out:
         from .include.flatten import flatten
 
-        flat = flatten(res, out_path=out)
-    if flat is not None and out:
-        from .store import atomic_write
-
-        atomic_write(out, flat)
-    if not no_lock:
-        res.write_lock()
-    wrote = ([] if no_lock else [str(res.lock_path)]) + ([out] if out else [])
-    from .include.locate import display_path
-
+        plan.add(out, flatten(res, out_path=out), flag="--out")
+    wrote = plan.commit()
     _report(res, as_json=as_json, wrote=[display_path(p) for p in wrote])
 
 

@@ -120,6 +120,12 @@ class PathEscapeError(InputError):
     code = "path-escape"
 
 
+class CredentialsError(InputError):
+    """A URL carries ``user:password@``: refused, so the secret reaches no lock, output or message."""
+
+    code = "url-credentials"
+
+
 class FetchError(InputError):
     """Transport failure: TLS, timeout, too large, bad redirect, HTTP status."""
 

@@ -5,25 +5,33 @@ ota images and manifests, macsec key stores and exports, registry metadata) plan
 its outputs here first:
 
 1. :meth:`OutputPlan.protect` / :meth:`OutputPlan.protect_tree` name the inputs
-   (documents, verified artifacts, the cache, keys) that no output may replace.
-2. :meth:`OutputPlan.add` checks a destination at once, by resolved path and by
+   (documents, verified artifacts, the cache, keys) that no output may replace;
+   :func:`protect_inputs` names every input of a :class:`~hcdf_trust.include.resolver.Resolution`.
+2. :meth:`OutputPlan.add` checks a destination at once: its folder is resolved as
+   the kernel resolves it, and an existing file is compared with the inputs by
    inode, so neither a symlink nor ``..`` nor a hard link gets around the check.
 3. :meth:`OutputPlan.commit` writes every output to a temporary file in its
    destination folder and fsyncs it; only when all are ready is each renamed into
-   place. A failure before the renames leaves every destination as it was.
+   place. A failure before the renames leaves every destination as it was; a rename
+   that fails puts back the files already replaced.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import stat
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import InputError
-from .store import fsync_dir
+from .store import default_cache_dir, fsync_dir
+
+if TYPE_CHECKING:
+    from .include.resolver import Resolution, ResolveOptions
 
 
 class OutputError(InputError):
@@ -34,24 +42,33 @@ class OutputError(InputError):
 
 @dataclass(frozen=True)
 class _Output:
-    path: Path  # absolute, as given (not resolved: a symlink at the destination is replaced, not followed)
+    path: Path  # the real folder + the name as given (a symlink at the destination is replaced, not followed)
     data: bytes
     mode: int
     flag: str  # how the user named it, for messages: "--lock", "--out", ...
+    shown: str  # the path as the user gave it
 
 
 @dataclass(frozen=True)
 class _Input:
-    real: str
+    path: str
     what: str
 
 
 class OutputPlan:
-    """The outputs of one run, checked against its inputs, written all or nothing."""
+    """The outputs of one run, checked against its inputs, written all or nothing.
+
+    Inputs are compared with a destination by inode (``os.stat`` follows symlinks,
+    and a hard link shares the inode), so a spelling with symlinks, ``..`` or another
+    link to the same file is caught. Protecting costs no system call: the inputs are
+    stat'ed once, and only when a destination already exists (a destination that
+    does not exist cannot be an input). That keeps a 10,000-file tree cheap.
+    """
 
     def __init__(self) -> None:
-        self._files: dict[str, _Input] = {}  # realpath -> input
+        self._inputs: list[_Input] = []
         self._inodes: dict[tuple[int, int], _Input] = {}
+        self._statted = 0  # how many of _inputs are in _inodes
         self._trees: list[_Input] = []
         self._outputs: dict[str, _Output] = {}  # realpath -> output
 
@@ -59,49 +76,75 @@ class OutputPlan:
 
     def protect(self, path: str | os.PathLike[str], *, what: str) -> None:
         """``path`` is an input of this run (``what`` says which, e.g. "the root document")."""
-        real = os.path.realpath(path)
-        entry = _Input(real, what)
-        self._files.setdefault(real, entry)
-        with contextlib.suppress(OSError):
-            st = os.stat(real)
-            self._inodes.setdefault((st.st_dev, st.st_ino), entry)
+        self._inputs.append(_Input(os.fspath(path), what))
 
     def protect_tree(self, path: str | os.PathLike[str], *, what: str) -> None:
         """No output may lie inside the folder ``path`` (e.g. the cache)."""
         self._trees.append(_Input(os.path.realpath(path), what))
 
+    def _input_at(self, st: os.stat_result) -> _Input | None:
+        """The input that is the file ``st`` describes, if any."""
+        for entry in self._inputs[self._statted :]:
+            with contextlib.suppress(OSError, ValueError):
+                ist = os.stat(entry.path)
+                self._inodes.setdefault((ist.st_dev, ist.st_ino), entry)
+        self._statted = len(self._inputs)
+        return self._inodes.get((st.st_dev, st.st_ino))
+
+    def protected(self, path: str | os.PathLike[str]) -> str | None:
+        """What ``path`` is ("the root document", "the cache", ...) when it is a protected
+        input or lies inside a protected folder; None otherwise."""
+        real = os.path.realpath(path)
+        with contextlib.suppress(OSError):
+            hit = self._input_at(os.stat(real))
+            if hit is not None:
+                return hit.what
+        for tree in self._trees:
+            if real == tree.path or real.startswith(tree.path.rstrip("/") + "/"):
+                return tree.what
+        return None
+
     # -- outputs ---------------------------------------------------------------------
 
-    def add(self, path: str | os.PathLike[str], data: bytes, *, flag: str, mode: int = 0o644) -> None:
+    def add(
+        self, path: str | os.PathLike[str], data: bytes, *, flag: str, mode: int = 0o644, edit: bool = False
+    ) -> None:
         """Plan to write ``data`` to ``path``, refusing at once a destination that is an input.
+
+        ``edit`` marks an in-place edit of an input (``pin --write`` rewriting a
+        document it read): it may replace a protected file, but nothing else below.
 
         Raises:
             OutputError: ``path`` is an input, inside a protected folder, another
-                output of this run, a directory, or under a regular file.
+                output of this run, a directory or other non-regular file, or under
+                a regular file.
         """
-        dest = Path(os.path.abspath(path))
         shown = os.fspath(path)
+        dest = _destination(shown, flag=flag)
         real = os.path.realpath(dest)
-        hit = self._files.get(real)
-        if hit is None:
-            try:
-                st = os.stat(real)
-            except OSError:
-                st = None
-            if st is not None:
-                if stat.S_ISDIR(st.st_mode):
-                    raise OutputError(f"{flag} {shown} is a directory", file=shown)
-                hit = self._inodes.get((st.st_dev, st.st_ino))
+        try:
+            st: os.stat_result | None = os.stat(real)
+        except (FileNotFoundError, NotADirectoryError):  # a new file (under a file: _check_parent says so)
+            st = None
+        except OSError as exc:  # ELOOP, EACCES: the folder cannot be used either
+            raise OutputError(f"{flag} {shown}: {exc.strerror}", file=shown) from None
+        if st is not None and stat.S_ISDIR(st.st_mode):
+            raise OutputError(f"{flag} {shown} is a directory", file=shown)
+        hit = self._input_at(st) if st is not None and not edit else None
         if hit is not None:
-            raise OutputError(f"{flag} {shown} is {hit.what} ({hit.real}): refusing to overwrite an input", file=shown)
+            named = _display(hit.path)
+            also = f" ({named})" if named != os.path.normpath(shown) else ""
+            raise OutputError(f"{flag} {shown} is {hit.what}{also}: refusing to overwrite an input", file=shown)
+        if st is not None and not stat.S_ISREG(st.st_mode):
+            raise OutputError(f"{flag} {shown} exists and is not a regular file ({_kind(st.st_mode)})", file=shown)
         for tree in self._trees:
-            if real == tree.real or real.startswith(tree.real.rstrip("/") + "/"):
-                raise OutputError(f"{flag} {shown} is inside {tree.what} ({tree.real})", file=shown)
+            if real == tree.path or real.startswith(tree.path.rstrip("/") + "/"):
+                raise OutputError(f"{flag} {shown} is inside {tree.what} ({tree.path})", file=shown)
         if real in self._outputs:
             other = self._outputs[real]
             raise OutputError(f"{flag} {shown} is also the destination of {other.flag}", file=shown)
         _check_parent(dest, flag=flag, shown=shown)
-        self._outputs[real] = _Output(dest, data, mode, flag)
+        self._outputs[real] = _Output(dest, data, mode, flag, shown)
 
     @property
     def paths(self) -> list[Path]:
@@ -112,26 +155,92 @@ class OutputPlan:
 
         Raises:
             OutputError: a folder could not be made or written (read-only, full disk...);
-                then no destination has changed and no temporary file is left.
+                then no destination has changed and no temporary file or new folder is left.
         """
+        made: list[Path] = []  # folders this commit created, outermost first
         staged: list[tuple[str, _Output]] = []
+        done: list[tuple[_Output, str | None]] = []  # renamed so far, with a link to the file they replaced
         current: _Output | None = None
         try:
             for current in self._outputs.values():
+                made += _make_folders(current.path.parent)
                 staged.append((_stage(current), current))
             for tmp, current in staged:
-                os.replace(tmp, current.path)
+                backup = _keep_previous(current.path)
+                try:
+                    os.replace(tmp, current.path)
+                except OSError:
+                    _discard(backup)
+                    raise
+                done.append((current, backup))
         except OSError as exc:
-            for tmp, _ in staged:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
+            _roll_back(done, staged, made)
             assert current is not None
             raise OutputError(
-                f"cannot write {current.flag} {current.path}: {exc.strerror or exc}", file=os.fspath(current.path)
+                f"cannot write {current.flag} {current.shown}: {exc.strerror or exc}", file=current.shown
             ) from None
+        for _, backup in done:
+            _discard(backup)
         for folder in {o.path.parent for o in self._outputs.values()}:
             fsync_dir(folder)
         return self.paths
+
+
+def protect_inputs(
+    plan: OutputPlan,
+    res: Resolution,
+    *,
+    doc: str | os.PathLike[str] | None = None,
+    options: ResolveOptions | None = None,
+) -> None:
+    """Protect everything a resolve run read, for every verb that writes after one.
+
+    That is the root document ``doc`` as given on the command line (it may be a link
+    stub) and the file it names, every local document of the include tree, every
+    local artifact (models, meshes, profiles, manifests, mirror copies), the CA
+    bundle and the cache folder (``options.cache_dir``, else the default cache). Not
+    the lock file: whether it is an output is the caller's choice (protect it with
+    :meth:`OutputPlan.protect` when it is not).
+    """
+    if doc is not None:
+        plan.protect(doc, what="the root document")
+    if res.root_location.path is not None:
+        plan.protect(res.root_location.path, what="the root document")
+    for art in res.artifacts.values():
+        if art.location.path is not None:
+            what = "an included document" if art.kind.value == "include" else f"a verified {art.kind.value} file"
+            plan.protect(art.location.path, what=what)
+    if options is not None and options.ca_bundle:
+        plan.protect(options.ca_bundle, what="the CA bundle")
+    cache = options.cache_dir if options is not None else None
+    plan.protect_tree(cache or default_cache_dir(), what="the cache")
+
+
+def _destination(text: str, *, flag: str) -> Path:
+    """Where ``text`` names, as the kernel resolves it: the real folder and the last name.
+
+    ``os.path.abspath`` would collapse ``link/..`` lexically, naming a different file
+    than the one the kernel opens when ``link`` is a symlink.
+    """
+    name = os.path.basename(text)
+    if name in ("", ".", ".."):
+        raise OutputError(f"{flag} {text} is a directory", file=text)
+    folder = os.path.dirname(os.path.join(os.getcwd(), text))
+    return Path(os.path.realpath(folder)) / name
+
+
+def _display(path: str) -> str:
+    """A path relative to the working folder when inside it (as ``locate.display_path``)."""
+    rel = os.path.relpath(path)
+    return path if rel.startswith("..") else rel
+
+
+def _kind(mode: int) -> str:
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "a socket" if stat.S_ISSOCK(mode) else "special"
 
 
 def _check_parent(dest: Path, *, flag: str, shown: str) -> None:
@@ -139,7 +248,7 @@ def _check_parent(dest: Path, *, flag: str, shown: str) -> None:
     for parent in dest.parents:
         try:
             st = os.stat(parent)
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):  # look further up for the file in the way
             continue
         except OSError as exc:
             raise OutputError(f"{flag} {shown}: cannot use folder {parent}: {exc.strerror}", file=shown) from None
@@ -148,9 +257,28 @@ def _check_parent(dest: Path, *, flag: str, shown: str) -> None:
         return
 
 
+def _make_folders(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; return those created, outermost first."""
+    missing = []
+    for candidate in (folder, *folder.parents):
+        if candidate.is_dir():
+            break
+        missing.append(candidate)
+    made = []
+    try:
+        for candidate in reversed(missing):
+            candidate.mkdir()
+            made.append(candidate)
+    except OSError:
+        for candidate in reversed(made):
+            with contextlib.suppress(OSError):
+                candidate.rmdir()
+        raise
+    return made
+
+
 def _stage(out: _Output) -> str:
     """Write ``out`` to a fsynced temporary file beside its destination, with its mode from the first byte."""
-    out.path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.path.name}.", suffix=".tmp", dir=out.path.parent)  # 0600
     try:
         os.fchmod(fd, out.mode)
@@ -165,3 +293,45 @@ def _stage(out: _Output) -> str:
         raise
     os.close(fd)
     return tmp
+
+
+def _keep_previous(dest: Path) -> str | None:
+    """A hard link to the file ``dest`` names now, so a failed commit can put it back.
+
+    None when there is no such file, or the filesystem cannot link it (then that one
+    destination cannot be restored; the others still are).
+    """
+    for _ in range(8):
+        backup = os.fspath(dest.parent / f".{dest.name}.{secrets.token_hex(6)}.old")
+        try:
+            os.link(dest, backup, follow_symlinks=False)
+        except FileExistsError:
+            continue
+        except OSError:
+            return None
+        return backup
+    return None
+
+
+def _discard(backup: str | None) -> None:
+    if backup is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(backup)
+
+
+def _roll_back(done: list[tuple[_Output, str | None]], staged: list[tuple[str, _Output]], made: list[Path]) -> None:
+    """Undo a failed commit: restore replaced files, drop new ones, temporaries and new folders."""
+    for out, backup in reversed(done):
+        with contextlib.suppress(OSError):
+            if backup is not None:
+                os.replace(backup, out.path)
+            else:
+                os.unlink(out.path)
+    renamed = {id(out) for out, _ in done}
+    for tmp, out in staged:
+        if id(out) not in renamed:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+    for folder in reversed(made):
+        with contextlib.suppress(OSError):
+            folder.rmdir()

@@ -8,9 +8,11 @@ folder, fsynced, then renamed: a failed run leaves the previous state intact.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import stat
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -67,12 +69,22 @@ class ContentStore:
     """Blobs named by their SHA-256, verified on the way in and on the way out.
 
     Layout: ``ROOT/sha256/ab/abcdef…``. A blob is only ever created by renaming
-    a fully written temporary file whose digest was checked, so a crash or a
-    mismatch never leaves a partial or wrong entry.
+    a fully written temporary file (in ``ROOT/tmp``) whose digest was checked, so a
+    crash or a mismatch never leaves a partial or wrong entry. The writer holds an
+    ``flock`` on its temporary file until it is renamed or removed, so the partial
+    downloads of killed runs can be told from those of live ones and are removed
+    (:meth:`sweep_tmp`, on the first blob a run stores); the cache may be shared by
+    concurrent runs.
     """
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root)
+        self._swept = False
+        self._sweep_lock = threading.Lock()
+
+    @property
+    def tmp_dir(self) -> Path:
+        return self.root / "tmp"
 
     def path_for(self, sha256: str) -> Path:
         if not is_full_sha256(sha256):
@@ -109,6 +121,62 @@ class ContentStore:
             return None
         return path
 
+    def sweep_tmp(self) -> int:
+        """Remove the temporary files no live run is writing (left by killed runs).
+
+        A file whose ``flock`` can be taken has no writer: it is unlinked while the
+        lock is held, so a writer that was about to lock it sees it gone and starts
+        another (:meth:`_new_tmp`). Only regular files are touched. Returns how many
+        were removed; never raises.
+        """
+        try:
+            names = os.listdir(self.tmp_dir)
+        except OSError:
+            return 0
+        removed = 0
+        for name in names:
+            path = self.tmp_dir / name
+            try:
+                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+            except OSError:
+                continue
+            try:
+                st = os.fstat(fd)
+                if not stat.S_ISREG(st.st_mode):
+                    continue
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # OSError (EWOULDBLOCK): a live writer
+                now = os.lstat(path)  # still the file we locked, not one renamed over its name?
+                if (now.st_dev, now.st_ino) == (st.st_dev, st.st_ino):
+                    os.unlink(path)
+                    removed += 1
+            except OSError:
+                continue
+            finally:
+                os.close(fd)
+        return removed
+
+    def _sweep_once(self) -> None:
+        with self._sweep_lock:
+            if self._swept:
+                return
+            self._swept = True
+        self.sweep_tmp()
+
+    def _new_tmp(self) -> tuple[int, str]:
+        """A new temporary file in ``tmp/``, created and then locked for this writer."""
+        while True:
+            try:
+                fd, tmp = tempfile.mkstemp(dir=self.tmp_dir)
+            except FileNotFoundError:  # first blob of a new cache: one mkdir, not one per blob
+                self.tmp_dir.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(dir=self.tmp_dir)
+            # Blocks only while a sweeper that opened it first holds the lock; it then
+            # unlinks it, and we see no link left and start over.
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            if os.fstat(fd).st_nlink:
+                return fd, tmp
+            os.close(fd)
+
     def ingest(
         self,
         chunks: Iterable[bytes],
@@ -123,39 +191,71 @@ class ContentStore:
         False (a pin mismatch) nothing is stored and the path is ``None``.
 
         Raises:
-            InputError: more than ``limit`` bytes.
+            FetchError: more than ``limit`` bytes.
+            InputError: the cache cannot be written (read-only, full disk...).
         """
-        tmpdir = self.root / "tmp"
+        self._sweep_once()
         try:
-            fd, tmp = tempfile.mkstemp(dir=tmpdir)
-        except FileNotFoundError:  # first blob of a new cache: one mkdir, not one per blob
-            tmpdir.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=tmpdir)
+            fd, tmp = self._new_tmp()
+        except OSError as exc:
+            raise InputError(f"cannot write to the cache {self.tmp_dir}: {exc.strerror}", file=source) from None
         try:
+            # The file stays open (and locked) until it is renamed or removed.
             with os.fdopen(fd, "wb") as f:
+                sink = _Copy(f)
                 try:
-                    hashed = hash_chunks(chunks, sink=f, limit=limit)
+                    hashed = hash_chunks(chunks, sink=sink, limit=limit)
+                    sink.flush()
                 except ValueError as exc:
                     raise FetchError(f"body {exc}", file=source, url=source) from None
+                except _WriteFailed as exc:  # ENOSPC, EFBIG, EIO while writing the copy
+                    raise InputError(f"cannot write to the cache {tmp}: {exc.reason}", file=source) from None
                 # No fsync: a blob torn by a crash no longer hashes to its name, and
                 # verified_path() re-hashes on every read, so it is dropped and fetched
                 # again. Skipping it makes many small fetches ~2x faster (fsync per blob
                 # was the largest client cost in the 200-file latency test).
-            if accept is not None and not accept(hashed):
-                os.unlink(tmp)
-                return hashed, None
-            dest = self.path_for(hashed.sha256)
-            os.chmod(tmp, 0o444)
-            try:
+                if accept is not None and not accept(hashed):
+                    os.unlink(tmp)
+                    return hashed, None
+                dest = self.path_for(hashed.sha256)
                 try:
-                    os.replace(tmp, dest)
-                except FileNotFoundError:  # the blob's fan-out folder is new
-                    dest.parent.mkdir(parents=True, exist_ok=True)
-                    os.replace(tmp, dest)
-            except OSError as exc:  # e.g. a directory planted where the blob goes
-                raise InputError(f"cannot store cache blob {dest}: {exc.strerror}", file=str(dest)) from None
-            return hashed, dest
+                    os.fchmod(f.fileno(), 0o444)
+                    try:
+                        os.replace(tmp, dest)
+                    except FileNotFoundError:  # the blob's fan-out folder is new
+                        dest.parent.mkdir(parents=True, exist_ok=True)
+                        os.replace(tmp, dest)
+                except OSError as exc:  # e.g. a directory planted where the blob goes
+                    raise InputError(f"cannot store cache blob {dest}: {exc.strerror}", file=str(dest)) from None
+                return hashed, dest
         except BaseException:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
             raise
+
+
+class _WriteFailed(Exception):
+    """The cache copy could not be written (told apart from transport errors of the body)."""
+
+    def __init__(self, exc: OSError) -> None:
+        super().__init__(exc)
+        self.reason = exc.strerror or str(exc)
+
+
+class _Copy:
+    """The sink of :meth:`ContentStore.ingest`: a file whose write errors are :class:`_WriteFailed`."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+
+    def write(self, data: bytes, /) -> object:
+        try:
+            return self.f.write(data)
+        except OSError as exc:
+            raise _WriteFailed(exc) from None
+
+    def flush(self) -> None:
+        try:
+            self.f.flush()
+        except OSError as exc:
+            raise _WriteFailed(exc) from None

@@ -219,9 +219,14 @@ def check_references(root: etree._Element) -> tuple[list[str], int]:
             path(p.text, "port")
         for a in net.iterfind(".//wireless/antenna"):
             path(a.text, "antenna")
-        for tag, port_attrs in (("participant", ("port",)), ("coordinator", ("port",)),
-                                ("hop", ("port", "ingress", "egress")), ("spur", ("port",)),
-                                ("clock", ("port",)), ("node", ())):
+        for tag, port_attrs in (
+            ("participant", ("port",)),
+            ("coordinator", ("port",)),
+            ("hop", ("port", "ingress", "egress")),
+            ("spur", ("port",)),
+            ("clock", ("port",)),
+            ("node", ()),
+        ):
             for e in net.iter(tag):
                 need(e.get("device") in comps, f"{tag} device {e.get('device')}")
                 for attr in port_attrs:
@@ -318,21 +323,28 @@ def test_one_sub_assembly_included_twice_gives_two_distinct_sets(cli, tmp_path, 
             assert j.find("parent").get("comp").startswith(side)
             assert j.find("child").get("comp").startswith(side)
     left_net, right_net = out.findall("network")
-    assert {h.get("device") for h in left_net.iter("hop")}.isdisjoint(
-        {h.get("device") for h in right_net.iter("hop")}
-    )
+    assert {h.get("device") for h in left_net.iter("hop")}.isdisjoint({h.get("device") for h in right_net.iter("hop")})
 
 
 def test_nested_includes_compose_prefixes(cli, tmp_path):
     root = tmp_path / "r"
-    write(root / "hand" / "hand.hcdf", hcdf('<comp name="palm"/><comp name="finger"/>'
-                                            '<joint name="knuckle" type="fixed"><parent comp="palm"/>'
-                                            '<child comp="finger"/></joint>'))
-    write(root / "arm.hcdf", hcdf(
-        '<comp name="wrist"/>'
-        '<joint name="wrist_to_hand" type="fixed"><parent comp="wrist"/><child comp="hand_palm"/></joint>'
-        '<group name="g"><joint ref="hand_knuckle"/></group>'
-        '<include uri="hand/hand.hcdf" name="hand"/>'))
+    write(
+        root / "hand" / "hand.hcdf",
+        hcdf(
+            '<comp name="palm"/><comp name="finger"/>'
+            '<joint name="knuckle" type="fixed"><parent comp="palm"/>'
+            '<child comp="finger"/></joint>'
+        ),
+    )
+    write(
+        root / "arm.hcdf",
+        hcdf(
+            '<comp name="wrist"/>'
+            '<joint name="wrist_to_hand" type="fixed"><parent comp="wrist"/><child comp="hand_palm"/></joint>'
+            '<group name="g"><joint ref="hand_knuckle"/></group>'
+            '<include uri="hand/hand.hcdf" name="hand"/>'
+        ),
+    )
     doc = write(root / "robot.hcdf", hcdf('<include uri="arm.hcdf" name="left"/>'))
     out, _ = flat(cli, doc, tmp_path)
     assert {c.get("name") for c in out.findall("comp")} == {"left_wrist", "left_hand_palm", "left_hand_finger"}
@@ -348,8 +360,12 @@ def test_nested_includes_compose_prefixes(cli, tmp_path):
 def qmul(a, b):
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b
-    return (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
+    return (
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    )
 
 
 def quat(roll, pitch, yaw):
@@ -387,10 +403,14 @@ def assert_same_pose(actual_text: str, expected, tol: float = 1e-9) -> None:
 
 def test_include_pose_composes_onto_the_comps_own_pose(cli, tmp_path):
     root = tmp_path / "r"
-    write(root / "sub.hcdf", hcdf(
-        '<comp name="a"><pose>1 0 0 0 0 0</pose><description>x</description></comp>'
-        '<comp name="b"/>'
-        '<joint name="j" type="fixed"><parent comp="a"/><child comp="b"/></joint>'))
+    write(
+        root / "sub.hcdf",
+        hcdf(
+            '<comp name="a"><pose>1 0 0 0 0 0</pose><description>x</description></comp>'
+            '<comp name="b"/>'
+            '<joint name="j" type="fixed"><parent comp="a"/><child comp="b"/></joint>'
+        ),
+    )
     doc = write(root / "robot.hcdf", hcdf('<include uri="sub.hcdf" name="s" pose="1 2 3 0 0 1.5707963"/>'))
     out, _ = flat(cli, doc, tmp_path)
     a = out.find("comp[@name='s_a']")
@@ -423,8 +443,9 @@ def test_nested_include_poses_compose_outer_then_inner(cli, tmp_path):
 
 angles = st.floats(min_value=-math.pi, max_value=math.pi, allow_nan=False)
 lengths = st.floats(min_value=-10, max_value=10, allow_nan=False)
-pitches = st.one_of(angles, st.sampled_from([math.pi / 2, -math.pi / 2]),
-                    st.floats(min_value=math.pi / 2 - 1e-6, max_value=math.pi / 2))
+pitches = st.one_of(
+    angles, st.sampled_from([math.pi / 2, -math.pi / 2]), st.floats(min_value=math.pi / 2 - 1e-6, max_value=math.pi / 2)
+)
 poses = st.tuples(lengths, lengths, lengths, angles, pitches, angles)
 
 
@@ -437,8 +458,7 @@ def test_pose_composition_matches_quaternions(a, b):
 
 
 @settings(max_examples=200, deadline=None)
-@given(angles, st.floats(min_value=1e-13, max_value=1e-7), st.sampled_from([1, -1]), angles, angles,
-       angles)
+@given(angles, st.floats(min_value=1e-13, max_value=1e-7), st.sampled_from([1, -1]), angles, angles, angles)
 def test_pose_composition_is_exact_near_gimbal_lock(roll, off, sign, yaw, extra_roll, extra_yaw):
     """Composites whose pitch is a hair from ±90°, where roll and yaw are ill-conditioned."""
     pitch = sign * (math.pi / 2 - off)
@@ -468,8 +488,7 @@ def test_pose_errors_name_the_include(cli, tmp_path):
 def test_frame_mismatch_names_both_files_and_values_and_writes_nothing(cli, tmp_path):
     root = tmp_path / "r"
     write(root / "parts" / "drone_arm.hcdf", hcdf('<comp name="a"/>', attrs=' body-frame="FRD"'))
-    doc = write(root / "robot.hcdf", hcdf('<include uri="parts/drone_arm.hcdf" name="d"/>',
-                                          attrs=' body-frame="FLU"'))
+    doc = write(root / "robot.hcdf", hcdf('<include uri="parts/drone_arm.hcdf" name="d"/>', attrs=' body-frame="FLU"'))
     err, out = fails(cli, doc, tmp_path)
     assert "body-frame" in err
     assert "robot.hcdf" in err and "parts/drone_arm.hcdf" in err
@@ -501,8 +520,10 @@ def test_a_file_that_omits_the_frames_inherits_them(cli, tmp_path):
     root = tmp_path / "r"
     write(root / "a.hcdf", hcdf('<comp name="x"/>', attrs=' body-frame="FLU" world-frame="ENU"'))
     write(root / "b.hcdf", hcdf('<comp name="y"/>'))
-    doc = write(root / "robot.hcdf", hcdf('<include uri="a.hcdf" name="a"/><include uri="b.hcdf" name="b"/>',
-                                          attrs=' body-frame="FLU"'))
+    doc = write(
+        root / "robot.hcdf",
+        hcdf('<include uri="a.hcdf" name="a"/><include uri="b.hcdf" name="b"/>', attrs=' body-frame="FLU"'),
+    )
     out, _ = flat(cli, doc, tmp_path)
     assert out.get("body-frame") == "FLU" and out.get("world-frame") == "ENU"
 
@@ -527,8 +548,10 @@ def test_name_collision_after_prefixing_names_both_places(cli, tmp_path):
 
 def test_including_one_file_twice_without_a_name_collides(cli, tmp_path):
     root = tmp_path / "r"
-    write(root / "arm.hcdf", hcdf('<comp name="base"/>\n<joint name="j" type="fixed">'
-                                  '<parent comp="base"/><child comp="base"/></joint>'))
+    write(
+        root / "arm.hcdf",
+        hcdf('<comp name="base"/>\n<joint name="j" type="fixed"><parent comp="base"/><child comp="base"/></joint>'),
+    )
     doc = write(root / "robot.hcdf", hcdf('<include uri="arm.hcdf"/>\n<include uri="arm.hcdf"/>'))
     err, out = fails(cli, doc, tmp_path)
     assert '<comp name="base">' in err and "arm.hcdf:" in err
@@ -549,14 +572,12 @@ def test_an_include_name_that_would_be_ambiguous_is_refused(cli, tmp_path):
 
 def test_output_is_deterministic_utf8_with_declaration(tmp_path, two_arms):
     (two_arms.parent / "parts" / "arm.hcdf").write_text(
-        ARM.replace('<comp name="cam">', '<comp name="cam"><description>Kamera, 90° Sicht</description>')
-        .replace("Arm Works", "Armwerk Zürich"),
+        ARM.replace('<comp name="cam">', '<comp name="cam"><description>Kamera, 90° Sicht</description>').replace(
+            "Arm Works", "Armwerk Zürich"
+        ),
         encoding="utf-8",
     )
-    runs = [
-        flatten(resolve(two_arms, ResolveOptions(cache_dir=str(tmp_path / f"c{i}"))))
-        for i in range(2)
-    ]
+    runs = [flatten(resolve(two_arms, ResolveOptions(cache_dir=str(tmp_path / f"c{i}")))) for i in range(2)]
     assert runs[0] == runs[1]
     assert runs[0].startswith(b'<?xml version="1.0" encoding="UTF-8"?>\n')
     text = runs[0].decode("utf-8")
@@ -580,8 +601,10 @@ def test_file_references_are_rebased_so_the_output_resolves_to_the_same_files(cl
     write(root / "parts" / "meshes" / "shell.glb", "")
     (root / "parts" / "meshes" / "shell.glb").write_bytes(glb)
     pin = hashlib.sha256(glb).hexdigest()
-    write(root / "parts" / "arm.hcdf", hcdf(
-        f'<comp name="base"><visual name="v"><model uri="meshes/shell.glb" sha="{pin}"/></visual></comp>'))
+    write(
+        root / "parts" / "arm.hcdf",
+        hcdf(f'<comp name="base"><visual name="v"><model uri="meshes/shell.glb" sha="{pin}"/></visual></comp>'),
+    )
     doc = write(root / "robot.hcdf", hcdf('<include uri="parts/arm.hcdf" name="a"/>'))
     out, data = flat(cli, doc, tmp_path)
     assert out.find(".//model").get("uri") == "parts/meshes/shell.glb"
@@ -595,17 +618,26 @@ def test_flattened_valid_inputs_are_valid_hcdf(cli, tmp_path):
     """Schema order is restored and self-collision-disable merged into one element."""
     schema = etree.XMLSchema(etree.parse(str(HCDFORMAT / "hcdf.xsd")))
     root = tmp_path / "r"
-    sub = write(root / "leg.hcdf", hcdf(
-        '<comp name="hip"/><comp name="knee"/>'
-        '<joint name="j" type="fixed"><parent comp="hip"/><child comp="knee"/></joint>'
-        '<self-collision-disable><pair comp1="hip" comp2="knee"/></self-collision-disable>'
-        '<material name="steel"/>', attrs=' body-frame="FLU"'))
-    doc = write(root / "robot.hcdf", hcdf(
-        '<description>robot</description><comp name="torso"/>'
-        '<joint name="hip_l" type="fixed"><parent comp="torso"/><child comp="l_hip"/></joint>'
-        '<self-collision-disable><pair comp1="torso" comp2="l_hip"/></self-collision-disable>'
-        '<material name="steel"/>'
-        '<include uri="leg.hcdf" name="l"/><include uri="leg.hcdf" name="r"/>'))
+    sub = write(
+        root / "leg.hcdf",
+        hcdf(
+            '<comp name="hip"/><comp name="knee"/>'
+            '<joint name="j" type="fixed"><parent comp="hip"/><child comp="knee"/></joint>'
+            '<self-collision-disable><pair comp1="hip" comp2="knee"/></self-collision-disable>'
+            '<material name="steel"/>',
+            attrs=' body-frame="FLU"',
+        ),
+    )
+    doc = write(
+        root / "robot.hcdf",
+        hcdf(
+            '<description>robot</description><comp name="torso"/>'
+            '<joint name="hip_l" type="fixed"><parent comp="torso"/><child comp="l_hip"/></joint>'
+            '<self-collision-disable><pair comp1="torso" comp2="l_hip"/></self-collision-disable>'
+            '<material name="steel"/>'
+            '<include uri="leg.hcdf" name="l"/><include uri="leg.hcdf" name="r"/>'
+        ),
+    )
     assert schema.validate(etree.parse(str(sub))) and schema.validate(etree.parse(str(doc)))
     out, data = flat(cli, doc, tmp_path)
     assert schema.validate(etree.fromstring(data).getroottree()), schema.error_log

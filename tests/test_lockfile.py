@@ -35,8 +35,10 @@ def tree(tmp_path):
     root.mkdir()
     (root / "m.glb").write_bytes(b"model")
     doc = root / "robot.hcdf"
-    doc.write_text('<?xml version="1.0"?>\n<hcdf version="1.0" name="r">\n<comp name="c"><visual><model uri="m.glb"/>'
-                   "</visual></comp>\n</hcdf>\n")
+    doc.write_text(
+        '<?xml version="1.0"?>\n<hcdf version="1.0" name="r">\n<comp name="c"><visual><model uri="m.glb"/>'
+        "</visual></comp>\n</hcdf>\n"
+    )
     return doc
 
 
@@ -46,8 +48,14 @@ def run(cli, verb: str, doc: Path, *extra):
 
 
 def good_entry(**over):
-    entry = {"kind": "model", "uri": "m.glb", "url": "m.glb", "sha256": sha(b"model"), "size": 5,
-             "referenced_from": ["robot.hcdf"]}
+    entry = {
+        "kind": "model",
+        "uri": "m.glb",
+        "url": "m.glb",
+        "sha256": sha(b"model"),
+        "size": 5,
+        "referenced_from": ["robot.hcdf"],
+    }
     entry.update(over)
     return entry
 
@@ -71,7 +79,8 @@ MALFORMED = {
     "bool-size": json.dumps(good_lock(artifacts=[good_entry(size=True)])).encode(),
     "negative-size": json.dumps(good_lock(artifacts=[good_entry(size=-5)])).encode(),
     "string-size": json.dumps(good_lock(artifacts=[good_entry(size="5")])).encode(),
-    "huge-int-size": json.dumps(good_lock(artifacts=[good_entry(size=1)])).replace('"size": 1', '"size": ' + "9" * 5000)
+    "huge-int-size": json.dumps(good_lock(artifacts=[good_entry(size=1)]))
+    .replace('"size": 1', '"size": ' + "9" * 5000)
     .encode(),
     "bool-version": json.dumps(good_lock(lock_version=True)).encode(),
     "string-version": json.dumps(good_lock(lock_version="2")).encode(),
@@ -213,8 +222,8 @@ def _entries(n: int) -> list[LockEntry]:
     return [
         LockEntry(
             kind="model",
-            uri=f"models/ü{i}\"\\\n.glb",
-            url=f"models/ü{i}\"\\\n.glb" if i % 2 else f"https://h.example/{i}.glb",
+            uri=f'models/ü{i}"\\\n.glb',
+            url=f'models/ü{i}"\\\n.glb' if i % 2 else f"https://h.example/{i}.glb",
             sha256=sha(str(i).encode()),
             size=i,
             referenced_from=("robot.hcdf", f"sub/ä{i}.hcdf"),

@@ -203,7 +203,11 @@ def test_write_pins_every_reference_with_a_minimal_edit(cli, tree, tmp_path):
     assert r.exit_code == 0, r.stdout + r.stderr
     assert len(r.json["changes"]) == 11
     assert sorted(Path(p).name for p in r.json["wrote"]) == [
-        "arm.hcdf", "lens.hcdf", "root.hcdf", "sensor.hcdf", "x.lock"
+        "arm.hcdf",
+        "lens.hcdf",
+        "root.hcdf",
+        "sensor.hcdf",
+        "x.lock",
     ]
     after = snapshot(folder)
     assert after.keys() == before.keys()  # no stray temporary files
@@ -332,15 +336,11 @@ def test_remote_documents_are_not_edited(tmp_path):
     (site / "models").mkdir(parents=True)
     (site / "models" / "m.glb").write_bytes(b"glTF" + random.Random(3).randbytes(300))
     sub = site / "sub.hcdf"
-    sub.write_bytes(
-        b'<hcdf><comp name="c"><visual><model uri="models/m.glb"/></visual></comp></hcdf>\n'
-    )
+    sub.write_bytes(b'<hcdf><comp name="c"><visual><model uri="models/m.glb"/></visual></comp></hcdf>\n')
     local = tmp_path / "robot"
     local.mkdir()
     root = local / "root.hcdf"
-    root.write_bytes(
-        b'<hcdf>\n  <include uri="https://robots.invalid/sub.hcdf" name="s"/>\n</hcdf>\n'
-    )
+    root.write_bytes(b'<hcdf>\n  <include uri="https://robots.invalid/sub.hcdf" name="s"/>\n</hcdf>\n')
     options = ResolveOptions(
         mirrors=(("https://robots.invalid/", str(site)),),
         offline=True,
@@ -349,9 +349,7 @@ def test_remote_documents_are_not_edited(tmp_path):
     site_before = snapshot(site)
     report = pin_tree(root, options, write=True)
     assert report.ok, report.errors
-    assert [(c.uri, c.reason) for c in report.changes] == [
-        ("https://robots.invalid/sub.hcdf", "missing")
-    ]
+    assert [(c.uri, c.reason) for c in report.changes] == [("https://robots.invalid/sub.hcdf", "missing")]
     assert len(report.warnings) == 1 and "models/m.glb" in str(report.warnings[0])
     assert "remote" in str(report.warnings[0]) and report.warnings[0].code == "pin-remote"
     assert snapshot(site) == site_before

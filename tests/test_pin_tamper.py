@@ -60,11 +60,7 @@ class Robot:
         def model(name: str, how: Pin) -> str:
             return f'<visual><model uri="models/{name}.glb"{attr(self.models / f"{name}.glb", how)}/></visual>'
 
-        self.sub.write_text(
-            '<hcdf version="1.1" name="sub">\n'
-            f'  <comp name="s">{model("c", c)}</comp>\n'
-            "</hcdf>\n"
-        )
+        self.sub.write_text(f'<hcdf version="1.1" name="sub">\n  <comp name="s">{model("c", c)}</comp>\n</hcdf>\n')
         self.doc.write_text(
             '<?xml version="1.0"?>\n'
             "<!-- formatting and comments survive pin -->\n"

@@ -19,7 +19,9 @@ from typing import TYPE_CHECKING
 from urllib.parse import urljoin, urlsplit
 
 from ..digest import CHUNK
-from ..errors import FetchError
+from ..errors import FetchError, InputError
+from ..localfile import read_input
+from .locate import redact
 
 if TYPE_CHECKING:
     import httpx
@@ -72,15 +74,15 @@ class HttpFetcher:
     def __post_init__(self) -> None:
         self._client: httpx.Client | None = None
         self._client_lock = threading.Lock()
+        self._ssl: ssl.SSLContext | bool = load_ca_bundle(self.ca_bundle) if self.ca_bundle else True
 
     def _get_client(self) -> httpx.Client:
         with self._client_lock:  # resolver threads race to the first fetch
             if self._client is None:
                 httpx = _import_httpx()
 
-                ctx = ssl.create_default_context(cafile=self.ca_bundle) if self.ca_bundle else True
                 self._client = httpx.Client(
-                    verify=ctx,
+                    verify=self._ssl,
                     timeout=httpx.Timeout(self.timeout),
                     follow_redirects=False,
                     trust_env=False,
@@ -126,6 +128,13 @@ class HttpFetcher:
                             )
                         current = urljoin(current, location)
                         self._check_scheme(current, original_scheme, url, file=file, line=line)
+                        if "@" in urlsplit(current).netloc:  # httpx would send them as Basic auth
+                            raise FetchError(
+                                f"{url}: redirect to a URL with credentials is refused ({redact(current)})",
+                                file=file,
+                                line=line,
+                                url=url,
+                            )
                         continue
                     if response.status_code != 200:
                         raise FetchError(f"{current}: HTTP {response.status_code}", file=file, line=line, url=url)
@@ -240,6 +249,34 @@ class HttpFetcher:
         else:
             reason = f"redirect to a {scheme or 'relative'}: URL is refused"
         raise FetchError(f"{url}: {reason} ({current})", file=file, line=line, url=url, actual=current)
+
+
+MAX_CA_BUNDLE_BYTES = 16 << 20
+
+
+def load_ca_bundle(path: str) -> ssl.SSLContext:
+    """A TLS client context that trusts the CA certificates of the PEM file ``path``.
+
+    Read once, bounded and non-blocking like every local input (a FIFO or a huge
+    file is refused, not waited on).
+
+    Raises:
+        InputError: missing or unreadable, or not a PEM file of certificates.
+    """
+    data = read_input(path, limit=MAX_CA_BUNDLE_BYTES, what="CA bundle", source=path)
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError:
+        text = ""
+    if "-----BEGIN CERTIFICATE-----" not in text:
+        raise InputError(
+            f"--ca-bundle {path} is not a PEM file of CA certificates (no BEGIN CERTIFICATE block)",
+            file=path,
+        )
+    try:
+        return ssl.create_default_context(cadata=text)
+    except (ssl.SSLError, ValueError) as exc:
+        raise InputError(f"--ca-bundle {path}: its certificates cannot be loaded: {exc}", file=path) from None
 
 
 class _Decoder:

@@ -1,6 +1,9 @@
 """Where a reference points: relative resolution, ``--base``, ``--mirror``, root confinement.
 
 Pure functions over strings and paths: no file is opened and no socket used here.
+A URL with credentials (``https://user:pass@host/``), in a document or a flag, is
+refused, and messages show it redacted (:func:`redact`), so no secret reaches the
+lock file, a flattened document, a message or ``--json``.
 A :class:`Location` keeps the *logical* URL (what the document means, recorded in
 the lock file, the same with or without a mirror) apart from where the bytes are
 actually read (a local path confined to a root, or a remote URL).
@@ -15,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote, urljoin, urlsplit
 
-from ..errors import InputError, PathEscapeError
+from ..errors import CredentialsError, InputError, PathEscapeError
 
 REMOTE_SCHEMES = ("https", "http")
 # Unreserved URL characters plus "/": text that means the same as a URL and as a path.
@@ -55,6 +58,48 @@ def _is_url(text: str) -> bool:
     return "://" in text
 
 
+def _userinfo_end(text: str) -> int:
+    """Where ``user:password@`` ends in a URL-like text (after the last ``@`` of the
+    authority), or -1 when it has none. Textual, so it also works on malformed URLs."""
+    start = text.find("//")
+    if start < 0:
+        return -1
+    start += 2
+    end = len(text)
+    for sep in "/?#\\":
+        pos = text.find(sep, start)
+        if pos >= 0:
+            end = min(end, pos)
+    at = text.rfind("@", start, end)
+    return -1 if at < 0 else at + 1
+
+
+def redact(text: str) -> str:
+    """``text`` with the ``user:password@`` of its URL (if any) shown as ``***@``."""
+    end = _userinfo_end(text)
+    if end < 0:
+        return text
+    start = text.find("//") + 2
+    return text[:start] + "***@" + text[end:]
+
+
+def refuse_credentials(url: str, *, what: str, file: str | None = None, line: int | None = None) -> None:
+    """Refuse a URL that carries ``user:password@`` (``what`` names where it was given).
+
+    Raises:
+        CredentialsError: naming the URL redacted, never the secret.
+    """
+    if _userinfo_end(url) >= 0:
+        shown = redact(url)
+        raise CredentialsError(
+            f"{what} {shown} carries credentials (user:password@): refused, so that no secret "
+            "reaches the lock file, the flattened output or any message; serve it without them",
+            file=file,
+            line=line,
+            url=shown,
+        )
+
+
 @dataclass(frozen=True)
 class Locator:
     """Turns the ``uri`` of a reference into a :class:`Location`.
@@ -77,6 +122,12 @@ class Locator:
         mirrors: list[tuple[str, str]] | tuple[tuple[str, str], ...] = (),
     ) -> Locator:
         base_url = None
+        if base is not None and _is_url(base):
+            refuse_credentials(base, what="--base")
+        for prefix, target in mirrors:
+            refuse_credentials(prefix, what="--mirror prefix")
+            if _is_url(target):
+                refuse_credentials(target, what="--mirror target")
         if base is not None:
             base_url = base if _is_url(base) else file_url(base, directory=True)
             if not base_url.endswith("/"):
@@ -95,7 +146,8 @@ class Locator:
 
         Raises:
             PathEscapeError: an absolute local path, or a path that leaves the root.
-            InputError: an empty uri or an unsupported scheme.
+            CredentialsError: a URL with ``user:password@``.
+            InputError: an empty or malformed uri, or an unsupported scheme.
         """
         text = uri.strip()
         if not text:
@@ -103,23 +155,27 @@ class Locator:
         fast = self._plain_relative(text, referrer, file=file, line=line)
         if fast is not None:
             return fast
-        parts = urlsplit(text)
-        scheme = parts.scheme.lower()
-        if scheme in REMOTE_SCHEMES:
-            absolute = text
-        elif scheme == "file" or text.startswith(("/", "\\")) or (len(scheme) == 1 and ":" in text):
-            raise PathEscapeError(
-                f"absolute local path {uri!r} is refused: references must be relative "
-                "to their document (or --base) or https URLs",
-                file=file,
-                line=line,
-                actual=uri,
-            )
-        elif scheme:
-            raise InputError(f"unsupported URL scheme {scheme!r} in {uri!r}", file=file, line=line, actual=uri)
-        else:
-            absolute = urljoin(self.base or referrer.url, text)
-        return self._apply(absolute, file=file, line=line, uri=uri)
+        shown = redact(uri)
+        try:
+            scheme = urlsplit(text).scheme.lower()
+            if scheme in REMOTE_SCHEMES:
+                absolute = text
+            elif scheme == "file" or text.startswith(("/", "\\")) or (len(scheme) == 1 and ":" in text):
+                raise PathEscapeError(
+                    f"absolute local path {shown!r} is refused: references must be relative "
+                    "to their document (or --base) or https URLs",
+                    file=file,
+                    line=line,
+                    actual=shown,
+                )
+            elif scheme:
+                raise InputError(f"unsupported URL scheme {scheme!r} in {shown!r}", file=file, line=line, actual=shown)
+            else:
+                absolute = urljoin(self.base or referrer.url, text)
+            refuse_credentials(absolute, what="reference", file=file, line=line)
+            return self._apply(absolute, file=file, line=line, uri=uri)
+        except ValueError as exc:  # urlsplit: "Invalid IPv6 URL", a port out of range, ...
+            raise InputError(f"malformed URL {shown!r}: {exc}", file=file, line=line, actual=shown) from None
 
     def _plain_relative(self, text: str, referrer: Location, *, file: str, line: int | None) -> Location | None:
         """The common case without URL parsing: a plain relative path from a local base.

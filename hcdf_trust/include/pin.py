@@ -74,8 +74,7 @@ from ..errors import (
     WeakPinError,
 )
 from ..localfile import read_input
-from ..outputs import OutputError, OutputPlan
-from ..store import default_cache_dir
+from ..outputs import OutputError, OutputPlan, protect_inputs
 from ..xml import MAX_DOCUMENT_BYTES, sourceline
 from . import lockfile
 from .locate import Location, display_path, file_url
@@ -98,7 +97,6 @@ AGREED_WITH_OLD = "agreed with old"
 AGREED_WITH_NEW = "agreed with new"
 NO_ENTRY = "no entry"
 DISAGREED_WITH_BOTH = "disagreed with both"
-
 
 
 @dataclass(frozen=True)
@@ -240,10 +238,10 @@ def pin_tree(
     targets = _targets(res, planner, locations, report.errors)
     plan = OutputPlan()
     if not report.errors:
-        _protect(plan, res, locations, base, edited=set(targets))
+        protect_inputs(plan, res, doc=doc_path, options=base)
         try:
             for path, (url, _old, new) in targets.items():
-                plan.add(path, new, flag="document", mode=stat.S_IMODE(os.stat(path).st_mode))
+                plan.add(path, new, flag="document", mode=stat.S_IMODE(os.stat(path).st_mode), edit=True)
                 report.planned.append(display_url(url))
             if lock_new != lock_raw:
                 plan.add(res.lock_path, lock_new, flag="--lock")
@@ -329,10 +327,9 @@ def _read_lock(path: Path, *, parse: bool = True) -> tuple[bytes | None, dict[st
     """
     if not os.path.lexists(path):
         return None, {}
+    entries = lockfile.load(path).entries if parse else {}  # refuses a FIFO, a device, a huge file...
     raw = read_input(path, limit=lockfile.MAX_LOCK_BYTES, what="lock file", source=display_path(path))
-    if not parse:
-        return raw, {}
-    return raw, {url: entry.sha256 for url, entry in lockfile.load(path).entries.items()}
+    return raw, {url: entry.sha256 for url, entry in entries.items()}
 
 
 def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: list[HcdfTrustError]) -> set[str]:
@@ -561,23 +558,6 @@ def _targets(
             )
         targets[path] = (url, old, new)
     return targets
-
-
-def _protect(
-    plan: OutputPlan, res: Resolution, locations: dict[str, Location], options: ResolveOptions, *, edited: set[str]
-) -> None:
-    """Every input of the run except the documents pin edits in place."""
-    plan.protect_tree(options.cache_dir or default_cache_dir(), what="the cache")
-    for url, loc in locations.items():
-        if loc.path is None or (url in res.documents and os.path.realpath(loc.path) in edited):
-            continue
-        if url == res.root_location.url:
-            what = "the root document"
-        elif url in res.documents:
-            what = "a document of the include tree"
-        else:
-            what = "a verified artifact"
-        plan.protect(loc.path, what=what)
 
 
 def _changed_since_read(

@@ -40,6 +40,7 @@ from ..errors import (
     IncludeCycleError,
     IncludeDepthError,
     InputError,
+    LockDriftError,
     LockFileError,
     Notice,
     OfflineError,
@@ -47,7 +48,7 @@ from ..errors import (
     WeakPinError,
 )
 from ..localfile import hash_local, open_local, read_bounded
-from ..store import ContentStore, atomic_write, default_cache_dir
+from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
 from .locate import Location, Locator, display_path, file_url
@@ -169,9 +170,7 @@ class Resolution:
                     ref = docs[use.doc_url] = to_lock(use.doc_url)
                 refs.add(ref)
             entries.append(
-                lockfile.LockEntry(
-                    art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, tuple(sorted(refs))
-                )
+                lockfile.LockEntry(art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, tuple(sorted(refs)))
             )
         return entries
 
@@ -180,7 +179,17 @@ class Resolution:
         return lockfile.render(self.lock_entries(), root=self.lock_url(self.root_location.url))
 
     def write_lock(self) -> None:
-        atomic_write(self.lock_path, self.render_lock())
+        """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.
+
+        Raises:
+            OutputError: it is an input of this tree, or cannot be written.
+        """
+        from ..outputs import OutputPlan, protect_inputs
+
+        plan = OutputPlan()
+        protect_inputs(plan, self)
+        plan.add(self.lock_path, self.render_lock(), flag="lock file")
+        plan.commit()
 
 
 class LockUrls:
@@ -260,6 +269,10 @@ class _Run:
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
         self._updating: set[str] = set()  # lock urls re-pinned by --update
+        if options.ca_bundle and not options.offline:
+            # A bad --ca-bundle fails the run even when the tree needs no fetch: it is a
+            # flag error, not something to find out on the first remote reference.
+            self.fetcher()
 
     def fetcher(self) -> HttpFetcher:
         """The HTTPS fetcher, created (and fetch.py, ssl, httpx imported) at the first remote fetch."""
@@ -297,7 +310,14 @@ class _Run:
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
         res.documents[root_loc.url] = root
-        self._load_lock(res)
+        try:
+            self._load_lock(res)
+            lock_error = None
+        except HcdfTrustError as exc:
+            # Reported after the walk, which writes nothing (the cache only takes content
+            # that matches its pins): a "lock" that is really one of the tree's inputs
+            # (`--lock robot.hcdf`) is then named as such, not just as malformed JSON.
+            lock_error = exc
         self.res = res
         self.locator = locator
         self._walk_includes(root_loc)
@@ -307,7 +327,25 @@ class _Run:
         )
         self._find_cycles()
         self._check_all()
+        if lock_error is not None:
+            # Without its lock, the run's drift findings say nothing: the lock error alone.
+            others = [e for e in res.errors if not isinstance(e, LockDriftError | UnpinnedError)]
+            res.errors = [self._lock_is_an_input() or lock_error, *others]
         return res
+
+    def _lock_is_an_input(self) -> HcdfTrustError | None:
+        """The error for a lock path that is one of the tree's inputs (``--lock robot.hcdf``)."""
+        from ..outputs import OutputError, OutputPlan, protect_inputs
+
+        plan = OutputPlan()
+        protect_inputs(plan, self.res, options=self.o)
+        what = plan.protected(self.res.lock_path)
+        if what is None:
+            return None
+        shown = display_path(self.res.lock_path)
+        return OutputError(
+            f"--lock {shown} is {what}: refusing to overwrite an input (it is not a lock file)", file=shown
+        )
 
     def _load_lock(self, res: Resolution) -> None:
         """Read the lock (every verb): a lock that exists but cannot be used stops the run,
