@@ -81,6 +81,17 @@ CONTEXT = {
 }
 CONTEXT["hash"] = CONTEXT["firmware-manifest-uri"]
 NS = ' xmlns:x="urn:example:x"'
+# name -> (Python codec, encoding declared in the document or None). UTF-16 with a BOM and
+# no declaration is one lxml reports as UTF-8.
+ENCODINGS = {
+    "utf-8": ("utf-8", None),
+    "utf-8 with BOM": ("utf-8-sig", None),
+    "utf-8 declared": ("utf-8", "UTF-8"),
+    "utf-16 with BOM": ("utf-16", None),
+    "utf-16 declared": ("utf-16", "UTF-16"),
+    "utf-32 with BOM": ("utf-32", None),
+    "latin-1 declared": ("latin-1", "ISO-8859-1"),
+}
 
 
 @dataclass(frozen=True)
@@ -89,6 +100,14 @@ class Hidden:
     way: str
     xml: str
     refused: bool  # what the walker must do: refuse (exit 3), or report the intended reference
+    encoding: str = "utf-8"
+
+    @property
+    def data(self) -> bytes:
+        """The document as bytes in ``encoding``: the walker's shortcuts must hold in every one."""
+        codec, declared = ENCODINGS[self.encoding]
+        head = f'<?xml version="1.0" encoding="{declared}"?>\n' if declared else ""
+        return (head + self.xml).encode(codec)
 
     @property
     def intended(self) -> str:
@@ -132,7 +151,7 @@ class Way:
             tag = self.kinds[0]
         ref, prefix, parent_attrs = self.write(draw, tag)
         xml = CONTEXT[tag].format(p=prefix, pa=parent_attrs, ref=ref)
-        return Hidden(tag, self.name, xml, self.refused)
+        return Hidden(tag, self.name, xml, self.refused, draw(st.sampled_from(sorted(ENCODINGS))))
 
 
 def _attr(name: str, value: str) -> str:
@@ -270,7 +289,7 @@ _TEXT_WAYS = [
 
 def _walk(h: Hidden) -> list[object] | HcdfTrustError:
     try:
-        return list(Document.from_bytes(h.xml.encode(), source="doc.hcdf").references())
+        return list(Document.from_bytes(h.data, source="doc.hcdf").references())
     except HcdfTrustError as exc:
         return exc
 
@@ -281,7 +300,7 @@ def _codes(exc: HcdfTrustError) -> set[str]:
 
 def _check_walk(h: Hidden) -> None:
     found = _walk(h)
-    where = f"{h.tag} written as {h.way}:\n{h.xml}"
+    where = f"{h.tag} written as {h.way}, in {h.encoding}:\n{h.xml}"
     if isinstance(found, HcdfTrustError):
         assert found.exit_code == 3, where
         assert _codes(found) <= REFUSALS, (where, str(found))
@@ -338,11 +357,11 @@ def tree() -> Path:
 @given(h=hidden())
 def test_resolve_never_exits_0_on_a_hidden_reference(tree: Path, h: Hidden):
     doc = tree / "doc.hcdf"
-    doc.write_text(h.xml)
+    doc.write_bytes(h.data)
     with tempfile.TemporaryDirectory(prefix="walker-run-") as run:
         args = ["resolve", str(doc), "--offline", "--json", "--lock", f"{run}/l.lock", "--cache-dir", f"{run}/cache"]
         result = CliRunner().invoke(main, args, catch_exceptions=False)
-    where = f"{h.tag} written as {h.way}:\n{h.xml}\n{result.stdout}{result.stderr}"
+    where = f"{h.tag} written as {h.way}, in {h.encoding}:\n{h.xml}\n{result.stdout}{result.stderr}"
     out = json.loads(result.stdout)
     if result.exit_code == 3 and {e["code"] for e in out["errors"]} <= REFUSALS:
         assert h.refused, where
