@@ -277,7 +277,8 @@ def _location(el: etree._Element, tag: str, source: str) -> tuple[str | None, st
     value = uri if uri is not None else href
     if value is not None and (why := _unclear(value, what=f"<{tag}> {attr}")):
         raise AmbiguousReferenceError(why, file=source, line=sourceline(el))
-    text = (el.text or "").strip(_XML_SPACE)
+    # its own text nodes: before the first child and after each (a comment's tail is text too)
+    text = ((el.text or "") + "".join(child.tail or "" for child in el)).strip(_XML_SPACE)
     if text:
         raise AmbiguousReferenceError(
             f"<{tag}> holds text {text!r}: its reference is its uri or href attribute, never its text",

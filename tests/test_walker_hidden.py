@@ -218,6 +218,11 @@ _ATTRIBUTE_WAYS = [
     _attribute_way("text instead of an attribute", True, lambda d, t: _el(t, body=FILES[t])),
     _attribute_way("text beside a decoy attribute", True, lambda d, t: _el(t, _attr("uri", DECOYS[t]), body=FILES[t])),
     _attribute_way(
+        "text after a comment, beside a decoy attribute",
+        True,
+        lambda d, t: _el(t, _attr("uri", DECOYS[t]), body=f"<!-- -->{FILES[t]}"),
+    ),
+    _attribute_way(
         "child element instead of an attribute",
         True,
         lambda d, t: _el(t, body=(lambda n: f"<{n}>{FILES[t]}</{n}>")(_uri_or_href(d))),
