@@ -41,7 +41,7 @@ from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousReferenceError, ErrorGroup, HcdfTrustError, NotHcdfError
+from .errors import AmbiguousReferenceError, HcdfTrustError, NotHcdfError
 from .xml import parse_bytes, sourceline
 
 
@@ -130,8 +130,8 @@ class Document:
         Raises:
             XmlError: malformed or hostile XML.
             NotHcdfError: the root is not ``<hcdf>`` in no namespace.
-            AmbiguousReferenceError (or an ErrorGroup of them): a reference written so
-                that readers could disagree on it (see the module docstring).
+            AmbiguousReferenceError: a reference written so that readers could disagree
+                on it (see the module docstring); the first, naming the lines of any others.
         """
         tree = parse_bytes(data, source=source)
         require_root(tree.getroot(), source=source)
@@ -159,7 +159,7 @@ class Document:
         """Every reference in document order. Extension content is opaque and not walked.
 
         Raises:
-            AmbiguousReferenceError, or an ErrorGroup of several: see the module docstring.
+            AmbiguousReferenceError: see the module docstring.
         """
         if self._references is None:
             refs: list[Reference] = []
@@ -171,7 +171,13 @@ class Document:
                     refs.append(item)
             if problems:
                 problems.sort(key=lambda e: e.line or 0)
-                raise problems[0] if len(problems) == 1 else ErrorGroup(problems)
+                first = problems[0]
+                if len(problems) > 1:  # one error per document: every consumer reports it the same way
+                    lines = ", ".join(str(e.line) for e in problems[1:11]) + (", ..." if len(problems) > 11 else "")
+                    more = len(problems) - 1
+                    first.message += f" (and {more} more at line{'s' if more > 1 else ''} {lines})"
+                    first.args = (first.message,)
+                raise first
             self._references = refs
         return list(self._references)
 
@@ -217,6 +223,9 @@ def _walk(root: etree._Element, source: str, *, namespaces: bool = True) -> Iter
     namespaced = cast("list[etree._Element]", _NAMESPACED_ELEMENTS(root)) if namespaces else []
     attributes = cast("list[Any]", _NAMESPACED_ATTRIBUTES(root)) if namespaces else []  # _ElementUnicodeResult
     for el in namespaced:
+        parent = el.getparent()
+        if parent is not None and etree.QName(parent).namespace is not None:
+            continue  # inside a namespaced element already refused (or opaque): one error per subtree
         if not _opaque(el):
             yield refuse(
                 el,

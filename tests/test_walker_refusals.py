@@ -167,3 +167,21 @@ def test_equal_uri_and_href_are_one_reference_and_flattening_rebases_both(cli, t
     assert model.get("uri") == model.get("href") == "../parts/m.glb"
     r = cli("resolve", flat, "--root", tmp_path, "--lock", tmp_path / "flat.lock", "--cache-dir", tmp_path / "c")
     assert r.exit_code == 0, r.stderr
+
+
+def test_several_hidden_references_are_one_error_naming_every_line(cli, tmp_path):
+    """One error per document, as for any other unusable include; a namespaced subtree counts once."""
+    (tmp_path / "sub.hcdf").write_text(
+        '<hcdf version="1.0" name="s">\n'
+        '  <comp name="a" xmlns="urn:x"><visual><model uri="m.glb"/></visual></comp>\n'
+        '  <comp name="b"><visual><model uri="m.glb" href="n.glb"/></visual></comp>\n'
+        '  <comp name="c"><visual><model uri=" m.glb"/></visual></comp>\n'
+        "</hcdf>\n"
+    )
+    doc = tmp_path / "doc.hcdf"
+    doc.write_text('<hcdf version="1.0" name="t">\n  <include uri="sub.hcdf"/>\n</hcdf>\n')
+    r = cli("resolve", doc, "--json", "--cache-dir", tmp_path / "cache")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert (err["code"], err["line"]) == ("ambiguous-reference", 2) and err["file"].endswith("sub.hcdf")
+    assert "<comp> in namespace 'urn:x'" in err["message"] and err["message"].endswith("(and 2 more at lines 3, 4)")
