@@ -41,7 +41,7 @@ from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousReferenceError, HcdfTrustError, NotHcdfError
+from .errors import AmbiguousReferenceError, NotHcdfError
 from .xml import parse_bytes, sourceline
 
 
@@ -163,9 +163,9 @@ class Document:
         """
         if self._references is None:
             refs: list[Reference] = []
-            problems: list[HcdfTrustError] = []
+            problems: list[AmbiguousReferenceError] = []
             for item in _walk(self.root, self.source, namespaces=_may_use_namespaces(self)):
-                if isinstance(item, HcdfTrustError):
+                if isinstance(item, AmbiguousReferenceError):
                     problems.append(item)
                 else:
                     refs.append(item)
@@ -216,7 +216,9 @@ def _opaque(el: etree._Element) -> bool:
     return False
 
 
-def _walk(root: etree._Element, source: str, *, namespaces: bool = True) -> Iterator[Reference | HcdfTrustError]:
+def _walk(
+    root: etree._Element, source: str, *, namespaces: bool = True
+) -> Iterator[Reference | AmbiguousReferenceError]:
     def refuse(el: etree._Element, message: str) -> AmbiguousReferenceError:
         return AmbiguousReferenceError(message, file=source, line=sourceline(el))
 
