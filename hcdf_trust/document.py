@@ -4,18 +4,44 @@ Every place that knows where references live in HCDF is here: resolve, pin,
 flatten, validate, ota and macsec all consume :meth:`Document.references`.
 Unknown elements and attributes are ignored (the HCDF versioning rules), so
 later dialects (``version="1.2"``, ``"2.0"``, ``<mcu>``, ``<model href>``) walk too.
+
+Every reference is seen, or the document is refused (:class:`AmbiguousReferenceError`,
+exit 3); nothing that another XML reader would take for a reference is skipped:
+
+- The root is ``<hcdf>`` in no namespace (:class:`NotHcdfError` otherwise).
+- ``<include>``, ``<model>``, ``<mesh>`` (in ``<geometry>``, or with a uri) and
+  ``<stream-profile>`` (in ``<network>``, or with a uri) take their location from
+  ``uri`` or ``href``; both are accepted, and both at once only with equal values.
+  Text inside such an element, or a ``<uri>``/``<href>``/``<sha>`` child, is refused.
+- ``<software><hash>`` and ``<firmware-manifest-uri>`` are read as the element's whole
+  string value (CDATA and character references are ordinary text, surrounding XML
+  whitespace is dropped as the schema's ``collapse`` drops it); one that holds a
+  comment, a processing instruction or a child element, or carries a ``uri``/``href``
+  attribute, is refused.
+- A location is refused when readers could disagree on it: whitespace around an
+  attribute value, a tab, newline or run of spaces inside, control or invisible
+  formatting characters (U+200B, bidi overrides).
+- HCDF has no namespace: outside extension content, an element in a namespace
+  (``<x:include>``, XInclude's ``<xi:include href>``, ``<x:software><hash>``,
+  ``<comp xmlns="urn:x">``), a namespaced ``uri``, ``href`` or ``sha`` attribute
+  (``xlink:href``) and ``xml:base`` (which moves every relative reference) are refused.
+- Extension content is opaque: what is inside an ``<extension>`` child of ``<comp>``
+  (HCDF's one extension point) is vendor data, never walked. An ``<extension>``
+  anywhere else is reported and its content walked like the rest of the document,
+  so an extension cannot be used to hide the document's own references.
 """
 
 from __future__ import annotations
 
+import unicodedata
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
+from typing import Any, cast
 
 from lxml import etree
 
-from .errors import XmlError
+from .errors import AmbiguousReferenceError, NotHcdfError
 from .xml import parse_bytes, sourceline
 
 
@@ -41,7 +67,7 @@ class Reference:
     line: int | None
     uri: str | None = None
     sha: str | None = None  # the digest text exactly as written
-    uri_attr: str | None = None  # "uri" or "href"; None when the uri is element text
+    uri_attr: str | None = None  # "uri" or "href" ("uri" when both, equal, are written); None for text
     name: str | None = None  # include name prefix, software name
     pose: str | None = None  # include pose "x y z roll pitch yaw"
     active: bool = True  # stream-profile
@@ -50,16 +76,42 @@ class Reference:
     element: Any = field(default=None, compare=False, repr=False, hash=False)
 
 
-def _text(el: etree._Element | None) -> str | None:
-    if el is None or el.text is None:
-        return None
-    return el.text.strip() or None
-
-
 def _bool(value: str | None, default: bool = True) -> bool:
     if value is None:
         return default
     return value.strip().lower() in ("true", "1")
+
+
+ROOT = "hcdf"
+
+
+def require_root(root: etree._Element, *, source: str, names: tuple[str, ...] = (ROOT,)) -> str:
+    """The root's name, when it is one of ``names`` in no namespace.
+
+    Raises:
+        NotHcdfError: anything else, naming what the root is.
+    """
+    if isinstance(root.tag, str) and root.tag in names:
+        return root.tag
+    wanted = " or ".join(f"<{n}>" for n in names)
+    what = "an HCDF document" if names == (ROOT,) else "an HCDF document or stream profile"
+    raise NotHcdfError(
+        f"not {what}: root element is {_describe(root)}, expected {wanted} in no namespace",
+        file=source,
+        line=sourceline(root),
+        expected=wanted,
+        actual=_describe(root),
+    )
+
+
+def _describe(el: etree._Element) -> str:
+    if not isinstance(el.tag, str):
+        return "not an element"
+    q = etree.QName(el)
+    if q.namespace is None:
+        return f"<{q.localname}>"
+    written = f"{el.prefix}:{q.localname}" if el.prefix else q.localname
+    return f"<{written}> in namespace {q.namespace!r}"
 
 
 @dataclass
@@ -69,23 +121,23 @@ class Document:
     source: str
     tree: etree._ElementTree
     data: bytes = field(repr=False)
+    _references: list[Reference] | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_bytes(cls, data: bytes, *, source: str) -> Document:
-        """Parse and check that the root is ``<hcdf>``.
+        """Parse, check that the root is ``<hcdf>``, and find every reference.
 
         Raises:
-            XmlError: malformed or hostile XML, or not an HCDF document.
+            XmlError: malformed or hostile XML.
+            NotHcdfError: the root is not ``<hcdf>`` in no namespace.
+            AmbiguousReferenceError: a reference written so that readers could disagree
+                on it (see the module docstring); the first, naming the lines of any others.
         """
         tree = parse_bytes(data, source=source)
-        root = tree.getroot()
-        if not isinstance(root.tag, str) or etree.QName(root).localname != "hcdf":
-            raise XmlError(
-                f"not an HCDF document: root element is <{root.tag}>, expected <hcdf>",
-                file=source,
-                line=sourceline(root),
-            )
-        return cls(source=source, tree=tree, data=data)
+        require_root(tree.getroot(), source=source)
+        doc = cls(source=source, tree=tree, data=data)
+        doc.references()
+        return doc
 
     @property
     def root(self) -> etree._Element:
@@ -104,75 +156,252 @@ class Document:
         return self.root.get("world-frame")
 
     def references(self) -> list[Reference]:
-        """Every reference in document order. Extension content is opaque and not walked."""
-        return list(_walk(self.root))
+        """Every reference in document order. Extension content is opaque and not walked.
+
+        Raises:
+            AmbiguousReferenceError: see the module docstring.
+        """
+        if self._references is None:
+            refs: list[Reference] = []
+            problems: list[AmbiguousReferenceError] = []
+            for item in _walk(self.root, self.source, namespaces=_may_use_namespaces(self)):
+                if isinstance(item, AmbiguousReferenceError):
+                    problems.append(item)
+                else:
+                    refs.append(item)
+            if problems:
+                problems.sort(key=lambda e: e.line or 0)
+                first = problems[0]
+                if len(problems) > 1:  # one error per document: every consumer reports it the same way
+                    lines = ", ".join(str(e.line) for e in problems[1:11]) + (", ..." if len(problems) > 11 else "")
+                    more = len(problems) - 1
+                    first.message += f" (and {more} more at line{'s' if more > 1 else ''} {lines})"
+                    first.args = (first.message,)
+                raise first
+            self._references = refs
+        return list(self._references)
 
 
-# Elements that can carry a reference; lxml finds them in C, in document order.
-_REFERENCE_TAGS = ("include", "model", "mesh", "stream-profile", "hash", "firmware-manifest-uri", "extension")
+URI_ATTRS = ("uri", "href")  # where an attribute reference element writes its location
+_ATTRIBUTE_REFERENCES = ("include", "model", "mesh", "stream-profile")
+_TEXT_REFERENCES = ("hash", "firmware-manifest-uri")
+_REFERENCE_TAGS = (*_ATTRIBUTE_REFERENCES, *_TEXT_REFERENCES, "extension")
+_REFERENCE_ATTR_NAMES = frozenset((*URI_ATTRS, "sha"))
+_XML_BASE = "{http://www.w3.org/XML/1998/namespace}base"
+_XML_SPACE = " \t\r\n"
+_NAMESPACED_ELEMENTS = etree.XPath("//*[namespace-uri()]")
+_NAMESPACED_ATTRIBUTES = etree.XPath("//@*[namespace-uri()]")
+# Encodings in which "xmlns" and "xml:" are the same bytes as in ASCII.
+_ASCII_COMPATIBLE = frozenset(("UTF-8", "ASCII", "US-ASCII"))
 
 
-def _walk(root: etree._Element) -> Iterator[Reference]:
+def _may_use_namespaces(doc: Document) -> bool:
+    """False when no element or attribute of ``doc`` can be in a namespace: its text declares
+    none (no ``xmlns``) and uses no ``xml:`` attribute. Saves two tree scans on plain HCDF.
+
+    Only for bytes where ASCII reads as ASCII: lxml reports a UTF-16 document without a
+    declaration as UTF-8, but its '<' (3C 00) always holds a NUL byte.
+    """
+    data = doc.data
+    ascii_like = (doc.tree.docinfo.encoding or "").upper() in _ASCII_COMPATIBLE and b"\x00" not in data
+    return not ascii_like or b"xmlns" in data or b"xml:" in data
+
+
+def _opaque(el: etree._Element) -> bool:
+    """Inside the content of an ``<extension>`` child of ``<comp>`` (vendor data)."""
+    for ext in el.iterancestors("extension"):
+        parent = ext.getparent()
+        if parent is not None and parent.tag == "comp":
+            return True
+    return False
+
+
+def _walk(
+    root: etree._Element, source: str, *, namespaces: bool = True
+) -> Iterator[Reference | AmbiguousReferenceError]:
+    def refuse(el: etree._Element, message: str) -> AmbiguousReferenceError:
+        return AmbiguousReferenceError(message, file=source, line=sourceline(el))
+
+    namespaced = cast("list[etree._Element]", _NAMESPACED_ELEMENTS(root)) if namespaces else []
+    attributes = cast("list[Any]", _NAMESPACED_ATTRIBUTES(root)) if namespaces else []  # _ElementUnicodeResult
+    for el in namespaced:
+        parent = el.getparent()
+        if parent is not None and etree.QName(parent).namespace is not None:
+            continue  # inside a namespaced element already refused (or opaque): one error per subtree
+        if not _opaque(el):
+            yield refuse(
+                el,
+                f"{_describe(el)}: HCDF elements have no namespace, and a reader that ignores "
+                "namespaces could take this one for HCDF's (a reference, or what makes one)",
+            )
+    for attr in attributes:
+        el = attr.getparent()
+        name = str(attr.attrname)
+        local = etree.QName(name).localname
+        if (name == _XML_BASE or local in _REFERENCE_ATTR_NAMES) and not _opaque(el):
+            shown = (
+                "an xml:base attribute"
+                if name == _XML_BASE
+                else f"an attribute {local} in namespace {etree.QName(name).namespace!r}"
+            )
+            yield refuse(
+                el,
+                f"<{etree.QName(el).localname}> has {shown} ({str(attr)!r}): refused, "
+                "it changes or hides where a reference points",
+            )
     for el in root.iter(*_REFERENCE_TAGS):
-        if el.tag != "extension" and any(True for _ in el.iterancestors("extension")):
+        if _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
-        ref = _reference(el, el.tag)
+        try:
+            ref = _reference(el, el.tag, source)
+        except AmbiguousReferenceError as exc:
+            yield exc
+            continue
         if ref is not None:
             yield ref
 
 
-def _reference(el: etree._Element, tag: str) -> Reference | None:
+def _unclear(value: str, *, what: str) -> str | None:
+    """Why readers could read ``value`` (a location) differently, or None."""
+    if value != value.strip(_XML_SPACE):
+        return f"{what} {value!r} has whitespace around it"
+    for ch in value:
+        if ch == " ":
+            continue
+        if ch.isspace() or unicodedata.category(ch) in ("Cc", "Cf", "Zl", "Zp", "Zs"):
+            return f"{what} {value!r} contains U+{ord(ch):04X} ({unicodedata.name(ch, 'a control character')})"
+    if "  " in value:
+        return f"{what} {value!r} has a run of spaces (a schema-aware reader collapses it)"
+    return None
+
+
+def _location(el: etree._Element, tag: str, source: str) -> tuple[str | None, str | None]:
+    """(uri, the attribute it came from) of an attribute reference element."""
+    uri, href = el.get("uri"), el.get("href")
+    if uri is not None and href is not None and uri != href:
+        raise AmbiguousReferenceError(
+            f"<{tag}> has uri={uri!r} and href={href!r}: one element, two different references",
+            file=source,
+            line=sourceline(el),
+        )
+    attr = "uri" if uri is not None else "href" if href is not None else None
+    value = uri if uri is not None else href
+    if value is not None and (why := _unclear(value, what=f"<{tag}> {attr}")):
+        raise AmbiguousReferenceError(why, file=source, line=sourceline(el))
+    # its own text nodes: before the first child and after each (a comment's tail is text too)
+    text = ((el.text or "") + "".join(child.tail or "" for child in el)).strip(_XML_SPACE)
+    if text:
+        raise AmbiguousReferenceError(
+            f"<{tag}> holds text {text!r}: its reference is its uri or href attribute, never its text",
+            file=source,
+            line=sourceline(el),
+        )
+    for child in el:
+        if isinstance(child.tag, str) and etree.QName(child).localname in _REFERENCE_ATTR_NAMES:
+            raise AmbiguousReferenceError(
+                f"<{tag}> has a <{etree.QName(child).localname}> child: write the reference as an attribute",
+                file=source,
+                line=sourceline(child),
+            )
+    return value, attr
+
+
+def _string_value(el: etree._Element, tag: str, source: str) -> str | None:
+    """A text reference's whole string value (stripped of XML whitespace), None when empty.
+
+    Raises:
+        AmbiguousReferenceError: a comment, PI or element inside, a uri/href attribute,
+            or a value readers could disagree on.
+    """
+    for child in el:
+        kind = (
+            "a comment"
+            if isinstance(child, etree._Comment)
+            else "a processing instruction"
+            if isinstance(child, etree._ProcessingInstruction)
+            else f"a {_describe(child)} element"
+        )
+        raise AmbiguousReferenceError(
+            f"<{tag}> contains {kind}: its text could be read in more than one way",
+            file=source,
+            line=sourceline(child) or sourceline(el),
+        )
+    for attr in URI_ATTRS:
+        if el.get(attr) is not None:
+            raise AmbiguousReferenceError(
+                f"<{tag}> has a {attr} attribute ({el.get(attr)!r}): its reference is its text",
+                file=source,
+                line=sourceline(el),
+            )
+    value = (el.text or "").strip(_XML_SPACE)
+    if not value:
+        return None
+    if why := _unclear(value, what=f"<{tag}>"):
+        raise AmbiguousReferenceError(why, file=source, line=sourceline(el))
+    return value
+
+
+def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
     line = sourceline(el)
+    parent = el.getparent()
     if tag == "include":
+        uri, attr = _location(el, tag, source)
         return Reference(
             Kind.INCLUDE,
             line,
-            uri=el.get("uri"),
+            uri=uri,
             sha=el.get("sha"),
-            uri_attr="uri",
+            uri_attr=attr,
             name=el.get("name"),
             pose=el.get("pose"),
             element=el,
         )
     if tag == "model":
         # The schema says uri; the published model repository writes href.
-        attr = "uri" if el.get("uri") is not None else "href" if el.get("href") is not None else None
-        if attr is None:
-            return None
-        return Reference(Kind.MODEL, line, uri=el.get(attr), sha=el.get("sha"), uri_attr=attr, element=el)
+        uri, attr = _location(el, tag, source)
+        return Reference(Kind.MODEL, line, uri=uri, sha=el.get("sha"), uri_attr=attr, element=el)
     if tag == "mesh":
-        parent = el.getparent()
-        if parent is None or parent.tag != "geometry" or el.get("uri") is None:
-            return None  # <network><mesh> is a wireless topology, not a file
-        return Reference(Kind.MESH, line, uri=el.get("uri"), sha=el.get("sha"), uri_attr="uri", element=el)
-    if tag == "stream-profile" and el.get("uri") is not None:
+        # <network><mesh> is a wireless topology, not a file; any mesh with a location is one.
+        if not _has_location(el) and (parent is None or parent.tag != "geometry"):
+            return None
+        uri, attr = _location(el, tag, source)
+        return Reference(Kind.MESH, line, uri=uri, sha=el.get("sha"), uri_attr=attr, element=el)
+    if tag == "stream-profile":
+        if not _has_location(el) and (parent is None or parent.tag != "network"):
+            return None
+        uri, attr = _location(el, tag, source)
         return Reference(
             Kind.STREAM_PROFILE,
             line,
-            uri=el.get("uri"),
+            uri=uri,
             sha=el.get("sha"),
-            uri_attr="uri",
+            uri_attr=attr,
             active=_bool(el.get("active")),
             element=el,
         )
-    if tag == "hash" and (sw := el.getparent()) is not None and sw.tag == "software":
+    if tag == "hash":
+        if parent is None or parent.tag != "software":
+            return None
+        version = parent.find("version")
         return Reference(
             Kind.FIRMWARE,
             line,
-            sha=_text(el),
-            name=sw.get("name"),
-            version=_text(sw.find("version")),
+            sha=_string_value(el, tag, source),
+            name=parent.get("name"),
+            version=(version.text or "").strip() or None if version is not None else None,
             element=el,
         )
-    if tag == "firmware-manifest-uri" and _text(el):
-        sw = el.getparent()
+    if tag == "firmware-manifest-uri":
+        uri = _string_value(el, tag, source)
+        if uri is None:
+            return None
         return Reference(
-            Kind.FIRMWARE_MANIFEST,
-            line,
-            uri=_text(el),
-            name=sw.get("name") if sw is not None else None,
-            element=el,
+            Kind.FIRMWARE_MANIFEST, line, uri=uri, name=parent.get("name") if parent is not None else None, element=el
         )
     if tag == "extension":
         return Reference(Kind.EXTENSION, line, domain=el.get("domain"), version=el.get("version"), element=el)
     return None
+
+
+def _has_location(el: etree._Element) -> bool:
+    return any(el.get(a) is not None for a in URI_ATTRS)

@@ -110,6 +110,19 @@ class XmlError(InputError):
     code = "xml"
 
 
+class NotHcdfError(XmlError):
+    """The root element is not ``<hcdf>`` in no namespace (``<robot>``, ``<hcdf xmlns="urn:x">``)."""
+
+    code = "not-hcdf"
+
+
+class AmbiguousReferenceError(InputError):
+    """A reference that readers could read two ways (``uri`` and ``href`` that differ, a comment
+    inside a text reference, a namespaced ``<x:include>``...): refused, never skipped."""
+
+    code = "ambiguous-reference"
+
+
 class NotFoundError(InputError):
     code = "not-found"
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+import os
+import re
 import shutil
 from pathlib import Path
 
@@ -10,7 +12,10 @@ import pytest
 
 from .conftest import HCDFORMAT, MODELS
 
-FRAGMENTS = sorted(p for p in MODELS.glob("*/*/*.hcdf") if not p.is_symlink())
+# The published fragments are named {first 8 hex of their sha256}-{device}.hcdf; beside each is
+# a {device}.hcdf pointer, a real symlink or a git symlink stub depending on the checkout.
+PUBLISHED = re.compile(r"^[0-9a-f]{8}-.+\.hcdf$")
+FRAGMENTS = sorted(p for p in MODELS.glob("*/*/*.hcdf") if PUBLISHED.match(p.name))
 
 
 def sha256_file(path: Path) -> str:
@@ -62,11 +67,77 @@ def test_flipped_byte_in_one_glb_exits_1_naming_it(cli, tmp_path):
     assert not lock.exists(), "no lock file is written on failure"
 
 
-def test_git_symlink_stub_is_followed_to_its_sibling(cli, tmp_path):
-    stub = MODELS / "mr_mcxn_t1" / "optical-flow" / "optical-flow.hcdf"
-    r = cli("resolve", stub, "--base", MODELS, "--lock", tmp_path / "l", "--cache-dir", tmp_path / "c", "--json")
-    assert r.exit_code == 0, r.stdout
-    assert r.json["root"].endswith("d9507e38-optical-flow.hcdf")
+def _pointer_target(pointer: Path) -> str:
+    """The name a corpus ``{device}.hcdf`` pointer names, whichever layout this checkout has."""
+    return os.readlink(pointer) if pointer.is_symlink() else pointer.read_text().strip()
+
+
+def _model_repository(tmp_path: Path, layout: str) -> Path:
+    """A copy of hcdf_models whose {device}.hcdf pointers are all real symlinks or all stubs."""
+    models = tmp_path / f"hcdf_models-{layout}"
+    shutil.copytree(MODELS, models, symlinks=True)
+    for p in models.rglob("*"):
+        if not p.is_symlink():
+            p.chmod(0o755 if p.is_dir() else 0o644)
+    pointers = [p for p in models.glob("*/*/*.hcdf") if not PUBLISHED.match(p.name)]
+    assert pointers, "every published device has a {device}.hcdf pointer"
+    for pointer in pointers:
+        target = _pointer_target(pointer)
+        assert PUBLISHED.match(target) and (pointer.parent / target).is_file()
+        pointer.unlink()
+        if layout == "symlink":
+            pointer.symlink_to(target)
+        else:
+            pointer.write_text(target)  # what git writes with core.symlinks=false: the target, no newline
+    return models
+
+
+@pytest.mark.parametrize("layout", ["symlink", "stub"])
+def test_device_pointer_is_followed_to_its_sibling_in_either_layout(cli, tmp_path, layout):
+    models = _model_repository(tmp_path, layout)
+    pointer = models / "mr_mcxn_t1" / "optical-flow" / "optical-flow.hcdf"
+    assert pointer.is_symlink() == (layout == "symlink")
+    target = pointer.parent / _pointer_target(pointer)
+    args = ("--base", models, "--cache-dir", tmp_path / "c", "--json")
+    via_pointer = cli("resolve", pointer, "--lock", tmp_path / "pointer.lock", *args)
+    assert via_pointer.exit_code == 0, via_pointer.stdout + via_pointer.stderr
+    direct = cli("resolve", target, "--lock", tmp_path / "direct.lock", *args)
+    assert direct.exit_code == 0, direct.stdout
+    # the pointer is read as the fragment it names: same root, same artifacts, same lock bytes
+    assert via_pointer.json["root"] == direct.json["root"]
+    assert via_pointer.json["root"].endswith(target.name)
+    assert via_pointer.json["artifacts"] == direct.json["artifacts"]
+    oracle = {(m, hashlib.sha256((models / m).read_bytes()).hexdigest()) for m in _hrefs(target)}
+    assert {(a["uri"], a["sha256"]) for a in via_pointer.json["artifacts"]} == oracle
+    assert (tmp_path / "pointer.lock").read_bytes() == (tmp_path / "direct.lock").read_bytes()
+    r = cli("verify", pointer, "--base", models, "--lock", tmp_path / "direct.lock")
+    assert r.exit_code == 0, r.stderr
+    r = cli("validate", pointer, "--json")
+    assert r.exit_code == 0 and r.json["ok"], r.stdout
+
+
+def test_a_lock_written_on_one_layout_verifies_on_the_other(cli, tmp_path):
+    """A lock committed from a checkout with symlinks holds on one without (and back)."""
+    locks = {}
+    for layout in ("symlink", "stub"):
+        models = _model_repository(tmp_path, layout)
+        pointer = models / "navq95" / "default" / "default.hcdf"
+        lock = models / "hcdf.lock"
+        r = cli("resolve", pointer, "--base", models, "--lock", lock, "--cache-dir", tmp_path / "c")
+        assert r.exit_code == 0, r.stderr
+        locks[layout] = (models, pointer, lock.read_bytes())
+    assert locks["symlink"][2] == locks["stub"][2]
+    for mine, theirs in (("symlink", "stub"), ("stub", "symlink")):
+        models, pointer, _ = locks[mine]
+        (models / "other.lock").write_bytes(locks[theirs][2])
+        r = cli("verify", pointer, "--base", models, "--lock", models / "other.lock")
+        assert r.exit_code == 0, r.stderr
+
+
+def _hrefs(doc: Path) -> set[str]:
+    from lxml import etree
+
+    return {str(v) for v in etree.parse(str(doc)).xpath("//model/@href | //model/@uri")}
 
 
 def test_humanoid_resolves_with_its_stream_profile_unpinned(cli, tmp_path):

@@ -99,7 +99,7 @@ from urllib.parse import urljoin, urlsplit
 
 from lxml import etree
 
-from ..document import Document, Kind
+from ..document import URI_ATTRS, Document, Kind
 from ..errors import FlattenError
 from ..xml import sourceline
 from .locate import _normalise, file_url
@@ -445,7 +445,9 @@ class _Flattener:
             if rebased == written:
                 continue
             if attr:
-                new.set(attr, rebased)
+                for name in URI_ATTRS:  # uri and href both, when both are written (equal: document.py)
+                    if orig.get(name) is not None:
+                        new.set(name, rebased)
             else:
                 new.text = rebased
         return out

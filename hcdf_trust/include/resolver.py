@@ -807,12 +807,16 @@ def _read_root(path: Path) -> bytes:
 
 
 def link_stub_target(path: Path, data: bytes) -> Path | None:
-    """A symlink checked out as a plain file (git with core.symlinks=false) holds just
-    the target's name: hcdf_models' ``{device}.hcdf`` pointers arrive that way.
-    Follow it only to a sibling file, never across folders."""
-    if len(data) > 255 or b"<" in data:
+    """The sibling a ``{device}.hcdf`` pointer of hcdf_models names: a real symlink, or a
+    symlink checked out as a plain file holding just the target's name (git with
+    core.symlinks=false). Followed only to a sibling file, never across folders, so
+    both checkouts name the same root document (and write the same lock)."""
+    if path.is_symlink():
+        name = os.readlink(path)
+    elif len(data) > 255 or b"<" in data:
         return None
-    name = data.strip().decode("utf-8", "replace")
+    else:
+        name = data.strip().decode("utf-8", "replace")
     if not name or "/" in name or "\\" in name or name in (".", "..") or "\n" in name:
         return None
     target = path.parent / name

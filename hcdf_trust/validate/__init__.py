@@ -24,8 +24,7 @@ from pathlib import Path
 
 from lxml import etree
 
-from ..document import Document
-from ..errors import XmlError
+from ..document import ROOT, Document, require_root
 from ..include.locate import display_path
 from ..include.resolver import link_stub_target
 from ..xml import parse_bytes, sourceline
@@ -46,7 +45,7 @@ __all__ = [
     "validate_document",
 ]
 
-_ROOTS = ("hcdf", "stream-profile")
+_ROOTS = (ROOT, "stream-profile")
 
 
 def validate_document(
@@ -63,8 +62,9 @@ def validate_document(
 
     Raises:
         InputError (NotFoundError, XmlError, ...): the document or the schema
-        cannot be read, is malformed or hostile, or is neither HCDF nor a
-        stream profile.
+        cannot be read, is malformed or hostile, or hides a reference
+        (AmbiguousReferenceError).
+        NotHcdfError: the root is neither ``<hcdf>`` nor ``<stream-profile>`` in no namespace.
     """
     path: Path | None = None
     if isinstance(doc, Document):
@@ -78,14 +78,11 @@ def validate_document(
             data = read_local(path, path.parent, source=display_path(path))
         source = display_path(path)
         tree = parse_bytes(data, source=source)
+        doc = Document(source=source, tree=tree, data=data)
     root = tree.getroot()
-    kind = etree.QName(root).localname
-    if kind not in _ROOTS:
-        raise XmlError(
-            f"not an HCDF document or stream profile: root element is <{root.tag}>",
-            file=source,
-            line=sourceline(root),
-        )
+    kind = require_root(root, source=source, names=_ROOTS)  # <hcdf xmlns="urn:x"> is not HCDF
+    if kind == ROOT:
+        doc.references()  # every reference is seen, or the document is refused (exit 3)
     report = ValidationReport(source=source)
     findings: list[Finding] = []
 
