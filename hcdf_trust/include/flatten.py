@@ -403,6 +403,7 @@ class _Flattener:
                 f"white space (they separate comp/port and comp.element references)",
                 file=doc.source,
                 line=sourceline(el),
+                expected="a name without '/', '.' or white space",
                 actual=name,
             )
         pose_text = el.get("pose")
@@ -680,7 +681,6 @@ def _check_collisions(items: list[_Item]) -> None:
             f"{_where(other)} and at {_where(item)}",
             file=item.source,
             line=item.line,
-            actual=name,
         )
 
 

@@ -33,6 +33,7 @@ from ..errors import (
     IncludeCycleError,
     IncludeDepthError,
     InputError,
+    NotFoundError,
     OfflineError,
     UnpinnedError,
     WeakPinError,
@@ -42,7 +43,7 @@ from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
 from .fetch import DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, HttpFetcher
-from .locate import Location, Locator, display_path, file_url
+from .locate import Location, Locator, display_path, explain_missing, file_url
 
 DEFAULT_MAX_DEPTH = 16
 DEFAULT_JOBS = 16
@@ -300,9 +301,11 @@ class _Run:
                 res.others.append((doc.source, ref))
                 continue
             try:
-                pin = parse_pin(ref.sha, file=doc.source, line=ref.line)
+                pin = parse_pin(ref.sha, file=doc.source, line=ref.line, uri=ref.uri)
                 if not ref.uri:
-                    raise InputError(f"<{ref.kind.value}> has no uri", file=doc.source, line=ref.line)
+                    raise InputError(
+                        f"<{ref.kind.value}> has no {ref.uri_attr or 'uri'}", file=doc.source, line=ref.line
+                    )
                 loc = self.locator.locate(ref.uri, doc_loc, file=doc.source, line=ref.line)
             except HcdfTrustError as exc:
                 res.errors.append(exc)
@@ -382,6 +385,9 @@ class _Run:
         use = art.uses[0]
         try:
             data = self._obtain(art, keep, file=use.doc, line=use.ref.line)
+        except NotFoundError as exc:  # name the reference as written; hint at --base
+            art.error = explain_missing(exc, uri=use.ref.uri, referrer_url=use.doc_url, base=self.o.base)
+            data = None
         except HcdfTrustError as exc:
             art.error = exc
             data = None
