@@ -265,55 +265,65 @@ class _Planner:
         self.errors: list[HcdfTrustError] = []
 
     def settle(self, url: str) -> str:
-        """The digest of document ``url`` after its edits (and its includes' edits)."""
-        done = self.digest.get(url)
-        if done is not None:
-            return done
-        if url in self.active:  # resolve reports cycles; never loop on one regardless
-            raise PinEditError(f"include cycle through {display_url(url)}")
-        self.active.add(url)
-        doc = self.res.documents[url]
-        edits: list[tuple[Reference, str]] = []
-        for use, art in self.uses.get(url, []):
-            actual: str | None
-            if use.ref.kind is Kind.INCLUDE and art.url in self.res.documents:
-                actual = self.settle(art.url)
-            else:
-                actual = art.sha256
-            if actual is None:  # cannot happen in a clean resolution
+        """The digest of document ``url`` after its edits (and its includes' edits).
+
+        Depth first, leaves first, with an explicit stack: a 1,000-file chain needs no recursion.
+        """
+        pending = [(url, False)]
+        while pending:
+            url_now, children_done = pending.pop()
+            if url_now in self.digest:
                 continue
-            reason = reason_for(use.pin, actual)
-            if reason is None:
+            if not children_done:
+                if url_now in self.active:  # resolve reports cycles; never loop on one regardless
+                    raise PinEditError(f"include cycle through {display_url(url_now)}")
+                self.active.add(url_now)
+                pending.append((url_now, True))
+                for use, art in reversed(self.uses.get(url_now, [])):
+                    if use.ref.kind is Kind.INCLUDE and art.url in self.res.documents:
+                        pending.append((art.url, False))
                 continue
-            change = PinChange(
-                file=use.doc,
-                line=use.ref.line,
-                kind=use.ref.kind.value,
-                uri=use.ref.uri or "",
-                url=display_url(art.url),
-                reason=reason,
-                old=use.ref.sha,
-                new=actual,
-            )
-            if url in self.editable:
-                edits.append((use.ref, actual))
-                self.changes.append(change)
-            else:
-                self.warnings.append(
-                    f"{use.doc}:{use.ref.line}: {change.uri} needs a pin ({reason}: sha256 "
-                    f"{actual}) but {use.doc} is remote: pin cannot edit it"
+            doc = self.res.documents[url_now]
+            edits: list[tuple[Reference, str]] = []
+            for use, art in self.uses.get(url_now, []):
+                actual: str | None
+                if use.ref.kind is Kind.INCLUDE and art.url in self.res.documents:
+                    actual = self.digest[art.url]
+                else:
+                    actual = art.sha256
+                if actual is None:  # cannot happen in a clean resolution
+                    continue
+                reason = reason_for(use.pin, actual)
+                if reason is None:
+                    continue
+                change = PinChange(
+                    file=use.doc,
+                    line=use.ref.line,
+                    kind=use.ref.kind.value,
+                    uri=use.ref.uri or "",
+                    url=display_url(art.url),
+                    reason=reason,
+                    old=use.ref.sha,
+                    new=actual,
                 )
-        data = doc.data
-        if edits:
-            try:
-                data = apply_pins(doc, edits)
-            except HcdfTrustError as exc:
-                self.errors.append(exc)
-        self.new_bytes[url] = data
-        self.order.append(url)
-        sha = hashlib.sha256(data).hexdigest()
-        self.digest[url] = sha
-        return sha
+                if url_now in self.editable:
+                    edits.append((use.ref, actual))
+                    self.changes.append(change)
+                else:
+                    self.warnings.append(
+                        f"{use.doc}:{use.ref.line}: {change.uri} needs a pin ({reason}: sha256 "
+                        f"{actual}) but {use.doc} is remote: pin cannot edit it"
+                    )
+            data = doc.data
+            if edits:
+                try:
+                    data = apply_pins(doc, edits)
+                except HcdfTrustError as exc:
+                    self.errors.append(exc)
+            self.new_bytes[url_now] = data
+            self.order.append(url_now)
+            self.digest[url_now] = hashlib.sha256(data).hexdigest()
+        return self.digest[url]
 
 
 # -- the text edit -------------------------------------------------------------------

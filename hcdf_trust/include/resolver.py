@@ -498,32 +498,37 @@ class _Run:
 
     def _find_cycles(self) -> None:
         graph = self.res.includes
-        state: dict[str, int] = {}  # 1 = on the stack, 2 = done
+        documents = self.res.documents
+        done: set[str] = set()
         reported: set[tuple[str, ...]] = set()
-
-        def visit(url: str, stack: list[str]) -> None:
-            state[url] = 1
-            stack.append(url)
-            for ref, child in graph.get(url, []):
-                if state.get(child) == 1:
-                    cycle = stack[stack.index(child) :] + [child]
+        root = self.res.root_location.url
+        stack = [root]  # the include chain being walked, depth first (iterative: no recursion limit)
+        on_stack = {root: 0}
+        edges = [iter(graph.get(root, []))]
+        while edges:
+            url = stack[-1]
+            for ref, child in edges[-1]:
+                if child in on_stack:
+                    cycle = stack[on_stack[child] :] + [child]
                     key = tuple(sorted(set(cycle)))
                     if key not in reported:
                         reported.add(key)
-                        doc = self.res.documents[url]
                         self.res.errors.append(
                             IncludeCycleError(
                                 "include cycle: " + " → ".join(display_url(u) for u in cycle),
-                                file=doc.source,
+                                file=documents[url].source,
                                 line=ref.line,
                             )
                         )
-                elif child not in state and child in self.res.documents:
-                    visit(child, stack)
-            stack.pop()
-            state[url] = 2
-
-        visit(self.res.root_location.url, [])
+                elif child not in done and child in documents:
+                    on_stack[child] = len(stack)
+                    stack.append(child)
+                    edges.append(iter(graph.get(child, [])))
+                    break
+            else:
+                edges.pop()
+                del on_stack[stack.pop()]
+                done.add(url)
 
     def _check_all(self) -> None:
         res = self.res
