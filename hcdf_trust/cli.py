@@ -156,9 +156,16 @@ def main() -> None:
 @click.option(
     "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
 )
+@click.option(
+    "--max-elements",
+    type=click.IntRange(min=1),
+    default=250_000,
+    show_default=True,
+    help="Most elements the --out document may have once every include is expanded.",
+)
 @click.option("--no-lock", is_flag=True, help="Do not write the lock file.")
 @handle_errors
-def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) -> None:
+def resolve(doc: str, out: str | None, max_elements: int, no_lock: bool, as_json: bool, **kw: Any) -> None:
     """Fetch every file DOC references, verify its SHA-256, cache it, write the lock file.
 
     Relative references resolve against the referencing document, or against
@@ -172,7 +179,7 @@ def resolve(doc: str, out: str | None, no_lock: bool, as_json: bool, **kw: Any) 
     if out:
         from .include.flatten import flatten
 
-        flat = flatten(res, out_path=out)
+        flat = flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements)
     if flat is not None and out:
         from .store import atomic_write
 
