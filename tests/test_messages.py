@@ -110,7 +110,7 @@ def _project(tmp_path: Path) -> Path:
 
 CASES = {
     "missing": ('<model uri="models/gone.glb"/>', "not-found", "proj/models/gone.glb"),
-    "escape": ('<model uri="../outside.glb"/>', "path-escape", "outside.glb"),
+    "escape": ('<model uri="../outside.glb"/>', "path-escape", "../outside.glb: outside.glb is outside the root proj"),
     "symlink-escape": ('<model uri="models/link.glb"/>', "path-escape", "proj/models/link.glb"),
     "mismatch": (f'<model uri="models/m.glb" sha="{sha(b"other")}"/>', "digest-mismatch", "models/m.glb"),
     "missing-include": ('</visual></comp><include uri="sub/gone.hcdf"/><comp name="d"><visual name="w">',

@@ -142,7 +142,7 @@ class Locator:
             return None
         folder = base[7:] if base.endswith("/") else posixpath.dirname(base[7:])
         path = posixpath.normpath(posixpath.join(folder, text))
-        return self._local("file://" + path, path, self.root, file=file, line=line)
+        return self._local("file://" + path, path, self.root, file=file, line=line, uri=text)
 
     @property
     def _file_mirrors(self) -> bool:
@@ -156,20 +156,23 @@ class Locator:
                 if _is_url(target):
                     return Location(url=url, remote=target.rstrip("/") + "/" + rest.lstrip("/"))
                 mroot = Path(os.path.abspath(target))
-                return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line)
+                return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line, uri=uri)
         if url.startswith("file://"):
-            return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line)
+            return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line, uri=uri)
         return Location(url=url, remote=url)
 
     @staticmethod
-    def _local(url: str, path: str | Path, root: Path, *, file: str, line: int | None) -> Location:
+    def _local(
+        url: str, path: str | Path, root: Path, *, file: str, line: int | None, uri: str | None = None
+    ) -> Location:
         # Lexical check here; the symlink check happens on the opened descriptor (fetch.py).
         normal = os.path.normpath(path)
         root_text = os.fspath(root)
         if normal != root_text and not normal.startswith(root_text.rstrip("/") + "/"):
-            shown_root = display_path(root)
+            shown_root, shown = display_path(root), display_path(normal)
+            about = f"{uri.strip()}: " if uri and uri.strip() != shown else ""
             raise PathEscapeError(
-                f"{display_path(normal)} is outside the root {shown_root}",
+                f"{about}{shown} is outside the root {shown_root}",
                 file=file,
                 line=line,
                 expected=f"a path inside {shown_root}",
