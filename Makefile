@@ -12,11 +12,15 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-## Resolve, lock, flatten and verify the bundled example robot.
+## Resolve, lock, flatten and verify the bundled example robot, then resolve and verify
+## the flattened document itself. It lives in examples/out and references the robot's
+## files as ../robot/..., so every run that reads it names the folder holding both.
 demo: $(STAMP)
-	$(BIN)/hcdf-trust resolve examples/robot/robot.hcdf --locked --out examples/out/scout2.flat.hcdf
+	$(BIN)/hcdf-trust resolve examples/robot/robot.hcdf --locked --root examples --out examples/out/scout2.flat.hcdf
 	$(BIN)/hcdf-trust verify examples/robot/robot.hcdf
 	$(BIN)/hcdf-trust validate examples/out/scout2.flat.hcdf
+	$(BIN)/hcdf-trust resolve examples/out/scout2.flat.hcdf --root examples
+	$(BIN)/hcdf-trust verify examples/out/scout2.flat.hcdf --root examples
 
 ## The whole test suite (what CI runs); installs the Debian packages the tests need first.
 test: $(STAMP)

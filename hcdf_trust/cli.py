@@ -222,6 +222,13 @@ def main() -> None:
 @click.option(
     "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
 )
+@click.option(
+    "--max-elements",
+    type=click.IntRange(min=1),
+    default=250_000,
+    show_default=True,
+    help="Most elements the --out document may have once every include is expanded.",
+)
 @click.option("--no-lock", is_flag=True, help="Do not write the lock file.")
 @click.option(
     "--update",
@@ -234,7 +241,9 @@ def main() -> None:
     "--update URI (repeatable; the uri as written or the lock's url) only that one. Put it after DOC.",
 )
 @handle_errors
-def resolve(doc: str, out: str | None, no_lock: bool, update: tuple[str, ...], as_json: bool, **kw: Any) -> None:
+def resolve(
+    doc: str, out: str | None, max_elements: int, no_lock: bool, update: tuple[str, ...], as_json: bool, **kw: Any
+) -> None:
     """Fetch every file DOC references, verify its SHA-256, cache it, write the lock file.
 
     Relative references resolve against the referencing document, or against
@@ -262,7 +271,11 @@ def resolve(doc: str, out: str | None, no_lock: bool, update: tuple[str, ...], a
     if out:
         from .include.flatten import flatten
 
-        plan.add(out, flatten(res, out_path=out), flag="--out")
+        plan.add(
+            out,
+            flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),
+            flag="--out",
+        )
     wrote = plan.commit()
     _report(res, as_json=as_json, wrote=[display_path(p) for p in wrote])
 

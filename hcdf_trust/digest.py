@@ -21,6 +21,8 @@ CHUNK = 1 << 20
 SMALL_FILE = 64 << 10
 
 _HEX = frozenset("0123456789abcdef")
+#: What a malformed ``sha`` should have been, for ``expected`` in its error.
+PIN_FORMAT = f"{FULL_HEX} hex digits (a SHA-256), or {MIN_WEAK_HEX} to {FULL_HEX - 1} for a weak prefix"
 
 
 class PinStrength(str, Enum):
@@ -46,8 +48,13 @@ class Pin:
         return sha256_hex.startswith(self.hex)
 
 
-def parse_pin(text: str | None, *, file: str | None = None, line: int | None = None) -> Pin | None:
+def parse_pin(
+    text: str | None, *, file: str | None = None, line: int | None = None, uri: str | None = None
+) -> Pin | None:
     """Parse a ``sha`` attribute. ``None`` or blank means unpinned.
+
+    ``uri`` names the reference the digest pins, for the message; ``actual`` is the
+    attribute exactly as written.
 
     Raises:
         MalformedDigestError: not hex, longer than 64 digits or shorter than 8.
@@ -59,14 +66,22 @@ def parse_pin(text: str | None, *, file: str | None = None, line: int | None = N
         return None
     if value.startswith("sha256:"):
         value = value[len("sha256:") :]
+    about = f"{uri}: " if uri else ""
     if not set(value) <= _HEX:
-        raise MalformedDigestError(f"sha {text!r} is not a hex SHA-256 digest", file=file, line=line, actual=text)
+        raise MalformedDigestError(
+            f'{about}sha="{text}" is not a hex SHA-256 digest',
+            file=file,
+            line=line,
+            expected=PIN_FORMAT,
+            actual=text,
+        )
     if len(value) > FULL_HEX or len(value) < MIN_WEAK_HEX:
         raise MalformedDigestError(
-            f"sha {text!r} has {len(value)} hex digits: a SHA-256 pin has 64 "
+            f'{about}sha="{text}" has {len(value)} hex digits: a SHA-256 pin has 64 '
             f"(or at least {MIN_WEAK_HEX} for a weak prefix)",
             file=file,
             line=line,
+            expected=PIN_FORMAT,
             actual=text,
         )
     return Pin(value)

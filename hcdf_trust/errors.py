@@ -7,7 +7,24 @@ parsed or fetched. Every error can name the file, line, expected and actual valu
 
 from __future__ import annotations
 
+import os
 from typing import Any
+from urllib.parse import unquote, urlsplit
+
+
+def display_path(path: str | os.PathLike[str]) -> str:
+    """How messages name a local file: relative to the working folder when inside it."""
+    text = os.fspath(path)
+    rel = os.path.relpath(text)
+    return text if rel.startswith("..") else rel
+
+
+def display_place(place: str) -> str:
+    """A ``file`` or ``url`` as messages show it: absolute local paths and ``file:`` URLs
+    by :func:`display_path`, relative paths and remote URLs as they are."""
+    if place.startswith("file://"):
+        return display_path(unquote(urlsplit(place).path))
+    return display_path(place) if os.path.isabs(place) else place
 
 
 class HcdfTrustError(Exception):
@@ -35,28 +52,38 @@ class HcdfTrustError(Exception):
         self.url = url
 
     def to_dict(self) -> dict[str, Any]:
+        """``code``, ``message``, ``file``, ``line``; ``url``, ``expected``, ``actual`` when set.
+
+        ``file`` and ``url`` are shown as messages show them (:func:`display_place`).
+        """
         out: dict[str, Any] = {
             "code": self.code,
             "message": self.message,
-            "file": self.file,
+            "file": display_place(self.file) if self.file else self.file,
             "line": self.line,
         }
         if self.url is not None:
-            out["url"] = self.url
-        if self.expected is not None or self.actual is not None:
+            out["url"] = display_place(self.url)
+        if self.expected is not None:
             out["expected"] = self.expected
+        if self.actual is not None:
             out["actual"] = self.actual
         return out
 
     def __str__(self) -> str:
         where = ""
         if self.file:
-            where = f"{self.file}:{self.line}: " if self.line else f"{self.file}: "
+            shown = display_place(self.file)
+            where = f"{shown}:{self.line}: " if self.line else f"{shown}: "
         text = f"{where}{self.message}"
-        if self.url and self.url not in self.message:
-            text += f" [{self.url}]"
-        if self.expected is not None or self.actual is not None:
-            text += f"\n  expected: {self.expected}\n  actual:   {self.actual}"
+        if self.url:
+            url = display_place(self.url)
+            if url not in self.message and self.url not in self.message:
+                text += f" [{url}]"
+        if self.expected is not None:
+            text += f"\n  expected: {self.expected}"
+        if self.actual is not None:
+            text += f"\n  actual:   {self.actual}"
         return text
 
 
@@ -204,13 +231,15 @@ class Notice:
         self.url = url
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"code": self.code, "message": self.message, "file": self.file, "line": self.line}
+        file = display_place(self.file) if self.file else self.file
+        out: dict[str, Any] = {"code": self.code, "message": self.message, "file": file, "line": self.line}
         if self.url is not None:
-            out["url"] = self.url
+            out["url"] = display_place(self.url)
         return out
 
     def __str__(self) -> str:
-        where = f"{self.file}:{self.line}: " if self.file and self.line else f"{self.file}: " if self.file else ""
+        file = display_place(self.file) if self.file else None
+        where = f"{file}:{self.line}: " if file and self.line else f"{file}: " if file else ""
         return f"{where}{self.message}"
 
     def __repr__(self) -> str:

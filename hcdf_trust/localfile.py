@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from .digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
-from .errors import InputError, NotFoundError, PathEscapeError
+from .errors import InputError, NotFoundError, PathEscapeError, display_path
 
 
 def open_regular(
@@ -57,12 +57,14 @@ def open_checked(
         real = os.readlink(f"/proc/self/fd/{fd}")
         real_root = _realpath(os.fspath(root))
         if real != real_root and not real.startswith(real_root.rstrip("/") + "/"):
+            shown_root = display_path(real_root)
             raise PathEscapeError(
-                f"{path} resolves to {real}, outside the root {real_root} (symlink escape)",
+                f"{display_path(path)} resolves to {display_path(real)}, outside the root {shown_root} "
+                "(symlink escape)",
                 file=file,
                 line=line,
-                expected=f"a file inside {real_root}",
-                actual=str(real),
+                expected=f"a file inside {shown_root}",
+                actual=display_path(real),
             )
         return fd, _regular(fd, path, file=file, line=line)
     except BaseException:
@@ -76,9 +78,9 @@ def _open(path: Path | str, *, file: str | None, line: int | None, what: str) ->
         # reads from a regular file, the only kind we go on to read.
         return os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise NotFoundError(f"{path}: no such {what}", file=file, line=line, url=str(path)) from None
+        raise NotFoundError(f"{display_path(path)}: no such {what}", file=file, line=line, url=str(path)) from None
     except OSError as exc:  # ELOOP (a symlink loop), EACCES, ENOTDIR, ...
-        raise InputError(f"{path}: cannot open: {exc.strerror}", file=file, line=line) from None
+        raise InputError(f"{display_path(path)}: cannot open: {exc.strerror}", file=file, line=line) from None
 
 
 def _regular(fd: int, path: Path | str, *, file: str | None, line: int | None) -> os.stat_result:
@@ -87,9 +89,9 @@ def _regular(fd: int, path: Path | str, *, file: str | None, line: int | None) -
         return st
     mode = st.st_mode
     if stat.S_ISDIR(mode):
-        raise InputError(f"{path} is a directory", file=file, line=line)
+        raise InputError(f"{display_path(path)} is a directory", file=file, line=line)
     kind = "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "special"
-    raise InputError(f"{path} is not a regular file ({kind})", file=file, line=line)
+    raise InputError(f"{display_path(path)} is not a regular file ({kind})", file=file, line=line)
 
 
 @contextlib.contextmanager

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from hcdf_trust.errors import display_path
+
 from .conftest import PROJECT
 
 SECRET = "s3cr3t-Passw0rd"
@@ -164,7 +166,7 @@ def test_a_ca_bundle_that_is_not_pem_is_an_input_error(cli, robot, tmp_path, kin
     assert r.exit_code == 3, r.stdout + r.stderr
     [error] = r.json["errors"]
     assert "ca-" + kind in error["message"]
-    assert error["file"] == str(bundle)
+    assert error["file"] == display_path(bundle)
 
 
 def test_a_pem_ca_bundle_is_accepted(cli, robot, tls):

@@ -69,7 +69,8 @@ def work(tmp_path, monkeypatch) -> Path:
 
 
 def run(cli, *extra, lock: str = "locks/robot.lock", out: str | None = "dist/robot.flat.hcdf"):
-    args = ["resolve", "robot/robot.hcdf", "--offline", "--cache-dir", "cache", "--json", "--lock", lock]
+    # --root .: the flattened document may land outside robot/ (dist/) and still resolve again.
+    args = ["resolve", "robot/robot.hcdf", "--offline", "--cache-dir", "cache", "--json", "--lock", lock, "--root", "."]
     if out is not None:
         args += ["--out", out]
     return cli(*args, *extra)
@@ -440,7 +441,7 @@ def test_a_full_disk_writes_nothing(cli, work, tmp_path):
     before = contents(work)
     proc = subprocess.run(
         [sys.executable, "-m", "hcdf_trust.cli", "resolve", "robot/robot.hcdf", "--offline", "--cache-dir", "cache",
-         "--lock", "locks/robot.lock", "--out", "dist/robot.flat.hcdf"],
+         "--lock", "locks/robot.lock", "--out", "dist/robot.flat.hcdf", "--root", "."],
         cwd=work, env=env, capture_output=True, text=True, timeout=60,
         preexec_fn=_limit_file_size((lock_size + flat_size) // 2),
     )  # fmt: skip

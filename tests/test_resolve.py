@@ -329,7 +329,7 @@ def test_not_hcdf_is_an_input_error(cli, tmp_path):
 
 def test_flattened_output_elsewhere_still_points_at_the_same_files(cli, tree, tmp_path):
     out = tmp_path / "dist" / "flat" / "robot.flat.hcdf"
-    assert resolve(cli, tree, "--out", out).exit_code == 0
+    assert resolve(cli, tree, "--out", out, "--root", tmp_path).exit_code == 0
     r = cli("resolve", out, "--root", tmp_path, "--no-lock", "--json")
     assert r.exit_code == 0, r.stdout
     shas = {a["sha256"] for a in r.json["artifacts"]}

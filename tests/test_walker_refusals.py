@@ -160,7 +160,7 @@ def test_equal_uri_and_href_are_one_reference_and_flattening_rebases_both(cli, t
         f'    <visual><model uri="parts/m.glb" href="parts/m.glb" sha="{GLB_SHA}"/></visual>\n  </comp>\n</hcdf>\n'
     )
     flat = tmp_path / "out" / "flat.hcdf"
-    r = cli("resolve", doc, "--out", flat, "--cache-dir", tmp_path / "c", "--json")
+    r = cli("resolve", doc, "--out", flat, "--root", tmp_path, "--cache-dir", tmp_path / "c", "--json")
     assert r.exit_code == 0, r.stdout
     [art] = r.json["artifacts"]
     assert (art["uri"], art["sha256"]) == ("parts/m.glb", GLB_SHA)

@@ -248,7 +248,10 @@ class HttpFetcher:
             reason = "redirect to plain http is refused without --allow-http"
         else:
             reason = f"redirect to a {scheme or 'relative'}: URL is refused"
-        raise FetchError(f"{url}: {reason} ({current})", file=file, line=line, url=url, actual=current)
+        allowed = "an https or http URL" if self.allow_http and original == "http" else "an https URL"
+        raise FetchError(
+            f"{url}: {reason} ({current})", file=file, line=line, url=url, expected=allowed, actual=current
+        )
 
 
 MAX_CA_BUNDLE_BYTES = 16 << 20

@@ -79,11 +79,23 @@ Output
     ``self-collision-disable`` pairs are merged into one element (the schema
     allows one). A comment directly before an element in an included file moves
     with it. Relative file references (model, mesh, stream profile, firmware
-    manifest) in included files that resolved against their own document are
-    rewritten relative to the root document's folder, so the output resolves to
-    the same files when written beside the root document; references resolved
-    against ``--base`` are kept as written. Indentation is regenerated. The same
-    inputs give byte-identical output.
+    manifest) that resolved against their own document are rewritten relative
+    to the output's folder; references resolved against ``--base`` are kept as
+    written. Indentation is regenerated. The same inputs give byte-identical output.
+
+Root
+    The output resolves again with the run's ``--root``/``--base``: every local file
+    it references must lie inside ``--root`` (else a local ``--base``), or, when the
+    run names neither, inside the output's own folder, where a plain ``resolve`` of
+    it confines its references. Otherwise flattening is refused before anything is
+    written, naming the first reference that would leave and the two ways out.
+
+Bounds
+    :func:`expanded_elements` counts the output's elements from the include graph
+    alone (times each document is expanded × its elements, exact big integers), and
+    more than ``max_elements`` (:data:`DEFAULT_MAX_ELEMENTS`) is refused before any
+    copying. Every walk (:func:`include_order`, the expansion, the provenance tree) is
+    iterative, so include chains as deep as ``--max-depth`` allows never recurse.
 """
 
 from __future__ import annotations
@@ -93,21 +105,32 @@ import math
 import os
 import posixpath
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, replace
-from typing import cast
-from urllib.parse import urljoin, urlsplit
+from dataclasses import dataclass, field
+from urllib.parse import unquote, urljoin, urlsplit
 
 from lxml import etree
 
 from ..document import URI_ATTRS, Document, Kind
 from ..errors import FlattenError
 from ..xml import sourceline
-from .locate import _normalise, file_url
+from .locate import _normalise, display_path, file_url
 from .resolver import Resolution, display_url
 
-__all__ = ["SEPARATOR", "Pose", "flatten", "format_pose", "parse_pose"]
+__all__ = [
+    "DEFAULT_MAX_ELEMENTS",
+    "SEPARATOR",
+    "Pose",
+    "expanded_elements",
+    "flatten",
+    "format_pose",
+    "include_order",
+    "parse_pose",
+]
 
 SEPARATOR = "_"
+#: The most elements a flattened document may have unless ``--max-elements`` raises it.
+#: About 20 MB of output, 360 MB of memory and 5 s here; the published humanoid has about 2,000.
+DEFAULT_MAX_ELEMENTS = 250_000
 
 #: Names defined at document level, in the schema's order of <hcdf> children.
 DOCUMENT_KINDS = ("comp", "joint", "group", "state", "network", "transmission", "material")
@@ -130,6 +153,15 @@ _FORBIDDEN_IN_PREFIX = ("/", ".")
 
 # Elements whose ``device`` attribute names a comp (bus, PLCA, chain, spur, gPTP, mesh).
 _DEVICE_TAGS = frozenset({"participant", "coordinator", "hop", "spur", "clock", "node"})
+# Every element :func:`_rename_references` may rename something in.
+_REFERRING = frozenset(
+    {
+        *("parent", "child", "mimic", "group", "joint", "joint-position", "pair", "motor", "spring"),
+        *("transmission", "surface", "material", "frame", "tunnel", "dc", "assign", "port", "antenna"),
+        *_DEVICE_TAGS,
+    }
+)
+_REFERRING_PATTERNS = tuple(sorted("{*}" + tag for tag in _REFERRING))
 
 Matrix = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 Vector = tuple[float, float, float]
@@ -164,10 +196,24 @@ class Pose:
 
     def compose(self, inner: Pose) -> Pose:
         """``self ∘ inner``: apply ``inner`` first, then ``self``."""
-        a, b = self.r, inner.r
-        r = tuple(tuple(sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)) for i in range(3))
-        t = tuple(sum(a[i][k] * inner.t[k] for k in range(3)) + self.t[i] for i in range(3))
-        return Pose(cast(Matrix, r), cast(Vector, t))  # built over range(3): three long
+        (a0, a1, a2), (b0, b1, b2), (v0, v1, v2) = self.r, inner.r, inner.t
+
+        def row(a: Vector) -> Vector:
+            return (
+                a[0] * b0[0] + a[1] * b1[0] + a[2] * b2[0],
+                a[0] * b0[1] + a[1] * b1[1] + a[2] * b2[1],
+                a[0] * b0[2] + a[1] * b1[2] + a[2] * b2[2],
+            )
+
+        t0, t1, t2 = self.t
+        return Pose(
+            (row(a0), row(a1), row(a2)),
+            (
+                a0[0] * v0 + a0[1] * v1 + a0[2] * v2 + t0,
+                a1[0] * v0 + a1[1] * v1 + a1[2] * v2 + t1,
+                a2[0] * v0 + a2[1] * v1 + a2[2] * v2 + t2,
+            ),
+        )
 
     def rpy(self) -> Vector:
         """Roll, pitch, yaw with pitch in [-π/2, π/2]; stable near gimbal lock.
@@ -182,8 +228,11 @@ class Pose:
         yaw = math.atan2(r[1][0], r[0][0]) if cp > 1e-12 else math.atan2(-r[0][1], r[1][1])
         # M = Ry(pitch)^T · Rz(yaw)^T · R should be Rx(roll).
         inv = Pose.from_xyz_rpy(0, 0, 0, 0, pitch, yaw).r
-        m = [[sum(inv[k][i] * r[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
-        roll = math.atan2(m[2][1] - m[1][2], m[1][1] + m[2][2])
+
+        def m(i: int, j: int) -> float:
+            return inv[0][i] * r[0][j] + inv[1][i] * r[1][j] + inv[2][i] * r[2][j]
+
+        roll = math.atan2(m(2, 1) - m(1, 2), m(1, 1) + m(2, 2))
         return (roll, pitch, yaw)
 
 
@@ -222,16 +271,45 @@ def format_pose(pose: Pose) -> str:
 # --- the flattener ---------------------------------------------------------------------
 
 
+#: Include names as a linked list, outermost first: prepending an outer name is O(1),
+#: so a deep chain does not rebuild a tuple per level.
+_Chain = tuple[str, "_Chain"] | None
+
+
+def _unchain(chain: _Chain) -> tuple[str, ...]:
+    out = []
+    while chain is not None:
+        name, chain = chain
+        out.append(name)
+    return tuple(out)
+
+
 @dataclass
 class _Item:
-    """One top-level element of the flattened document, with where it was defined."""
+    """One top-level element of the flattened document, with where it was defined.
+
+    ``pose`` is the placement composed so far (written as ``<pose>`` when serialised,
+    so a deep chain composes transforms, not text); ``refs`` caches the elements that
+    may refer to a name, found once per copy.
+    """
 
     el: etree._Element
     source: str
     line: int | None
     comments: list[etree._Element] = field(default_factory=list)
-    via: tuple[str, ...] = ()  # include names it came through, outermost first
+    via: _Chain = None  # include names it came through, outermost first
     original: str | None = None  # its name before prefixing
+    pose: Pose | None = None
+    tag: str | None = None
+    name: str | None = None  # its current name (written back to the element by _serialize)
+    refs: list[etree._Element] | None = None
+    inner: tuple[frozenset[str], tuple[tuple[str, str], ...]] | None = None  # frames; motors and sensors
+
+    def __post_init__(self) -> None:
+        if self.tag is None:
+            self.tag = _local(self.el)
+        if self.name is None:
+            self.name = self.el.get("name")
 
     def copy(self) -> _Item:
         return _Item(
@@ -241,14 +319,40 @@ class _Item:
             [copy.deepcopy(c) for c in self.comments],
             self.via,
             self.original,
+            self.pose,
+            self.tag,
+            self.name,
+            None,
+            self.inner,
         )
+
+    def references(self) -> list[etree._Element]:
+        """The elements of this item that may name a comp, joint, ... (not inside ``<extension>``)."""
+        if self.refs is None:
+            el = self.el
+            if self.tag == "extension" or el.find(".//{*}extension") is not None:
+                self.refs = [e for e in _walk(el) if _local(e) in _REFERRING]
+            else:
+                self.refs = list(el.iter(*_REFERRING_PATTERNS))
+        return self.refs
+
+    def names_inside(self) -> tuple[frozenset[str], tuple[tuple[str, str], ...]]:
+        """A comp's frame names, and its (motor|sensor, name) children: never prefixed."""
+        if self.inner is None:
+            frames = frozenset(frame for f in self.el if _local(f) == "frame" and (frame := f.get("name")))
+            owned = tuple(
+                (kind, child_name)
+                for child in self.el
+                if (kind := _local(child)) in ("motor", "sensor") and (child_name := child.get("name"))
+            )
+            self.inner = (frames, owned)
+        return self.inner
 
 
 @dataclass
 class _Included:
     """One include site, for the provenance comment."""
 
-    names: tuple[str, ...]  # prefixes, outermost first
     where: str
     target: str
     sha256: str | None
@@ -258,40 +362,136 @@ class _Included:
     pose: str | None
 
 
+@dataclass(frozen=True)
+class _Site:
+    """An include site and the sites of the file it includes: a tree, so that including
+    an expansion one level further up adds one node instead of renaming every site below."""
+
+    name: str  # the include's name ("" for none)
+    included: _Included
+    below: list[_Site]
+
+
 @dataclass
 class _Expansion:
     items: list[_Item]
-    included: list[_Included]
+    included: list[_Site]
 
     def copy(self) -> _Expansion:
         return _Expansion([i.copy() for i in self.items], list(self.included))
 
 
-def flatten(res: Resolution, *, out_path: str | os.PathLike[str] | None = None) -> bytes:
+def flatten(
+    res: Resolution,
+    *,
+    out_path: str | os.PathLike[str] | None = None,
+    root: str | os.PathLike[str] | None = None,
+    base: str | None = None,
+    max_elements: int = DEFAULT_MAX_ELEMENTS,
+) -> bytes:
     """One self-contained HCDF document with every include of ``res`` expanded.
 
     Relative file references are rewritten to hold from ``out_path``'s folder
-    (default: the root document's folder).
+    (default: the root document's folder). ``root`` and ``base`` are the run's
+    ``--root`` and ``--base``: the flattened document resolves again with the same
+    ones, so every local file it references must lie inside the folder they give
+    it (``root``, else a local ``base``, else its own folder). ``max_elements`` caps
+    :func:`expanded_elements`, checked before anything is copied.
 
     Raises:
-        FlattenError: the tree has unresolved errors, frames disagree, an include
-            ``name`` or ``pose`` is unusable, an include is not a child of
-            ``<hcdf>``, or two elements of one kind share a name after prefixing.
+        FlattenError: the tree has unresolved errors, is larger than ``max_elements``
+            once expanded, references a file outside the flattened document's root,
+            frames disagree, an include ``name`` or ``pose`` is unusable, an include
+            is not a child of ``<hcdf>``, or two elements of one kind share a name
+            after prefixing.
     """
     if not res.ok:
         raise FlattenError(
             "cannot flatten a document tree that did not resolve cleanly",
             file=res.root.source,
         )
-    return _Flattener(res, out_path).run()
+    return _Flattener(res, out_path, root=root, base=base, max_elements=max_elements).run()
+
+
+def include_order(res: Resolution) -> list[str]:
+    """Every resolved document reachable from the root, each after all it includes
+    (post-order, depth first in document order). Iterative: no recursion limit.
+
+    Raises:
+        FlattenError: an include cycle.
+    """
+    done: set[str] = set()
+    on_stack: list[str] = [res.root_location.url]
+    position = {res.root_location.url: 0}
+    stack = [iter(res.includes.get(res.root_location.url, []))]
+    order: list[str] = []
+    while stack:
+        for ref, child in stack[-1]:
+            if child in done or child not in res.documents:
+                continue
+            if child in position:
+                chain = " → ".join(display_url(u) for u in (*on_stack[position[child] :], child))
+                raise FlattenError(f"include cycle: {chain}", file=display_url(on_stack[-1]), line=ref.line)
+            position[child] = len(on_stack)
+            on_stack.append(child)
+            stack.append(iter(res.includes.get(child, [])))
+            break
+        else:
+            stack.pop()
+            url = on_stack.pop()
+            del position[url]
+            done.add(url)
+            order.append(url)
+    return order
+
+
+def expanded_elements(res: Resolution, order: list[str] | None = None) -> tuple[int, str, int]:
+    """How many elements the flattened document has, computed from the include graph
+    alone: the sum over its documents of (times the document is expanded) × (its
+    elements). Also the document contributing most and how often it is expanded.
+
+    Raises:
+        FlattenError: an include cycle.
+    """
+    order = include_order(res) if order is None else order
+    instances = dict.fromkeys(order, 0)
+    instances[res.root_location.url] = 1
+    total, top, top_share = 0, res.root_location.url, -1
+    for url in reversed(order):  # every includer before what it includes
+        count = instances[url]
+        share = count * sum(1 for _ in res.documents[url].root.iter(etree.Element))
+        total += share
+        if share > top_share:
+            top, top_share = url, share
+        for _, child in res.includes.get(url, []):
+            if child in instances:
+                instances[child] += count
+    return total, top, instances[top]
+
+
+def _count(n: int) -> str:
+    return f"{n:,}" if n < 10**15 else f"about 10^{len(str(n)) - 1}"
 
 
 class _Flattener:
-    def __init__(self, res: Resolution, out_path: str | os.PathLike[str] | None = None) -> None:
+    def __init__(
+        self,
+        res: Resolution,
+        out_path: str | os.PathLike[str] | None = None,
+        *,
+        root: str | os.PathLike[str] | None = None,
+        base: str | None = None,
+        max_elements: int = DEFAULT_MAX_ELEMENTS,
+    ) -> None:
         self.res = res
         self.root_url = res.root_location.url
-        self.target_url = file_url(out_path) if out_path is not None else self.root_url
-        self.memo: dict[str, _Expansion] = {}
+        self.out_path = os.path.abspath(out_path) if out_path is not None else None
+        self.target_url = file_url(self.out_path) if self.out_path is not None else self.root_url
+        if root is None and base is not None and "://" not in base:
+            root = base
+        self.named_root = root is not None
+        self.flat_root = os.path.abspath(root) if root is not None else posixpath.dirname(_path(self.target_url))
+        self.max_elements = max_elements
         # Reference element -> (resolved URL, attribute or None for text).
         self.uri_of: dict[etree._Element, tuple[str, str | None]] = {}
         for art in res.artifacts.values():
@@ -306,14 +506,65 @@ class _Flattener:
         }
 
     def run(self) -> bytes:
+        order = include_order(self.res)
+        self._check_size(order)
+        self._check_root()
         frames = self._check_frames()
         root_doc = self.res.documents[self.root_url]
-        expansion = self._expand(self.root_url, ())
+        expansion = self._expand_all(order)
         _check_collisions(expansion.items)
         return _serialize(root_doc, expansion, frames)
 
-    # -- body-frame / world-frame --------------------------------------------------------
+    # -- bounds: checked before anything is copied -----------------------------------------
 
+    def _check_size(self, order: list[str]) -> None:
+        total, top, times = expanded_elements(self.res, order)
+        if total <= self.max_elements:
+            return
+        raise FlattenError(
+            f"the flattened document would have {_count(total)} elements, over the limit of "
+            f"{self.max_elements:,} (raise it with --max-elements N); most come from "
+            f"{display_url(top)}, expanded {_count(times)} times",
+            file=self.res.root.source,
+            expected=f"at most {self.max_elements:,} elements",
+            actual=_count(total),
+        )
+
+    def _check_root(self) -> None:
+        """Every local file the output references lies inside the folder it will be resolved in."""
+        inside = self.flat_root.rstrip("/") + "/"
+        outside = [
+            art
+            for art in self.res.artifacts.values()
+            if art.kind is not Kind.INCLUDE
+            and art.url.startswith("file://")
+            and not (path := os.path.normpath(_path(art.url))).startswith(inside)
+            and path != self.flat_root
+        ]
+        if not outside:
+            return
+        first = outside[0]
+        use = first.uses[0]
+        shown_root = display_path(self.flat_root)
+        out = display_path(self.out_path) if self.out_path else self.res.root.source
+        written = _relative_to_root(first.url, self.target_url)
+        if self.named_root:
+            why = f"outside --root {shown_root}"
+        else:
+            why = (
+                f"outside its folder {shown_root}, the only folder a plain `hcdf-trust resolve {out}` lets it reference"
+            )
+        raise FlattenError(
+            f"{out} would reference {len(outside)} file(s) {why} (first {written}): write it beside "
+            f"{self.res.root.source} or in a folder above, or give --root DIR (a folder holding both) "
+            "to this run and to every run that reads the flattened document",
+            file=use.doc,
+            line=use.ref.line,
+            expected=f"a file inside {shown_root}",
+            actual=display_url(first.url),
+        )
+
+    # -- body-frame / world-frame --------------------------------------------------------
     def _check_frames(self) -> dict[str, str]:
         first: dict[str, tuple[str, str, int | None]] = {}
         seen: set[str] = set()
@@ -348,17 +599,31 @@ class _Flattener:
 
     # -- expansion -----------------------------------------------------------------------
 
-    def _expand(self, url: str, stack: tuple[str, ...]) -> _Expansion:
-        """``url`` with its includes expanded, its own names not (yet) prefixed."""
-        if url in self.memo:
-            return self.memo[url].copy()
-        if url in stack:
-            chain = " → ".join(display_url(u) for u in (*stack, url))
-            raise FlattenError(f"include cycle: {chain}", file=display_url(stack[-1]))
-        doc = self.res.documents.get(url)
-        if doc is None:
-            raise FlattenError(f"{display_url(url)} was not resolved", file=display_url(url))
-        is_root = not stack
+    def _expand_all(self, order: list[str]) -> _Expansion:
+        """The root with every include expanded, built leaves first (no recursion).
+
+        Each document's expansion (its own names not yet prefixed) is kept until its
+        last include site has taken it: earlier sites take a copy, the last one the
+        original, so a chain holds about one copy at a time.
+        """
+        left: dict[str, int] = {}
+        for url in order:
+            for child in self.include_of.get(url, {}).values():
+                if child in self.res.documents:
+                    left[child] = left.get(child, 0) + 1
+        memo: dict[str, _Expansion] = {}
+        for url in order:
+            memo[url] = self._expand(url, memo, left)
+        return memo[self.root_url]
+
+    def _take(self, url: str, memo: dict[str, _Expansion], left: dict[str, int]) -> _Expansion:
+        left[url] -= 1
+        return memo.pop(url) if left[url] == 0 else memo[url].copy()
+
+    def _expand(self, url: str, memo: dict[str, _Expansion], left: dict[str, int]) -> _Expansion:
+        """``url`` with its includes (already in ``memo``) expanded, its own names not prefixed."""
+        doc = self.res.documents[url]
+        is_root = url == self.root_url
         sites = self.include_of.get(url, {})
         for el in sites:
             parent = el.getparent()
@@ -369,7 +634,7 @@ class _Flattener:
                     line=sourceline(el),
                 )
         items: list[_Item] = []
-        included: list[_Included] = []
+        included: list[_Site] = []
         comments: list[etree._Element] = []
         for child in doc.root:
             if isinstance(child, etree._Comment):
@@ -379,7 +644,10 @@ class _Flattener:
                 continue  # processing instructions, entities
             tag = etree.QName(child).localname
             if child in sites:
-                sub = self._include(doc, child, sites[child], (*stack, url))
+                child_url = sites[child]
+                if child_url not in self.res.documents:
+                    raise FlattenError(f"{display_url(child_url)} was not resolved", file=display_url(child_url))
+                sub = self._include(doc, child, child_url, self._take(child_url, memo, left))
                 items.extend(sub.items)
                 included.extend(sub.included)
             elif tag == "include":
@@ -390,12 +658,10 @@ class _Flattener:
             comments = []
         if is_root and comments:  # trailing comments of the root document
             items.append(_Item(etree.Element("_trailing"), doc.source, None, comments))
-        result = _Expansion(items, included)
-        if not is_root:
-            self.memo[url] = result.copy()
-        return result
+        return _Expansion(items, included)
 
-    def _include(self, doc: Document, el: etree._Element, child_url: str, stack: tuple[str, ...]) -> _Expansion:
+    def _include(self, doc: Document, el: etree._Element, child_url: str, sub: _Expansion) -> _Expansion:
+        """Prefix and place ``sub`` (``child_url`` expanded) as the include ``el`` asks."""
         name = (el.get("name") or "").strip()
         if any(c in name for c in _FORBIDDEN_IN_PREFIX) or any(c.isspace() for c in name):
             raise FlattenError(
@@ -403,20 +669,18 @@ class _Flattener:
                 f"white space (they separate comp/port and comp.element references)",
                 file=doc.source,
                 line=sourceline(el),
+                expected="a name without '/', '.' or white space",
                 actual=name,
             )
         pose_text = el.get("pose")
         pose = parse_pose(pose_text, file=doc.source, line=sourceline(el)) if pose_text else None
-        sub = self._expand(child_url, stack)
         if name:
             _prefix(sub.items, name)
-            sub.included = [replace(inc, names=(name, *inc.names)) for inc in sub.included]
         if pose is not None:
             _place(sub.items, pose)
         child = self.res.documents[child_url]
         art = self.res.artifacts.get(child_url)
         site = _Included(
-            names=(name,) if name else (),
             where=f"{doc.source}:{el.sourceline}",
             target=_relative_to_root(child_url, self.root_url),
             sha256=art.sha256 if art is not None else None,
@@ -425,7 +689,7 @@ class _Flattener:
             license=_text(child.root.find("license")),
             pose=pose_text.strip() if pose_text else None,
         )
-        return _Expansion(sub.items, [site, *sub.included])
+        return _Expansion(sub.items, [_Site(name, site, sub.included)])
 
     def _copy(self, doc: Document, url: str, el: etree._Element) -> etree._Element:
         """A detached copy of ``el`` with its file references rebased onto the root."""
@@ -474,6 +738,10 @@ def _rebase(uri: str, art_url: str, doc_url: str, root_url: str) -> str:
     return _relative_to_root(art_url, root_url)
 
 
+def _path(url: str) -> str:
+    return unquote(urlsplit(url).path)
+
+
 def _relative_to_root(url: str, root_url: str) -> str:
     a, r = urlsplit(url), urlsplit(root_url)
     if (a.scheme, a.netloc) != (r.scheme, r.netloc) or a.query:
@@ -485,7 +753,8 @@ def _relative_to_root(url: str, root_url: str) -> str:
 
 
 def _local(el: etree._Element) -> str | None:
-    return etree.QName(el).localname if isinstance(el.tag, str) else None
+    tag = el.tag
+    return tag.rpartition("}")[2] if isinstance(tag, str) else None
 
 
 def _walk(el: etree._Element) -> Iterator[etree._Element]:
@@ -505,11 +774,11 @@ class _Names:
     def __init__(self, items: list[_Item], prefix: str) -> None:
         self.prefix = prefix
         self.defined: dict[str, set[str]] = {k: set() for k in (*DOCUMENT_KINDS, *NETWORK_KINDS)}
-        self.frames: dict[str, set[str]] = {}
+        self.frames: dict[etree._Element, frozenset[str]] = {}  # comp element -> its frame names
         self.owners: dict[str, dict[str, list[str]]] = {"motor": {}, "sensor": {}}
         for item in items:
-            tag = _local(item.el)
-            name = item.el.get("name")
+            tag = item.tag
+            name = item.name
             if tag in DOCUMENT_KINDS and name is not None:
                 self.defined[tag].add(name)
             if tag == "network":
@@ -518,11 +787,10 @@ class _Names:
                     if kind in NETWORK_KINDS and child_name is not None:
                         self.defined[kind].add(child_name)
             if tag == "comp" and name is not None:
-                self.frames[name] = {frame for f in item.el if _local(f) == "frame" and (frame := f.get("name"))}
-                for child in item.el:
-                    kind, child_name = _local(child), child.get("name")
-                    if kind in self.owners and child_name:
-                        self.owners[kind].setdefault(child_name, []).append(name)
+                frames, owned = item.names_inside()
+                self.frames[item.el] = frames
+                for kind, child_name in owned:
+                    self.owners[kind].setdefault(child_name, []).append(name)
 
     def new(self, kind: str, name: str) -> str:
         return f"{self.prefix}{SEPARATOR}{name}" if name in self.defined[kind] else name
@@ -558,20 +826,20 @@ def _prefix(items: list[_Item], prefix: str) -> None:
     """Prefix every name ``items`` define, and every reference to those names, in place."""
     names = _Names(items, prefix)
     for item in items:
-        for el in _walk(item.el):
+        for el in item.references():
             _rename_references(el, names)
     for item in items:
-        tag, name = _local(item.el), item.el.get("name")
+        tag, name = item.tag, item.name
         if tag in DOCUMENT_KINDS and name is not None:
             if item.original is None:
                 item.original = name
-            item.el.set("name", names.new(tag, name))
+            item.name = names.new(tag, name)
         if tag == "network":
             for child in item.el:
                 kind, child_name = _local(child), child.get("name")
                 if kind in NETWORK_KINDS and child_name is not None:
                     child.set("name", names.new(kind, child_name))
-        item.via = (prefix, *item.via)
+        item.via = (prefix, item.via)
 
 
 def _set(el: etree._Element, attr: str, rename: Callable[[str], str]) -> None:
@@ -618,7 +886,7 @@ def _rename_references(el: etree._Element, n: _Names) -> None:
     elif tag == "material" and ptag == "visual":
         _set(el, "name", lambda v: n.new("material", v))
     elif tag == "frame" and ptag == "comp" and parent is not None:
-        own = n.frames.get(parent.get("name") or "", set())
+        own = n.frames.get(parent, frozenset())
         _set(el, "relative-to", lambda v: v if v in own else comp(v))
     elif tag in _DEVICE_TAGS:
         _set(el, "device", comp)  # port, via, ingress, egress: port names on that device
@@ -642,26 +910,30 @@ def _rename_references(el: etree._Element, n: _Names) -> None:
 
 
 def _place(items: list[_Item], pose: Pose) -> None:
-    """Compose ``pose`` onto every comp of ``items`` that is the child of no joint."""
+    """Compose ``pose`` onto every comp of ``items`` that is the child of no joint.
+
+    The first placement takes over the comp's own ``<pose>`` (removed here, written back
+    composed by :func:`_serialize`).
+    """
     children = set()
     for item in items:
-        if _local(item.el) == "joint":
+        if item.tag == "joint":
             for c in item.el:
                 if _local(c) == "child" and c.get("comp") is not None:
                     children.add(c.get("comp"))
     for item in items:
-        if _local(item.el) != "comp" or item.el.get("name") in children:
+        if item.tag != "comp" or item.name in children:
             continue
-        existing = [c for c in item.el if _local(c) == "pose"]
-        inner = Pose.identity()
-        if existing:
-            line = sourceline(existing[0])
-            inner = parse_pose(existing[0].text or "", file=item.source, line=line)
-        for c in existing:
-            item.el.remove(c)
-        el = etree.Element("pose")
-        el.text = format_pose(pose.compose(inner))
-        item.el.insert(0, el)
+        if item.pose is None:
+            existing = [c for c in item.el if _local(c) == "pose"]
+            inner = Pose.identity()
+            if existing:
+                line = sourceline(existing[0])
+                inner = parse_pose(existing[0].text or "", file=item.source, line=line)
+            for c in existing:
+                item.el.remove(c)
+            item.pose = inner
+        item.pose = pose.compose(item.pose)
 
 
 # --- collisions and output -------------------------------------------------------------------
@@ -670,8 +942,8 @@ def _place(items: list[_Item], pose: Pose) -> None:
 def _check_collisions(items: list[_Item]) -> None:
     seen: dict[tuple[str, str], _Item] = {}
     for item in items:
-        tag = _local(item.el)
-        name = item.el.get("name")
+        tag = item.tag
+        name = item.name
         if tag not in DOCUMENT_KINDS or name is None:
             continue
         other = seen.setdefault((tag, name), item)
@@ -682,14 +954,13 @@ def _check_collisions(items: list[_Item]) -> None:
             f"{_where(other)} and at {_where(item)}",
             file=item.source,
             line=item.line,
-            actual=name,
         )
 
 
 def _where(item: _Item) -> str:
     text = f"{item.source}:{item.line}"
     if item.via:
-        inc = ", ".join(repr(v) for v in item.via)
+        inc = ", ".join(repr(v) for v in _unchain(item.via))
         text += f' (as "{item.original}", included as {inc})'
     return text
 
@@ -699,10 +970,15 @@ def _comment_text(text: str) -> str:
     return text + " " if text.endswith("-") else text
 
 
-def _provenance(root: Document, included: list[_Included]) -> etree._Element:
+def _provenance(root: Document, included: list[_Site]) -> etree._Element:
     lines = [f" Flattened by hcdf-trust from {root.source}. Includes expanded:"]
-    for inc in included:
-        prefix = SEPARATOR.join(inc.names) if inc.names else "(no prefix)"
+    pending: list[tuple[_Site, tuple[str, ...]]] = [(site, ()) for site in reversed(included)]
+    while pending:  # depth first, each site before the sites of the file it includes
+        site, above = pending.pop()
+        names = (*above, site.name) if site.name else above
+        pending.extend((below, names) for below in reversed(site.below))
+        inc = site.included
+        prefix = SEPARATOR.join(names) if names else "(no prefix)"
         parts = [inc.target]
         if inc.sha256:
             parts.append(f"sha256 {inc.sha256}")
@@ -720,7 +996,7 @@ def _provenance(root: Document, included: list[_Included]) -> etree._Element:
 
 
 def _section(item: _Item) -> int:
-    tag = _local(item.el)
+    tag = item.tag
     if tag == "_trailing":
         return _UNKNOWN_SECTION + 1
     return SECTIONS.index(tag) if tag in SECTIONS else _UNKNOWN_SECTION
@@ -735,6 +1011,13 @@ def _serialize(root_doc: Document, expansion: _Expansion, frames: dict[str, str]
         if out.get(attr) is None:
             out.set(attr, value)
 
+    for item in expansion.items:
+        if item.original is not None and item.name is not None:
+            item.el.set("name", item.name)
+        if item.pose is not None:
+            pose = etree.Element("pose")
+            pose.text = format_pose(item.pose)
+            item.el.insert(0, pose)
     ordered = sorted(expansion.items, key=_section)  # stable: document order within a section
     merged: etree._Element | None = None
     placed: list[tuple[int, list[etree._Element]]] = []
@@ -745,7 +1028,7 @@ def _serialize(root_doc: Document, expansion: _Expansion, frames: dict[str, str]
             placed.append((len(METADATA), [_provenance(root_doc, expansion.included)]))
             provenance_done = True
         nodes = [*item.comments]
-        if _local(item.el) == "self-collision-disable":
+        if item.tag == "self-collision-disable":
             if merged is None:
                 merged = item.el
                 nodes.append(item.el)
@@ -755,7 +1038,7 @@ def _serialize(root_doc: Document, expansion: _Expansion, frames: dict[str, str]
                 for c in list(item.el):
                     merged.append(c)
                 continue
-        elif _local(item.el) != "_trailing":
+        elif item.tag != "_trailing":
             nodes.append(item.el)
         placed.append((section, nodes))
     if not provenance_done:
@@ -784,9 +1067,12 @@ def _serialize(root_doc: Document, expansion: _Expansion, frames: dict[str, str]
 
 
 def _bytes(node: etree._Element) -> bytes:
-    node = copy.deepcopy(node)
-    node.tail = None
-    return etree.tostring(node, encoding="UTF-8", xml_declaration=False).strip()
+    """``node`` serialised without its tail (no copy: the output tree may be large)."""
+    tail, node.tail = node.tail, None
+    try:
+        return etree.tostring(node, encoding="UTF-8", xml_declaration=False).strip()
+    finally:
+        node.tail = tail
 
 
 def _strip_whitespace(out: etree._Element) -> None:

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote, urljoin, urlsplit
 
-from ..errors import CredentialsError, InputError, PathEscapeError
+from ..errors import CredentialsError, InputError, NotFoundError, PathEscapeError
+from ..errors import display_path as display_path  # re-exported: how messages name a local file
 
 REMOTE_SCHEMES = ("https", "http")
 # Unreserved URL characters plus "/": text that means the same as a URL and as a path.
@@ -45,13 +46,6 @@ def file_url(path: str | os.PathLike[str], *, directory: bool = False) -> str:
     text = os.path.abspath(os.fspath(path))
     url = "file://" + quote(text)
     return url + "/" if directory and not url.endswith("/") else url
-
-
-def display_path(path: str | os.PathLike[str]) -> str:
-    """How messages name a local file: relative to the working folder when inside it."""
-    text = os.fspath(path)
-    rel = os.path.relpath(text)
-    return text if rel.startswith("..") else rel
 
 
 def _is_url(text: str) -> bool:
@@ -166,10 +160,17 @@ class Locator:
                     "to their document (or --base) or https URLs",
                     file=file,
                     line=line,
+                    expected="a relative path or an https URL",
                     actual=shown,
                 )
             elif scheme:
-                raise InputError(f"unsupported URL scheme {scheme!r} in {shown!r}", file=file, line=line, actual=shown)
+                raise InputError(
+                    f"unsupported URL scheme {scheme!r} in {shown!r}",
+                    file=file,
+                    line=line,
+                    expected="a relative path or an https URL",
+                    actual=shown,
+                )
             else:
                 absolute = urljoin(self.base or referrer.url, text)
             refuse_credentials(absolute, what="reference", file=file, line=line)
@@ -197,7 +198,7 @@ class Locator:
             return None
         folder = base[7:] if base.endswith("/") else posixpath.dirname(base[7:])
         path = posixpath.normpath(posixpath.join(folder, text))
-        return self._local("file://" + path, path, self.root, file=file, line=line)
+        return self._local("file://" + path, path, self.root, file=file, line=line, uri=text)
 
     @property
     def _file_mirrors(self) -> bool:
@@ -211,23 +212,27 @@ class Locator:
                 if _is_url(target):
                     return Location(url=url, remote=target.rstrip("/") + "/" + rest.lstrip("/"))
                 mroot = Path(os.path.abspath(target))
-                return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line)
+                return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line, uri=uri)
         if url.startswith("file://"):
-            return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line)
+            return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line, uri=uri)
         return Location(url=url, remote=url)
 
     @staticmethod
-    def _local(url: str, path: str | Path, root: Path, *, file: str, line: int | None) -> Location:
+    def _local(
+        url: str, path: str | Path, root: Path, *, file: str, line: int | None, uri: str | None = None
+    ) -> Location:
         # Lexical check here; the symlink check happens on the opened descriptor (fetch.py).
         normal = os.path.normpath(path)
         root_text = os.fspath(root)
         if normal != root_text and not normal.startswith(root_text.rstrip("/") + "/"):
+            shown_root, shown = display_path(root), display_path(normal)
+            about = f"{uri.strip()}: " if uri and uri.strip() != shown else ""
             raise PathEscapeError(
-                f"{path} is outside the root {root}",
+                f"{about}{shown} is outside the root {shown_root}",
                 file=file,
                 line=line,
-                expected=f"a path inside {root}",
-                actual=str(normal),
+                expected=f"a path inside {shown_root}",
+                actual=display_path(normal),
             )
         return Location(url=url, path=normal, root=root)
 
@@ -244,3 +249,41 @@ def _normalise(url: str) -> str:
     if parts.query:
         rebuilt += "?" + parts.query
     return rebuilt
+
+
+# How many folders above a document :func:`explain_missing` looks for a site root.
+_SITE_ROOT_LEVELS = 16
+
+
+def explain_missing(exc: NotFoundError, *, uri: str | None, referrer_url: str, base: str | None) -> NotFoundError:
+    """``exc`` (a referenced local file is missing) naming the reference as written and,
+    for a plain relative reference without ``--base``, hinting at ``--base``.
+
+    Published fragments (hcdf_models) write ``href="models/…"`` relative to their site
+    root, not to their own folder. When a folder above the referencing document holds
+    the file, the hint names that folder; otherwise it only says what ``--base`` does.
+    Looking costs a few ``stat`` calls, made only once the file is known to be missing.
+    """
+    text = (uri or "").strip()
+    if not text or base is not None or not referrer_url.startswith("file://"):
+        return exc
+    hint = ""
+    parts = urlsplit(text)
+    if not (parts.scheme or parts.netloc or text.startswith(("/", "\\", "../", "./"))):
+        relative = unquote(parts.path)
+        folder = Path(unquote(urlsplit(referrer_url).path)).parent
+        for above in list(folder.parents)[:_SITE_ROOT_LEVELS]:
+            if (above / relative).is_file():
+                shown = display_path(above)
+                hint = (
+                    f"; {relative} exists under {shown}: if the reference is relative to a site root "
+                    f"(as published hcdf_models fragments write it), resolve with --base {shown}"
+                )
+                break
+        else:
+            hint = (
+                "; relative references resolve against the referencing document: if it is relative "
+                "to a site root (as published hcdf_models fragments write it), give --base DIR|URL"
+            )
+    message = exc.message if text in exc.message else f"{text}: {exc.message}"
+    return NotFoundError(message + hint, file=exc.file, line=exc.line, url=exc.url)

@@ -42,6 +42,7 @@ from ..errors import (
     InputError,
     LockDriftError,
     LockFileError,
+    NotFoundError,
     Notice,
     OfflineError,
     UnpinnedError,
@@ -51,7 +52,7 @@ from ..localfile import hash_local, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
-from .locate import Location, Locator, display_path, file_url
+from .locate import Location, Locator, display_path, explain_missing, file_url
 
 if TYPE_CHECKING:
     from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
@@ -427,9 +428,11 @@ class _Run:
                 res.others.append((doc.source, ref))
                 continue
             try:
-                pin = parse_pin(ref.sha, file=doc.source, line=ref.line)
+                pin = parse_pin(ref.sha, file=doc.source, line=ref.line, uri=ref.uri)
                 if not ref.uri:
-                    raise InputError(f"<{ref.kind.value}> has no uri", file=doc.source, line=ref.line)
+                    raise InputError(
+                        f"<{ref.kind.value}> has no {ref.uri_attr or 'uri'}", file=doc.source, line=ref.line
+                    )
                 loc = self.locator.locate(ref.uri, doc_loc, file=doc.source, line=ref.line)
             except HcdfTrustError as exc:
                 res.errors.append(exc)
@@ -511,6 +514,9 @@ class _Run:
         use = art.uses[0]
         try:
             data = self._obtain(art, keep, file=use.doc, line=use.ref.line)
+        except NotFoundError as exc:  # name the reference as written; hint at --base
+            art.error = explain_missing(exc, uri=use.ref.uri, referrer_url=use.doc_url, base=self.o.base)
+            data = None
         except HcdfTrustError as exc:
             art.error = exc
             data = None
@@ -628,32 +634,37 @@ class _Run:
 
     def _find_cycles(self) -> None:
         graph = self.res.includes
-        state: dict[str, int] = {}  # 1 = on the stack, 2 = done
+        documents = self.res.documents
+        done: set[str] = set()
         reported: set[tuple[str, ...]] = set()
-
-        def visit(url: str, stack: list[str]) -> None:
-            state[url] = 1
-            stack.append(url)
-            for ref, child in graph.get(url, []):
-                if state.get(child) == 1:
-                    cycle = stack[stack.index(child) :] + [child]
+        root = self.res.root_location.url
+        stack = [root]  # the include chain being walked, depth first (iterative: no recursion limit)
+        on_stack = {root: 0}
+        edges = [iter(graph.get(root, []))]
+        while edges:
+            url = stack[-1]
+            for ref, child in edges[-1]:
+                if child in on_stack:
+                    cycle = stack[on_stack[child] :] + [child]
                     key = tuple(sorted(set(cycle)))
                     if key not in reported:
                         reported.add(key)
-                        doc = self.res.documents[url]
                         self.res.errors.append(
                             IncludeCycleError(
                                 "include cycle: " + " → ".join(display_url(u) for u in cycle),
-                                file=doc.source,
+                                file=documents[url].source,
                                 line=ref.line,
                             )
                         )
-                elif child not in state and child in self.res.documents:
-                    visit(child, stack)
-            stack.pop()
-            state[url] = 2
-
-        visit(self.res.root_location.url, [])
+                elif child not in done and child in documents:
+                    on_stack[child] = len(stack)
+                    stack.append(child)
+                    edges.append(iter(graph.get(child, [])))
+                    break
+            else:
+                edges.pop()
+                del on_stack[stack.pop()]
+                done.add(url)
 
     def _check_all(self) -> None:
         res = self.res

@@ -11,6 +11,7 @@ reason, never an exception.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TypedDict
 
@@ -26,6 +27,11 @@ from .semantic import IncludeEdge
 
 MAX_INCLUDE_DEPTH = 16
 MAX_INCLUDE_EDGES = 1000
+
+
+# One file of the walk: its location, its includes still to visit, its name, its prefix,
+# and the chain of files from the root down to it.
+_Frame = tuple[Location, Iterator[etree._Element], str, str, tuple[str, ...]]
 
 
 class _EdgeFields(TypedDict):
@@ -62,8 +68,12 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
     read: dict[str, tuple[str, Document] | HcdfTrustError] = {}  # url -> (display, document) or why not
     edges: list[IncludeEdge] = []
 
-    def visit(loc: Location, doc_root: etree._Element, shown: str, prefix: str, stack: tuple[str, ...]) -> None:
-        for inc in doc_root.findall("include"):
+    # Depth first with an explicit stack of (location, its remaining includes, name, prefix,
+    # the chain of files above it): no recursion, however long the chain.
+    frames: list[_Frame] = [(start, iter(root.findall("include")), source, "", (start.url,))]
+    while frames:
+        loc, includes, shown, prefix, stack = frames[-1]
+        for inc in includes:
             uri = inc.get("uri")
             line = sourceline(inc)
             if not uri:
@@ -107,9 +117,11 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
                     document=doc.root,
                 )
             )
-            visit(child, doc.root, child_name, edge["prefix"], (*stack, child.url))
-
-    visit(start, root, source, "", (start.url,))
+            below = (*stack, child.url)
+            frames.append((child, iter(doc.root.findall("include")), child_name, edge["prefix"], below))
+            break  # walk the included file's includes first: depth first, document order
+        else:
+            frames.pop()
     return edges
 
 
