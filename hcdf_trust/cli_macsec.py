@@ -70,3 +70,186 @@ def plan_cmd(doc: str, as_json: bool) -> None:
     _plan_lines(p)
     keyed = p.keyed()
     click.echo(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled", err=True)
+
+
+# --- the key store ---------------------------------------------------------------------------
+
+
+def store_options(func: Any) -> Any:
+    func = click.option(
+        "--now",
+        "now_text",
+        metavar="TIME",
+        help="Act as if the time were TIME (ISO 8601 UTC), e.g. to plan a rotation or in tests.",
+    )(func)
+    func = click.option(
+        "--passphrase-file",
+        type=click.Path(dir_okay=False),
+        help="File holding the store passphrase (else $HCDF_TRUST_MACSEC_PASSPHRASE; never an argument).",
+    )(func)
+    func = click.option(
+        "--store", "store_dir", required=True, type=click.Path(file_okay=False), help="Key store folder."
+    )(func)
+    return func
+
+
+def _now(text: str | None) -> Any:
+    from .macsec.store import now_utc, parse_time
+
+    if text is None:
+        return now_utc()
+    try:
+        return parse_time(text, what="--now", source="--now")
+    except Exception as exc:
+        raise click.BadParameter(str(exc), param_hint="--now") from None
+
+
+def _wrapper(passphrase_file: str | None) -> Any:
+    from .macsec.backends import PassphraseWrapper, passphrase_from
+
+    return PassphraseWrapper(passphrase_from(passphrase_file))
+
+
+def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | None) -> None:
+    """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
+    import os
+
+    from .outputs import OutputPlan
+
+    out = OutputPlan()
+    for path in inputs:
+        out.protect(path, what="an input of this run")
+    if passphrase_file:
+        out.protect(passphrase_file, what="the passphrase file")
+    store.plan_write(out, now=now)
+    os.makedirs(store.path.parent, mode=0o700, exist_ok=True)
+    out.commit()
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def generate(doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool) -> None:
+    """Create every missing key DOC's associations need (running it again changes nothing)."""
+    from .macsec.plan import plan
+    from .macsec.rotation import generate as run
+    from .macsec.store import KeyStore
+
+    now = _now(now_text)
+    p = plan(doc)
+    wrapper = _wrapper(passphrase_file)
+    store = KeyStore.open(store_dir, wrapper) if KeyStore.exists(store_dir) else KeyStore.create(store_dir, wrapper)
+    created, notices = run(store, p, now=now)
+    if store.changed:
+        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file)
+    warnings = [*p.warnings, *notices]
+    if as_json:
+        emit_json(
+            {"ok": True, "store": str(store.path), "created": created, "warnings": [w.to_dict() for w in warnings]}
+        )
+        return
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+    for ca_id in created:
+        click.echo(f"created {ca_id} generation 1")
+    click.echo(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do", err=True)
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def status(doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool) -> None:
+    """Per association: active generation, age, due under rekey-interval-sec, key check values."""
+    from .macsec.plan import plan
+    from .macsec.rotation import status as run
+    from .macsec.store import KeyStore
+
+    now = _now(now_text)
+    p = plan(doc)
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    st = run(store, p, now=now)
+    if as_json:
+        emit_json({"ok": True, **st.to_dict()})
+        return
+    for row in st.rows:
+        gens = " ".join(f"g{g['generation']}:{g['state']}:kcv={g['kcv']}" for g in row["generations"])
+        age = f" age {row['age_sec']} s" if row["age_sec"] is not None else ""
+        flags = (" DUE" if row["due"] else "") + ("" if row["described"] else " (no longer described)")
+        click.echo(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}")
+    for ca_id in st.missing:
+        click.echo(f"{ca_id}: no key (run generate)")
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--network", help="Only associations of this network.")
+@click.option("--key-ref", help="Only the association of this key-ref (as scoped in the plan).")
+@click.option("--due", is_flag=True, help="Only associations due under rekey-interval-sec.")
+@click.option(
+    "--overlap",
+    type=click.IntRange(min=0),
+    default=3600,
+    show_default=True,
+    help="Seconds until the new generation sends, and again until the old one stops being accepted.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def rotate(
+    doc: str,
+    store_dir: str,
+    passphrase_file: str | None,
+    now_text: str | None,
+    network: str | None,
+    key_ref: str | None,
+    due: bool,
+    overlap: int,
+    as_json: bool,
+) -> None:
+    """Add generation N+1 (pending, with an activation time) to the selected associations."""
+    from .macsec.plan import plan
+    from .macsec.rotation import rotate as run
+    from .macsec.rotation import select
+    from .macsec.store import KeyStore, fmt_time
+
+    now = _now(now_text)
+    p = plan(doc)
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
+    if store.changed:
+        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file)
+    rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
+    if as_json:
+        emit_json({"ok": True, "rotated": rows})
+        return
+    for r in rows:
+        click.echo(f"{r['id']}: generation {r['generation']} pending, sends from {r['activation']}")
+    if not rows:
+        click.echo("nothing to rotate", err=True)
+
+
+@macsec.command()
+@store_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool) -> None:
+    """Remove generations past their overlap (and only those)."""
+    from .macsec.rotation import retire as run
+    from .macsec.store import KeyStore
+
+    now = _now(now_text)
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    removed = run(store, now=now)
+    if store.changed:
+        _save(store, now, inputs=[], passphrase_file=passphrase_file)
+    if as_json:
+        emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
+        return
+    for ca_id, g in removed:
+        click.echo(f"{ca_id}: generation {g} retired")
+    if not removed:
+        click.echo("nothing to retire", err=True)

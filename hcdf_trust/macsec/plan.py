@@ -221,6 +221,7 @@ class Plan:
     unprotected: list[Element] = field(default_factory=list)
     skipped: list[tuple[Element, str]] = field(default_factory=list)
     warnings: list[Notice] = field(default_factory=list)
+    inputs: list[str] = field(default_factory=list)  # local files read (documents, lock): never an output
 
     def keyed(self) -> list[Association]:
         return [ca for ca in self.associations.values() if ca.keyed]
@@ -253,6 +254,8 @@ def plan(doc_path: str | Path) -> Plan:
         raise ErrorGroup(list(res.errors))
     result = plan_resolution(res.documents, res.includes, res.root_location.url)
     result.warnings[:0] = [Notice("resolve", w) for w in res.warnings]
+    paths = [res.root_location.path, str(res.lock_path), *(a.location.path for a in res.artifacts.values())]
+    result.inputs = [p for p in paths if p]
     return result
 
 
@@ -688,9 +691,7 @@ class _Planner:
         policy = ca.policy
         if policy is None or policy.policy == "disabled":
             return
-        ciphers = [
-            (c.text or "").strip() for m in port_el.iter("{*}macsec") for c in m if _local(c) == "cipher"
-        ]
+        ciphers = [(c.text or "").strip() for m in port_el.iter("{*}macsec") for c in m if _local(c) == "cipher"]
         if policy.cipher not in ciphers:
             what = f"declares only {', '.join(ciphers)}" if ciphers else "declares no MACsec capability"
             self.plan.warnings.append(

@@ -1,0 +1,142 @@
+"""Wrapping-key backends: how the key store's data key is protected at rest.
+
+The store encrypts each key with one random 256-bit data key (AES-256-GCM); a backend
+wraps that data key. ``scrypt``: a key derived from a passphrase. ``pkcs11``: an AES key
+that never leaves a PKCS#11 token (SoftHSM2 in the tests), used with RFC 3394 key wrap.
+A backend that cannot unwrap (wrong passphrase, wrong token key) raises
+:class:`WrongCredentialError` (exit 3) and nothing is written.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+from typing import Any, Protocol
+
+from ..errors import InputError
+from ..localfile import read_input
+
+PASSPHRASE_ENV = "HCDF_TRUST_MACSEC_PASSPHRASE"
+MAX_SECRET_FILE = 4096
+# scrypt cost recorded in the store; bounds refuse a hostile store that asks for gigabytes.
+SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**15, 8, 1
+SCRYPT_N_RANGE = (2**14, 2**20)
+
+
+class WrongCredentialError(InputError):
+    """The passphrase or token key does not open this key store."""
+
+    code = "key-store-credential"
+
+
+class KeyStoreFormatError(InputError):
+    """The key store file is not a key store this version can read."""
+
+    code = "key-store"
+
+
+class Wrapper(Protocol):
+    method: str
+
+    def wrap(self, dek: bytes, aad: bytes) -> dict[str, Any]: ...
+
+    def unwrap(self, params: dict[str, Any], aad: bytes, *, source: str) -> bytes: ...
+
+
+def b64(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
+
+
+def unb64(value: Any, *, what: str, source: str) -> bytes:
+    if not isinstance(value, str):
+        raise KeyStoreFormatError(f"{what} is not a base64 string", file=source, actual=type(value).__name__)
+    try:
+        return base64.b64decode(value.encode("ascii"), validate=True)
+    except (ValueError, UnicodeEncodeError):
+        raise KeyStoreFormatError(f"{what} is not valid base64", file=source) from None
+
+
+def _int_in(params: dict[str, Any], key: str, lo: int, hi: int, *, source: str) -> int:
+    value = params.get(key)
+    if type(value) is not int or not lo <= value <= hi:
+        raise KeyStoreFormatError(
+            f"wrapping parameter {key} is out of range", file=source, expected=f"{lo}..{hi}", actual=repr(value)[:40]
+        )
+    return value
+
+
+class PassphraseWrapper:
+    """The data key wrapped with AES-256-GCM under ``scrypt(passphrase)``."""
+
+    method = "scrypt"
+
+    def __init__(self, passphrase: bytes) -> None:
+        if not passphrase:
+            raise InputError("the key store passphrase is empty")
+        self._passphrase = passphrase
+
+    @staticmethod
+    def _derive(passphrase: bytes, salt: bytes, n: int, r: int, p: int) -> bytes:
+        from cryptography.hazmat.primitives.kdf.scrypt import Scrypt
+
+        return Scrypt(salt=salt, length=32, n=n, r=r, p=p).derive(passphrase)
+
+    def wrap(self, dek: bytes, aad: bytes) -> dict[str, Any]:
+        from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+
+        salt, nonce = os.urandom(16), os.urandom(12)
+        kek = self._derive(self._passphrase, salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
+        wrapped = AESGCM(kek).encrypt(nonce, dek, aad)
+        return {
+            "method": self.method,
+            "salt": b64(salt),
+            "n": SCRYPT_N,
+            "r": SCRYPT_R,
+            "p": SCRYPT_P,
+            "nonce": b64(nonce),
+            "wrapped_key": b64(wrapped),
+        }
+
+    def unwrap(self, params: dict[str, Any], aad: bytes, *, source: str) -> bytes:
+        from cryptography.exceptions import InvalidTag
+        from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+
+        n = _int_in(params, "n", *SCRYPT_N_RANGE, source=source)
+        if n & (n - 1):
+            raise KeyStoreFormatError("scrypt n is not a power of two", file=source, actual=str(n))
+        r = _int_in(params, "r", 1, 32, source=source)
+        p = _int_in(params, "p", 1, 4, source=source)
+        salt = unb64(params.get("salt"), what="scrypt salt", source=source)
+        nonce = unb64(params.get("nonce"), what="wrapping nonce", source=source)
+        wrapped = unb64(params.get("wrapped_key"), what="wrapped key", source=source)
+        if len(nonce) != 12 or len(wrapped) != 48:
+            raise KeyStoreFormatError("the wrapped data key has the wrong length", file=source)
+        kek = self._derive(self._passphrase, salt, n, r, p)
+        try:
+            return AESGCM(kek).decrypt(nonce, wrapped, aad)
+        except InvalidTag:
+            raise WrongCredentialError(
+                "wrong passphrase: it does not open this key store (nothing was changed)", file=source
+            ) from None
+
+
+def passphrase_from(file: str | None) -> bytes:
+    """The passphrase from ``--passphrase-file`` (one line; a final newline is dropped) or the environment.
+
+    Raises:
+        InputError: neither is given, the file is not a small regular file, or it is empty.
+    """
+    if file is not None:
+        data = read_input(file, limit=MAX_SECRET_FILE, what="passphrase file")
+        data = data[:-1] if data.endswith(b"\n") else data
+        data = data[:-1] if data.endswith(b"\r") else data
+        if not data:
+            raise InputError("the passphrase file is empty", file=file)
+        return data
+    env = os.environ.get(PASSPHRASE_ENV)
+    if env:
+        return env.encode()
+    raise InputError(
+        f"no key store passphrase: give --passphrase-file FILE or set {PASSPHRASE_ENV} "
+        f"(a passphrase is never taken on the command line)"
+    )
