@@ -253,3 +253,91 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
         click.echo(f"{ca_id}: generation {g} retired")
     if not removed:
         click.echo("nothing to retire", err=True)
+
+
+def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
+    from .macsec.export.wpa_supplicant import parse_version
+
+    try:
+        version = parse_version(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+    if version < (2, 10):
+        raise click.BadParameter(f"{value}: only wpa_supplicant 2.10 and later are supported")
+    return version
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--device", required=True, help="The comp (as named in the plan) whose keys to export.")
+@click.option(
+    "--format",
+    "fmt",
+    required=True,
+    type=click.Choice(["wpa_supplicant", "networkd", "iproute2", "json"]),
+    help="The consumer of the exported files.",
+)
+@click.option(
+    "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder for the files (mode 0600)."
+)
+@click.option(
+    "--wpa-version",
+    default="2.10",
+    show_default=True,
+    callback=_wpa_version,
+    help="wpa_supplicant version on the device (2.10 is Debian 12's); only its keys are written.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (file names, no keys).")
+@handle_errors
+def export(
+    doc: str,
+    store_dir: str,
+    passphrase_file: str | None,
+    now_text: str | None,
+    device: str,
+    fmt: str,
+    out_dir: str,
+    wpa_version: tuple[int, int],
+    as_json: bool,
+) -> None:
+    """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
+    import os
+
+    from .macsec.export import collect, render
+    from .macsec.store import KeyStore
+    from .outputs import OutputPlan
+
+    now = _now(now_text)
+    from .macsec.plan import plan
+
+    p = plan(doc)
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    ports, notices = collect(p, store, device, now=now)
+    files = render(fmt, ports, device=device, wpa_version=wpa_version, notices=notices)
+    out = OutputPlan()
+    for path in p.inputs:
+        out.protect(path, what="an input of this run")
+    out.protect(store.path, what="the key store")
+    if passphrase_file:
+        out.protect(passphrase_file, what="the passphrase file")
+    for name in sorted(files):
+        out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
+    os.makedirs(out_dir, mode=0o700, exist_ok=True)
+    written = out.commit()
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "device": device,
+                "format": fmt,
+                "associations": sorted({pk.ca.id for pk in ports}),
+                "files": [str(w) for w in written],
+                "warnings": [n.to_dict() for n in notices],
+            }
+        )
+        return
+    for n in notices:
+        click.echo(f"warning: {n}", err=True)
+    for w in written:
+        click.echo(f"wrote {w}", err=True)

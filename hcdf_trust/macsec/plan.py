@@ -157,6 +157,7 @@ class Association:
     elements: list[Element] = field(default_factory=list)
     members: dict[str, Member] = field(default_factory=dict)
     port_speeds_mbps: dict[str, float] = field(default_factory=dict)  # "device/port" -> Mb/s
+    ifaces: dict[str, str] = field(default_factory=dict)  # "device/port" -> OS interface (``iface``, else port)
     warned: set[str] = field(default_factory=set, repr=False)  # warnings already given (one per port)
 
     @property
@@ -685,6 +686,7 @@ class _Planner:
             )
             return
         port_el, port_file = port_ref
+        ca.ifaces[label] = (port_el.get("iface") or "").strip() or port
         speed = _speed_mbps(port_el)
         if speed is not None:
             ca.port_speeds_mbps[label] = speed

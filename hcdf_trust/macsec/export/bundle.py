@@ -1,0 +1,56 @@
+"""JSON key bundle for a device agent: ``<device>.macsec.json``.
+
+``{"format": "hcdf-trust-macsec-bundle", "version": 1, "device", "associations": [{"id",
+"policy", "cipher", "key_agreement", "confidentiality_offset", "ports": [{"port", "iface",
+"sci"}], "peers": [{"device", "port", "sci"}], "generations": [{"generation", "an", "ckn",
+"cak", "activation", "expiry", "sending", "kcv"}]}]}`` — hex strings, UTC times.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from ..kdf import key_check_value
+from ..store import fmt_time
+from . import PortKeys, sci
+
+BUNDLE_FORMAT = "hcdf-trust-macsec-bundle"
+
+
+def render(ports: list[PortKeys], *, device: str) -> dict[str, bytes]:
+    by_ca: dict[str, dict[str, Any]] = {}
+    for pk in ports:
+        policy = pk.ca.policy
+        assert policy is not None
+        item = by_ca.get(pk.ca.id)
+        if item is None:
+            item = by_ca[pk.ca.id] = {
+                "id": pk.ca.id,
+                "policy": policy.policy,
+                "cipher": policy.cipher,
+                "key_agreement": policy.key_agreement,
+                "confidentiality_offset": policy.confidentiality_offset,
+                "ports": [],
+                "peers": [],
+                "generations": [
+                    {
+                        "generation": k.generation.generation,
+                        "an": k.an,
+                        "ckn": k.generation.ckn.hex(),
+                        "cak": k.cak.hex(),
+                        "activation": fmt_time(k.generation.activation),
+                        "expiry": fmt_time(k.generation.expiry) if k.generation.expiry else None,
+                        "sending": k.sending,
+                        "kcv": key_check_value(k.cak, k.generation.ckn),
+                    }
+                    for k in pk.keys
+                ],
+            }
+        item["ports"].append({"port": pk.port, "iface": pk.iface, "sci": sci(pk.ca.id, pk.device, pk.port)})
+        for d, p, _ in pk.peers:
+            peer = {"device": d, "port": p, "sci": sci(pk.ca.id, d, p)}
+            if d != device and peer not in item["peers"]:
+                item["peers"].append(peer)
+    doc = {"format": BUNDLE_FORMAT, "version": 1, "device": device, "associations": list(by_ca.values())}
+    return {f"{device}.macsec.json": (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode()}
