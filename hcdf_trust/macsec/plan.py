@@ -272,11 +272,23 @@ class _Instance:
 
 
 def _local(el: Any) -> str | None:
-    return etree.QName(el).localname if isinstance(el.tag, str) else None
+    tag = el.tag
+    return tag[tag.rfind("}") + 1 :] if isinstance(tag, str) else None
 
 
 def _children(el: etree._Element, tag: str) -> list[etree._Element]:
-    return [c for c in el if _local(c) == tag]
+    """Child elements named ``tag`` in any namespace or none (matched by lxml, in C)."""
+    return list(el.iterchildren("{*}" + tag))
+
+
+def _by_tag(el: etree._Element) -> dict[str, list[etree._Element]]:
+    """Child elements grouped by local name, in one pass."""
+    out: dict[str, list[etree._Element]] = {}
+    for child in el:
+        tag = child.tag
+        if isinstance(tag, str):
+            out.setdefault(tag[tag.rfind("}") + 1 :], []).append(child)
+    return out
 
 
 def plan_resolution(
@@ -301,7 +313,8 @@ class _Planner:
         self.plan = Plan(document=documents[root].source)
         self._defined: dict[str, frozenset[str]] = {}
         self._comps: dict[str, dict[str, etree._Element]] = {}
-        self._key_scope: dict[str, tuple[str, str]] = {}  # scoped key-ref -> (instance scope, where)
+        self._key_scope: dict[str, tuple[str, str]] = {}
+        self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}  # scoped key-ref -> (instance scope, where)
 
     def run(self) -> Plan:
         for inst in self._instances():
@@ -430,21 +443,30 @@ class _Planner:
                 return found
         return None
 
+    def _port(self, comp: tuple[etree._Element, str] | None, name: str) -> _PortRef:
+        if comp is None:
+            return None
+        ports = self._ports.get(comp[0])
+        if ports is None:
+            ports = self._ports[comp[0]] = _read_ports(*comp)
+        return ports.get(name)
+
     # -- networks ------------------------------------------------------------------------
 
     def _network(self, inst: _Instance, doc: Document, net: etree._Element) -> None:
         net_name = self._scoped(inst, net.get("name", "").strip())
         default = None
-        cfg = _children(net, "macsec")
+        parts = _by_tag(net)
+        cfg = parts.get("macsec")
         if cfg:
             default = self._policy(doc, cfg[0], None, network_level=True)
-        for link in _children(net, "link"):
+        for link in parts.get("link", ()):
             self._link(inst, doc, net_name, link, default)
-        for chain in _children(net, "chain"):
+        for chain in parts.get("chain", ()):
             self._chain(inst, doc, net_name, chain, default)
-        for mesh in _children(net, "mesh"):
+        for mesh in parts.get("mesh", ()):
             self._mesh(inst, doc, net_name, mesh)
-        for bus in _children(net, "bus"):
+        for bus in parts.get("bus", ()):
             el = self._element(inst, doc, "bus", net_name, bus)
             self.plan.skipped.append((el, "a bus has no MACsec"))
 
@@ -543,16 +565,17 @@ class _Planner:
         if not wired:
             self.plan.skipped.append((element, "a wireless link has no MACsec"))
             return
-        ports = [(p.text or "").strip() for p in _children(wired[0], "port")]
+        parts = _by_tag(wired[0])
+        ports = [(p.text or "").strip() for p in parts.get("port", ())]
         endpoints: list[tuple[str, str, _PortRef]] = []
         for text in ports:
             device, _, port = text.partition("/")
-            endpoints.append((self._device(inst, device), port, _port(self._find_comp(inst, device), port)))
-        types = {(p[0].get("type") or "").strip().lower() for *_, p in endpoints if p is not None}
+            endpoints.append((self._device(inst, device), port, self._port(self._find_comp(inst, device), port)))
+        types = {p.type for *_, p in endpoints if p is not None}
         if types and types != {"ethernet"}:
             self.plan.skipped.append((element, f"not an Ethernet link (port type {', '.join(sorted(types))})"))
             return
-        overrides = _children(wired[0], "macsec")
+        overrides = parts.get("macsec", [])
         policy, key_ref = self._override(doc, overrides[0] if overrides else None, default)
         if policy is None:
             self.plan.unprotected.append(element)
@@ -588,13 +611,13 @@ class _Planner:
                     element,
                     self._device(inst, spur_device),
                     spur_port,
-                    _port(self._find_comp(inst, spur_device), spur_port),
+                    self._port(self._find_comp(inst, spur_device), spur_port),
                 )
             if not any(hop_ports):
                 ca.add_member(scoped, None)
             for port in hop_ports:
                 if port:
-                    self._endpoint(ca, element, scoped, port, _port(comp, port))
+                    self._endpoint(ca, element, scoped, port, self._port(comp, port))
 
     def _mesh(self, inst: _Instance, doc: Document, net: str, mesh: etree._Element) -> None:
         element = self._element(inst, doc, "mesh", net, mesh)
@@ -685,23 +708,22 @@ class _Planner:
                 )
             )
             return
-        port_el, port_file = port_ref
-        ca.ifaces[label] = (port_el.get("iface") or "").strip() or port
-        speed = _speed_mbps(port_el)
+        ca.ifaces[label] = port_ref.iface
+        speed = port_ref.speed_mbps
         if speed is not None:
             ca.port_speeds_mbps[label] = speed
         policy = ca.policy
         if policy is None or policy.policy == "disabled":
             return
-        ciphers = [(c.text or "").strip() for m in port_el.iter("{*}macsec") for c in m if _local(c) == "cipher"]
+        ciphers = port_ref.ciphers
         if policy.cipher not in ciphers:
             what = f"declares only {', '.join(ciphers)}" if ciphers else "declares no MACsec capability"
             self.plan.warnings.append(
                 Notice(
                     "macsec-capability",
                     f"{ca.id}: device {device} port {port} {what}; the association needs {policy.cipher}",
-                    file=port_file,
-                    line=sourceline(port_el),
+                    file=port_ref.file,
+                    line=port_ref.line,
                 )
             )
         if policy.confidentiality_offset and f"offset {device}" not in ca.warned:
@@ -717,35 +739,62 @@ class _Planner:
             )
 
 
-_PortRef = tuple[etree._Element, str] | None  # a port element and the file that defines it
+@dataclass(frozen=True)
+class _PortInfo:
+    """What the plan needs of one ``<port>`` definition, read once."""
+
+    file: str
+    line: int | None
+    type: str
+    iface: str
+    speed_mbps: float | None
+    ciphers: tuple[str, ...]
 
 
-def _port(comp: tuple[etree._Element, str] | None, name: str) -> _PortRef:
-    """The ``<port name>`` defined anywhere inside a comp (switch ports included)."""
-    if comp is None:
-        return None
-    for el in comp[0].iter("{*}port"):
-        if el.get("name") == name:
-            return el, comp[1]
-    return None
+_PortRef = _PortInfo | None
+
+
+def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
+    """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass."""
+    out: dict[str, _PortInfo] = {}
+    for el in comp.iter("{*}port"):
+        name = el.get("name")
+        if name is None or name in out:
+            continue
+        ciphers: list[str] = []
+        speed: float | None = None
+        for caps in el:
+            if _local(caps) != "capabilities":
+                continue
+            for item in caps:
+                tag = _local(item)
+                if tag == "macsec":
+                    ciphers.extend((c.text or "").strip() for c in item if _local(c) == "cipher")
+                elif tag in ("speed", "speed-tx", "speed-rx"):
+                    mbps = _mbps(item)
+                    if mbps is not None:
+                        speed = max(speed or 0.0, mbps)
+        out[name] = _PortInfo(
+            file=file,
+            line=sourceline(el),
+            type=(el.get("type") or "").strip().lower(),
+            iface=(el.get("iface") or "").strip() or name,
+            speed_mbps=speed,
+            ciphers=tuple(ciphers),
+        )
+    return out
 
 
 _UNITS = {"bps": 1e-6, "kbps": 1e-3, "mbps": 1.0, "gbps": 1e3, "tbps": 1e6}
 
 
-def _speed_mbps(port: etree._Element) -> float | None:
-    """The highest data rate a port declares (``speed``, ``speed-tx``, ``speed-rx``), in Mb/s."""
-    best: float | None = None
-    for caps in _children(port, "capabilities"):
-        for el in caps:
-            if _local(el) not in ("speed", "speed-tx", "speed-rx"):
-                continue
-            try:
-                value = float((el.text or "").strip())
-            except ValueError:
-                continue
-            factor = _UNITS.get((el.get("unit") or "Mbps").strip().lower())
-            if factor is None or value != value or value <= 0:
-                continue
-            best = max(best or 0.0, value * factor)
-    return best
+def _mbps(el: etree._Element) -> float | None:
+    """A ``<speed unit>`` value in Mb/s (default unit Mbps); None when unreadable."""
+    try:
+        value = float((el.text or "").strip())
+    except ValueError:
+        return None
+    factor = _UNITS.get((el.get("unit") or "Mbps").strip().lower())
+    if factor is None or value != value or value <= 0 or value == float("inf"):
+        return None
+    return value * factor

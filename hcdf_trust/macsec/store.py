@@ -130,7 +130,8 @@ class Entry:
 
 
 def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
-    return json.dumps([FORMAT, store_id, ca_id, generation, ckn.hex()]).encode()
+    """Associated data binding a key to its place: NUL-separated (XML names cannot hold NUL)."""
+    return f"{FORMAT}\0{store_id}\0{ca_id}\0{generation}\0{ckn.hex()}".encode()
 
 
 class KeyStore:
@@ -141,6 +142,7 @@ class KeyStore:
         self.store_id = store_id
         self.wrap = wrap
         self._dek = dek
+        self._aead: Any = None
         self.entries: dict[str, Entry] = {}
         self.changed = False
 
@@ -215,6 +217,13 @@ class KeyStore:
 
     # -- keys --------------------------------------------------------------------------------
 
+    def _cipher(self) -> Any:
+        if self._aead is None:
+            from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+
+            self._aead = AESGCM(self._dek)
+        return self._aead
+
     def known_ckns(self) -> set[bytes]:
         return {g.ckn[:16] for e in self.entries.values() for g in e.generations}
 
@@ -227,8 +236,6 @@ class KeyStore:
         ckns: set[bytes] | None = None,
     ) -> Generation:
         """Add generation N+1 to ``entry`` with a fresh key and a CKN unique in its first 16 octets."""
-        from cryptography.hazmat.primitives.ciphers.aead import AESGCM
-
         taken = ckns if ckns is not None else self.known_ckns()
         ckn = os.urandom(CKN_BYTES)
         while ckn[:16] in taken:  # pragma: no cover - 2^-128
@@ -237,7 +244,7 @@ class KeyStore:
         number = (entry.generations[-1].generation + 1) if entry.generations else 1
         nonce = os.urandom(12)
         key = os.urandom(entry.key_bytes)
-        ciphertext = AESGCM(self._dek).encrypt(nonce, key, _aad(self.store_id, entry.ca_id, number, ckn))
+        ciphertext = self._cipher().encrypt(nonce, key, _aad(self.store_id, entry.ca_id, number, ckn))
         gen = Generation(number, ckn, now, activation, None, nonce, ciphertext)
         entry.generations.append(gen)
         self.changed = True
@@ -250,10 +257,9 @@ class KeyStore:
             KeyStoreIntegrityError: the ciphertext was changed or moved.
         """
         from cryptography.exceptions import InvalidTag
-        from cryptography.hazmat.primitives.ciphers.aead import AESGCM
 
         try:
-            key = AESGCM(self._dek).decrypt(
+            key: bytes = self._cipher().decrypt(
                 gen.nonce, gen.ciphertext, _aad(self.store_id, entry.ca_id, gen.generation, gen.ckn)
             )
         except InvalidTag:
@@ -261,11 +267,11 @@ class KeyStore:
                 f"{entry.ca_id} generation {gen.generation}: the key does not decrypt (changed or moved)",
                 file=str(self.path),
             ) from None
-        if len(key) != entry.key_bytes:
+        if len(key) not in (16, 32):  # a generation made before a cipher change keeps its own length
             raise KeyStoreIntegrityError(
                 f"{entry.ca_id} generation {gen.generation}: the key has the wrong length",
                 file=str(self.path),
-                expected=str(entry.key_bytes),
+                expected="16 or 32",
                 actual=str(len(key)),
             )
         return key
@@ -290,7 +296,8 @@ class KeyStore:
             },
         }
         doc["mac"] = _mac(self._dek, doc)
-        return json.dumps(doc, indent=1, sort_keys=True).encode() + b"\n"
+        # compact: json's C encoder (indent= falls back to the pure-Python one)
+        return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode() + b"\n"
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
