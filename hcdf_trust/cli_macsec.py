@@ -76,6 +76,13 @@ def plan_cmd(doc: str, as_json: bool) -> None:
 
 
 def store_options(func: Any) -> Any:
+    func = click.option("--pin-file", type=click.Path(dir_okay=False), help="File holding the PKCS#11 user PIN.")(func)
+    func = click.option("--token-label", help="PKCS#11 token label (with --pkcs11-module).")(func)
+    func = click.option(
+        "--pkcs11-module",
+        type=click.Path(dir_okay=False),
+        help="Keep the store's wrapping key in this PKCS#11 token (e.g. /usr/lib/softhsm/libsofthsm2.so).",
+    )(func)
     func = click.option(
         "--now",
         "now_text",
@@ -104,13 +111,23 @@ def _now(text: str | None) -> Any:
         raise click.BadParameter(str(exc), param_hint="--now") from None
 
 
-def _wrapper(passphrase_file: str | None) -> Any:
-    from .macsec.backends import PassphraseWrapper, passphrase_from
+def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
+    """The wrapping-key backend the store options name: a passphrase, or a PKCS#11 token."""
+    from .macsec.backends import PassphraseWrapper, Pkcs11Wrapper, passphrase_from, pin_from
 
-    return PassphraseWrapper(passphrase_from(passphrase_file))
+    module, label, pin_file = backend.get("pkcs11_module"), backend.get("token_label"), backend.get("pin_file")
+    if module is None:
+        if label or pin_file:
+            raise click.UsageError("--token-label and --pin-file need --pkcs11-module")
+        return PassphraseWrapper(passphrase_from(passphrase_file))
+    if not label or not pin_file:
+        raise click.UsageError("--pkcs11-module needs --token-label and --pin-file")
+    if passphrase_file:
+        raise click.UsageError("--passphrase-file and --pkcs11-module are two different backends: give one")
+    return Pkcs11Wrapper(module, label, pin_from(pin_file))
 
 
-def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | None) -> None:
+def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | None, backend: dict[str, Any]) -> None:
     """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
     import os
 
@@ -121,6 +138,8 @@ def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | Non
         out.protect(path, what="an input of this run")
     if passphrase_file:
         out.protect(passphrase_file, what="the passphrase file")
+    if backend.get("pin_file"):
+        out.protect(backend["pin_file"], what="the PIN file")
     store.plan_write(out, now=now)
     os.makedirs(store.path.parent, mode=0o700, exist_ok=True)
     out.commit()
@@ -131,7 +150,9 @@ def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | Non
 @store_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
-def generate(doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool) -> None:
+def generate(
+    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
     from .macsec.plan import plan
     from .macsec.rotation import generate as run
@@ -139,11 +160,11 @@ def generate(doc: str, store_dir: str, passphrase_file: str | None, now_text: st
 
     now = _now(now_text)
     p = plan(doc)
-    wrapper = _wrapper(passphrase_file)
+    wrapper = _wrapper(passphrase_file, backend)
     store = KeyStore.open(store_dir, wrapper) if KeyStore.exists(store_dir) else KeyStore.create(store_dir, wrapper)
     created, notices = run(store, p, now=now)
     if store.changed:
-        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file)
+        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
     warnings = [*p.warnings, *notices]
     if as_json:
         emit_json(
@@ -162,7 +183,9 @@ def generate(doc: str, store_dir: str, passphrase_file: str | None, now_text: st
 @store_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
-def status(doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool) -> None:
+def status(
+    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
     from .macsec.plan import plan
     from .macsec.rotation import status as run
@@ -170,7 +193,7 @@ def status(doc: str, store_dir: str, passphrase_file: str | None, now_text: str 
 
     now = _now(now_text)
     p = plan(doc)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     st = run(store, p, now=now)
     if as_json:
         emit_json({"ok": True, **st.to_dict()})
@@ -209,6 +232,7 @@ def rotate(
     due: bool,
     overlap: int,
     as_json: bool,
+    **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
     from .macsec.plan import plan
@@ -218,10 +242,10 @@ def rotate(
 
     now = _now(now_text)
     p = plan(doc)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
     if store.changed:
-        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file)
+        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
@@ -236,16 +260,16 @@ def rotate(
 @store_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
-def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool) -> None:
+def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any) -> None:
     """Remove generations past their overlap (and only those)."""
     from .macsec.rotation import retire as run
     from .macsec.store import KeyStore
 
     now = _now(now_text)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     removed = run(store, now=now)
     if store.changed:
-        _save(store, now, inputs=[], passphrase_file=passphrase_file)
+        _save(store, now, inputs=[], passphrase_file=passphrase_file, backend=backend)
     if as_json:
         emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
         return
@@ -300,6 +324,7 @@ def export(
     out_dir: str,
     wpa_version: tuple[int, int],
     as_json: bool,
+    **backend: Any,
 ) -> None:
     """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
     import os
@@ -312,7 +337,7 @@ def export(
     from .macsec.plan import plan
 
     p = plan(doc)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file))
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     ports, notices = collect(p, store, device, now=now)
     files = render(fmt, ports, device=device, wpa_version=wpa_version, notices=notices)
     out = OutputPlan()
@@ -321,6 +346,8 @@ def export(
     out.protect(store.path, what="the key store")
     if passphrase_file:
         out.protect(passphrase_file, what="the passphrase file")
+    if backend.get("pin_file"):
+        out.protect(backend["pin_file"], what="the PIN file")
     for name in sorted(files):
         out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
     os.makedirs(out_dir, mode=0o700, exist_ok=True)

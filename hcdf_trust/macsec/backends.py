@@ -140,3 +140,139 @@ def passphrase_from(file: str | None) -> bytes:
         f"no key store passphrase: give --passphrase-file FILE or set {PASSPHRASE_ENV} "
         f"(a passphrase is never taken on the command line)"
     )
+
+
+PKCS11_KEY_LABEL = "hcdf-trust-macsec-store"
+
+
+class Pkcs11Wrapper:
+    """The data key wrapped (RFC 3394 AES key wrap) by a non-extractable AES-256 key inside a PKCS#11 token.
+
+    The token key is made on first use (``--pkcs11-module``, ``--token-label``, ``--pin-file``)
+    with SENSITIVE set and EXTRACTABLE cleared: it never leaves the token. The data key is
+    unwrapped into this process only, to decrypt the store's entries.
+    """
+
+    method = "pkcs11"
+
+    def __init__(self, module: str, token_label: str, pin: bytes, *, key_label: str = PKCS11_KEY_LABEL) -> None:
+        try:
+            import pkcs11
+        except ImportError:  # pragma: no cover - depends on the install
+            raise InputError("the PKCS#11 backend needs python-pkcs11: pip install 'hcdf-trust[hsm]'") from None
+        self._pkcs11 = pkcs11
+        self.module = module
+        self.token_label = token_label
+        self.key_label = key_label
+        self._pin = pin.decode("utf-8", "replace")
+
+    def _session(self) -> Any:
+        p = self._pkcs11
+        from pkcs11 import exceptions as pe
+
+        try:
+            lib = p.lib(self.module)
+        except (RuntimeError, OSError, pe.PKCS11Error) as exc:
+            raise InputError(f"cannot load PKCS#11 module {self.module}: {exc}", file=self.module) from None
+        try:
+            token = lib.get_token(token_label=self.token_label)
+        except (pe.NoSuchToken, pe.MultipleTokensReturned):
+            raise InputError(
+                f"no single PKCS#11 token labelled {self.token_label!r} in {self.module}", file=self.module
+            ) from None
+        try:
+            return token.open(user_pin=self._pin, rw=True)
+        except (pe.PinIncorrect, pe.PinInvalid, pe.PinLenRange):
+            raise WrongCredentialError(
+                f"wrong PIN for PKCS#11 token {self.token_label!r} (nothing was changed)", file=self.module
+            ) from None
+        except pe.PKCS11Error as exc:
+            raise InputError(f"cannot open PKCS#11 token {self.token_label!r}: {exc!r}", file=self.module) from None
+
+    def _kek(self, session: Any, *, create: bool) -> Any:
+        from pkcs11 import Attribute, KeyType, ObjectClass
+        from pkcs11 import exceptions as pe
+
+        try:
+            return session.get_key(label=self.key_label, key_type=KeyType.AES, object_class=ObjectClass.SECRET_KEY)
+        except pe.NoSuchKey:
+            if not create:
+                raise WrongCredentialError(
+                    f"PKCS#11 token {self.token_label!r} has no key labelled {self.key_label!r}: "
+                    f"it is not the token this store was made with",
+                    file=self.module,
+                ) from None
+        except pe.MultipleObjectsReturned:
+            raise InputError(
+                f"PKCS#11 token {self.token_label!r} has several keys labelled {self.key_label!r}", file=self.module
+            ) from None
+        template = {
+            Attribute.SENSITIVE: True,
+            Attribute.EXTRACTABLE: False,
+            Attribute.WRAP: True,
+            Attribute.UNWRAP: True,
+        }
+        return session.generate_key(KeyType.AES, 256, label=self.key_label, store=True, template=template)
+
+    def wrap(self, dek: bytes, aad: bytes) -> dict[str, Any]:
+        from pkcs11 import Attribute, KeyType, Mechanism, ObjectClass
+
+        with self._session() as session:
+            kek = self._kek(session, create=True)
+            obj = session.create_object(
+                {
+                    Attribute.CLASS: ObjectClass.SECRET_KEY,
+                    Attribute.KEY_TYPE: KeyType.AES,
+                    Attribute.VALUE: dek,
+                    Attribute.TOKEN: False,
+                    Attribute.SENSITIVE: False,
+                    Attribute.EXTRACTABLE: True,
+                }
+            )
+            blob = kek.wrap_key(obj, mechanism=Mechanism.AES_KEY_WRAP)
+            obj.destroy()
+        return {
+            "method": self.method,
+            "token_label": self.token_label,
+            "key_label": self.key_label,
+            "mechanism": "AES_KEY_WRAP",
+            "wrapped_key": b64(bytes(blob)),
+        }
+
+    def unwrap(self, params: dict[str, Any], aad: bytes, *, source: str) -> bytes:
+        from pkcs11 import Attribute, KeyType, Mechanism, ObjectClass
+        from pkcs11 import exceptions as pe
+
+        blob = unb64(params.get("wrapped_key"), what="wrapped key", source=source)
+        if len(blob) != 40:
+            raise KeyStoreFormatError("the wrapped data key has the wrong length", file=source)
+        label = params.get("key_label")
+        if isinstance(label, str) and label:
+            self.key_label = label
+        with self._session() as session:
+            kek = self._kek(session, create=False)
+            try:
+                obj = kek.unwrap_key(
+                    ObjectClass.SECRET_KEY,
+                    KeyType.AES,
+                    blob,
+                    mechanism=Mechanism.AES_KEY_WRAP,
+                    template={Attribute.TOKEN: False, Attribute.SENSITIVE: False, Attribute.EXTRACTABLE: True},
+                )
+            except pe.PKCS11Error:
+                raise WrongCredentialError(
+                    f"the key {self.key_label!r} of PKCS#11 token {self.token_label!r} does not open this key store "
+                    f"(nothing was changed)",
+                    file=source,
+                ) from None
+            dek = bytes(obj[Attribute.VALUE])
+            obj.destroy()
+        return dek
+
+
+def pin_from(file: str) -> bytes:
+    """A token PIN from ``--pin-file`` (one line; a final newline is dropped)."""
+    data = read_input(file, limit=MAX_SECRET_FILE, what="PIN file").rstrip(b"\r\n")
+    if not data:
+        raise InputError("the PIN file is empty", file=file)
+    return data
