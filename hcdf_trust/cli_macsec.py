@@ -312,6 +312,11 @@ def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     callback=_wpa_version,
     help="wpa_supplicant version on the device (2.10 is Debian 12's); only its keys are written.",
 )
+@click.option(
+    "--age-recipient",
+    metavar="AGE1…",
+    help="Encrypt the JSON bundle to the device's age X25519 public key (writes DEVICE.macsec.json.age).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (file names, no keys).")
 @handle_errors
 def export(
@@ -323,6 +328,7 @@ def export(
     fmt: str,
     out_dir: str,
     wpa_version: tuple[int, int],
+    age_recipient: str | None,
     as_json: bool,
     **backend: Any,
 ) -> None:
@@ -339,7 +345,7 @@ def export(
     p = plan(doc)
     store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     ports, notices = collect(p, store, device, now=now)
-    files = render(fmt, ports, device=device, wpa_version=wpa_version, notices=notices)
+    files = render(fmt, ports, device=device, wpa_version=wpa_version, notices=notices, age_recipient=age_recipient)
     out = OutputPlan()
     for path in p.inputs:
         out.protect(path, what="an input of this run")

@@ -319,3 +319,29 @@ def test_two_namespaces_exchange_traffic_over_our_iproute2_export(tmp_path, cli,
     finally:
         for ns in (a, b):
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_bundle_encrypted_to_the_device_age_key(provisioned, tmp_path):
+    pyrage = pytest.importorskip("pyrage")
+    _doc, store, _base, export = provisioned
+    identity = pyrage.x25519.Identity.generate()
+    r, out = export("head", "json", "--age-recipient", str(identity.to_public()))
+    assert r.exit_code == 0, r.stderr
+    assert [p.name for p in out.iterdir()] == ["head.macsec.json.age"]
+    sealed = (out / "head.macsec.json.age").read_bytes()
+    assert sealed.startswith(b"age-encryption.org/v1\n")
+    cak = _keys_by_ca(store)["link:base/j100_to_head"][0]
+    assert cak.encode() not in sealed
+    if shutil.which("age"):  # the reference implementation, where installed, as the independent reader
+        key = tmp_path / "id.txt"
+        key.write_text(str(identity) + "\n")
+        plain = subprocess.run(["age", "-d", "-i", key], input=sealed, capture_output=True, check=True).stdout
+    else:
+        plain = pyrage.decrypt(sealed, [identity])
+    bundle = json.loads(plain)
+    assert [a["id"] for a in bundle["associations"]] == ["link:base/j100_to_head"]
+    assert bundle["associations"][0]["generations"][0]["cak"] == cak
+    r, _ = export("head", "json", "--age-recipient", "age1notakey")
+    assert r.exit_code == 3 and "not an age X25519 public key" in r.stderr
+    r, _ = export("head", "wpa_supplicant", "--age-recipient", str(identity.to_public()))
+    assert r.exit_code == 3

@@ -224,13 +224,21 @@ def header(pk: PortKeys, comment: str = "#") -> list[str]:
 
 
 def render(
-    fmt: str, ports: list[PortKeys], *, device: str, wpa_version: tuple[int, int], notices: list[Notice]
+    fmt: str,
+    ports: list[PortKeys],
+    *,
+    device: str,
+    wpa_version: tuple[int, int],
+    notices: list[Notice],
+    age_recipient: str | None = None,
 ) -> dict[str, bytes]:
-    """File name -> content for ``fmt`` (one of :data:`FORMATS`).
+    """File name -> content for ``fmt`` (one of :data:`FORMATS`); ``age_recipient`` encrypts the JSON bundle.
 
     Raises:
         ExportError: the consumer cannot express an association (cipher, version, PN rule).
     """
+    if age_recipient is not None and fmt != "json":
+        raise ExportError("--age-recipient encrypts the JSON bundle: use it with --format json")
     if fmt == "wpa_supplicant":
         from . import wpa_supplicant
 
@@ -245,4 +253,4 @@ def render(
         return iproute2.render(ports, notices=notices)
     from . import bundle
 
-    return bundle.render(ports, device=device)
+    return bundle.render(ports, device=device, age_recipient=age_recipient)

@@ -4,6 +4,9 @@
 "policy", "cipher", "key_agreement", "confidentiality_offset", "ports": [{"port", "iface",
 "sci"}], "peers": [{"device", "port", "sci"}], "generations": [{"generation", "an", "ckn",
 "cak", "activation", "expiry", "sending", "kcv"}]}]}`` — hex strings, UTC times.
+
+With ``--age-recipient age1…`` (the device's X25519 public key) the bundle is written only
+as ``<device>.macsec.json.age``, encrypted with age (pyrage); the plaintext never touches disk.
 """
 
 from __future__ import annotations
@@ -13,12 +16,29 @@ from typing import Any
 
 from ..kdf import key_check_value
 from ..store import fmt_time
-from . import PortKeys, sci
+from . import ExportError, PortKeys, sci
 
 BUNDLE_FORMAT = "hcdf-trust-macsec-bundle"
 
 
-def render(ports: list[PortKeys], *, device: str) -> dict[str, bytes]:
+def encrypt_to(recipient: str, data: bytes) -> bytes:
+    """``data`` encrypted with age to an X25519 recipient (``age1…``).
+
+    Raises:
+        ExportError: the recipient is not an age X25519 public key.
+    """
+    import pyrage  # type: ignore[import-untyped]
+
+    try:
+        to = pyrage.x25519.Recipient.from_str(recipient.strip())
+    except Exception as exc:  # pyrage raises its own RecipientError
+        raise ExportError(
+            f"--age-recipient is not an age X25519 public key: {exc}", expected="age1…", actual=recipient[:80]
+        ) from None
+    return bytes(pyrage.encrypt(data, [to]))
+
+
+def render(ports: list[PortKeys], *, device: str, age_recipient: str | None = None) -> dict[str, bytes]:
     by_ca: dict[str, dict[str, Any]] = {}
     for pk in ports:
         policy = pk.ca.policy
@@ -53,4 +73,7 @@ def render(ports: list[PortKeys], *, device: str) -> dict[str, bytes]:
             if d != device and peer not in item["peers"]:
                 item["peers"].append(peer)
     doc = {"format": BUNDLE_FORMAT, "version": 1, "device": device, "associations": list(by_ca.values())}
-    return {f"{device}.macsec.json": (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode()}
+    data = (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode()
+    if age_recipient is not None:
+        return {f"{device}.macsec.json.age": encrypt_to(age_recipient, data)}
+    return {f"{device}.macsec.json": data}
