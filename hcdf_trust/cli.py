@@ -406,7 +406,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
         click.echo(f"wrote {path}", err=True)
 
 
-from .cli_macsec import macsec as _macsec  # noqa: E402  (the group imports emit_json/handle_errors from here)
+from .cli_macsec import macsec as _macsec  # noqa: E402
 
 main.add_command(_macsec)
 

@@ -7,11 +7,29 @@ times and key check values only.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any
 
 import click
 
-from .cli import emit_json, handle_errors
+
+def handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
+    """:func:`hcdf_trust.cli.handle_errors`, looked up at call time (``cli`` imports this module)."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from .cli import handle_errors as handle
+
+        return handle(func)(*args, **kwargs)
+
+    return wrapper
+
+
+def emit_json(payload: dict[str, Any]) -> None:
+    from .cli import emit_json as emit
+
+    emit(payload)
 
 
 @click.group()
@@ -156,15 +174,17 @@ def generate(
     """Create every missing key DOC's associations need (running it again changes nothing)."""
     from .macsec.plan import plan
     from .macsec.rotation import generate as run
-    from .macsec.store import KeyStore
+    from .macsec.store import KeyStore, locked
 
     now = _now(now_text)
     p = plan(doc)
     wrapper = _wrapper(passphrase_file, backend)
-    store = KeyStore.open(store_dir, wrapper) if KeyStore.exists(store_dir) else KeyStore.create(store_dir, wrapper)
-    created, notices = run(store, p, now=now)
-    if store.changed:
-        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
+    with locked(store_dir):
+        exists = KeyStore.exists(store_dir)
+        store = KeyStore.open(store_dir, wrapper) if exists else KeyStore.create(store_dir, wrapper)
+        created, notices = run(store, p, now=now)
+        if store.changed:
+            _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
     warnings = [*p.warnings, *notices]
     if as_json:
         emit_json(
@@ -238,14 +258,16 @@ def rotate(
     from .macsec.plan import plan
     from .macsec.rotation import rotate as run
     from .macsec.rotation import select
-    from .macsec.store import KeyStore, fmt_time
+    from .macsec.store import KeyStore, fmt_time, locked
 
     now = _now(now_text)
     p = plan(doc)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
-    done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
-    if store.changed:
-        _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
+    wrapper = _wrapper(passphrase_file, backend)
+    with locked(store_dir):
+        store = KeyStore.open(store_dir, wrapper)
+        done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
+        if store.changed:
+            _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
@@ -263,13 +285,15 @@ def rotate(
 def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any) -> None:
     """Remove generations past their overlap (and only those)."""
     from .macsec.rotation import retire as run
-    from .macsec.store import KeyStore
+    from .macsec.store import KeyStore, locked
 
     now = _now(now_text)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
-    removed = run(store, now=now)
-    if store.changed:
-        _save(store, now, inputs=[], passphrase_file=passphrase_file, backend=backend)
+    wrapper = _wrapper(passphrase_file, backend)
+    with locked(store_dir):
+        store = KeyStore.open(store_dir, wrapper)
+        removed = run(store, now=now)
+        if store.changed:
+            _save(store, now, inputs=[], passphrase_file=passphrase_file, backend=backend)
     if as_json:
         emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
         return

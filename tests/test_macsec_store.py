@@ -330,7 +330,7 @@ def test_failed_write_is_exit_3_and_leaves_nothing(env, monkeypatch):
     monkeypatch.undo()
     assert r.exit_code == 3 and "No space left" in r.stderr
     assert (store / STORE_NAME).read_bytes() == before
-    assert sorted(os.listdir(store)) == [STORE_NAME]
+    assert sorted(os.listdir(store)) == [".macsec-keys.lock", STORE_NAME]
 
 
 def test_store_never_over_an_input(env, cli, tmp_path):
@@ -344,3 +344,45 @@ def test_store_never_over_an_input(env, cli, tmp_path):
     r = cli("macsec", "generate", doc, "--store", doc.parent, "--passphrase-file", pp)
     assert r.exit_code == 3
     assert doc.read_bytes() == text
+
+
+# --- two runs on one store ---------------------------------------------------------------
+
+
+def test_concurrent_generates_never_lose_a_key(tmp_path):
+    """Two processes generating for two robots into one store: both robots' keys survive."""
+    docs = []
+    for name in ("r1", "r2"):
+        folder = tmp_path / name
+        docs.append(_doc(folder))
+        text = docs[-1].read_text().replace('name="n"', f'name="{name}"')
+        docs[-1].write_text(text)
+        from ._macsec import lock
+
+        lock(docs[-1])
+    pp = tmp_path / "pass"
+    pp.write_bytes(PASS)
+    store = tmp_path / "shared-keys"
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"))
+    cmd = [sys.executable, "-m", "hcdf_trust.cli", "macsec", "generate"]
+    procs = [
+        subprocess.Popen([*cmd, str(d), "--store", str(store), "--passphrase-file", str(pp)], cwd=PROJECT, env=env)
+        for d in docs
+    ]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    ids = set(_open(store).entries)
+    assert {"link:r1/plain", "link:r2/plain"} <= ids
+
+
+def test_a_held_lock_is_waited_for_then_refused(env, monkeypatch):
+    import fcntl
+
+    import hcdf_trust.macsec.store as store_mod
+
+    _doc_path, store, run = env
+    assert run("generate").exit_code == 0
+    monkeypatch.setattr(store_mod, "LOCK_WAIT_SEC", 0.3)
+    with open(store / ".macsec-keys.lock", "rb+") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        r = run("rotate")
+    assert r.exit_code == 3 and "locked by another run" in r.stderr

@@ -30,21 +30,28 @@ Times are UTC, ISO 8601 with a ``Z``. A generation is *pending* before its activ
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import hmac
 import json
 import os
+import stat
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from ..errors import IntegrityError
+from ..errors import InputError, IntegrityError
 from ..localfile import read_input
 from ..outputs import OutputPlan
 from .backends import KeyStoreFormatError, Wrapper, b64, unb64
 
 STORE_NAME = "macsec-keys.json"
+LOCK_NAME = ".macsec-keys.lock"
+LOCK_WAIT_SEC = 30.0
 FORMAT = "hcdf-trust-macsec-store"
 FORMAT_VERSION = 1
 MAX_STORE_BYTES = 512 << 20
@@ -55,6 +62,41 @@ class KeyStoreIntegrityError(IntegrityError):
     """The key store's metadata or a key's ciphertext was changed outside this tool."""
 
     code = "key-store-integrity"
+
+
+@contextlib.contextmanager
+def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold the store folder's lock (``flock`` on :data:`LOCK_NAME`) for one read-modify-write.
+
+    Two runs on one store never interleave (the second waits up to :data:`LOCK_WAIT_SEC`).
+    The folder is made 0700 if missing; a lock path that is not a regular file is refused.
+
+    Raises:
+        InputError: the folder cannot be made, the lock is not a regular file, or it stays held.
+    """
+    path = Path(os.path.abspath(folder)) / LOCK_NAME
+    try:
+        os.makedirs(path.parent, mode=0o700, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise InputError(f"cannot lock the key store: {exc.strerror or exc}", file=str(path)) from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise InputError("the key store lock is not a regular file", file=str(path))
+        deadline = time.monotonic() + LOCK_WAIT_SEC
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise InputError(
+                        f"the key store is locked by another run (waited {LOCK_WAIT_SEC:g} s)", file=str(path)
+                    ) from None
+                time.sleep(0.05)
+        yield
+    finally:
+        os.close(fd)
 
 
 def now_utc() -> datetime:
