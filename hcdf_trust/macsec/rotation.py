@@ -21,7 +21,7 @@ from typing import Any
 from ..errors import HcdfTrustError, InputError, Notice
 from .kdf import key_check_value
 from .plan import Association, Plan
-from .store import Entry, KeyStore, fmt_time
+from .store import BLOB_KINDS, Entry, KeyStore, fmt_time
 
 DEFAULT_OVERLAP_SEC = 3600
 
@@ -53,14 +53,7 @@ def generate(store: KeyStore, plan: Plan, *, now: datetime) -> tuple[list[str], 
     taken = store.known_ckns()
     for ca in plan.keyed():
         if not _supported(ca):
-            notices.append(
-                Notice(
-                    "macsec-eap-tls",
-                    f"{ca.id}: key-agreement eap-tls: certificates are not provisioned by this version; no key made",
-                    file=ca.file,
-                    line=ca.line,
-                )
-            )
+            created += _eap_tls(store, ca, now=now, ckns=taken)
             continue
         entry = store.entries.get(ca.id)
         if entry is None:
@@ -81,6 +74,42 @@ def generate(store: KeyStore, plan: Plan, *, now: datetime) -> tuple[list[str], 
     return created, notices
 
 
+def _eap_tls(store: KeyStore, ca: Association, *, now: datetime, ckns: set[bytes]) -> list[str]:
+    """The network CA and each member's certificate for an eap-tls association, made when missing."""
+    from . import eaptls
+    from .store import Entry
+
+    made = []
+    network = ca.elements[0].network
+
+    def entry(entry_id: str, kind: str) -> Entry:
+        found = store.entries.get(entry_id)
+        if found is None:
+            found = store.entries[entry_id] = Entry(entry_id, kind, None, 0, ca.file, ca.line, [])
+        return found
+
+    ca_entry = entry(eaptls.ca_id(network), "eap-tls-ca")
+    if not ca_entry.generations:
+        store.new_generation(ca_entry, now=now, activation=now, ckns=ckns, secret=eaptls.make_ca(network, now))
+        made.append(ca_entry.ca_id)
+    ca_bundle = store.key(ca_entry, ca_entry.generations[-1])
+    for device in ca.members:
+        dev_entry = entry(eaptls.cert_id(network, device), "eap-tls-cert")
+        if not dev_entry.generations:
+            secret = eaptls.make_cert(ca_bundle, device, now)
+            store.new_generation(dev_entry, now=now, activation=now, ckns=ckns, secret=secret)
+            made.append(dev_entry.ca_id)
+    return made
+
+
+def eap_ids(ca: Association) -> list[str]:
+    """The store entries an eap-tls association needs."""
+    from . import eaptls
+
+    network = ca.elements[0].network
+    return [eaptls.ca_id(network), *(eaptls.cert_id(network, d) for d in ca.members)]
+
+
 def is_due(entry: Entry, ca: Association | None, now: datetime) -> bool:
     current = entry.current(now)
     if current is None or ca is None or ca.policy is None or not ca.policy.rekey_interval_sec:
@@ -94,6 +123,8 @@ def select(plan: Plan, *, network: str | None, key_ref: str | None) -> list[Asso
     """The keyed associations ``rotate`` is asked for (all when neither filter is given)."""
     out = []
     for ca in plan.keyed():
+        if not _supported(ca):
+            continue  # eap-tls: certificates, renewed by re-issuing, not by CAK rotation
         if network is not None and not any(e.network == network for e in ca.elements):
             continue
         if key_ref is not None and ca.key_ref != key_ref:
@@ -103,7 +134,7 @@ def select(plan: Plan, *, network: str | None, key_ref: str | None) -> list[Asso
         what = " and ".join(
             x for x in (f"network {network!r}" if network else "", f"key-ref {key_ref!r}" if key_ref else "") if x
         )
-        raise RotationError(f"no keyed association matches {what or 'the description'}", file=plan.document)
+        raise RotationError(f"no psk association matches {what or 'the description'}", file=plan.document)
     return out
 
 
@@ -180,6 +211,18 @@ def retire(store: KeyStore, *, now: datetime) -> list[tuple[str, int]]:
     return removed
 
 
+def _check_value(store: KeyStore, entry: Entry, gen: Any) -> str:
+    """A key check value; for a certificate entry, the certificate's SHA-256 (first 3 octets)."""
+    secret = store.key(entry, gen)
+    if entry.kind in BLOB_KINDS:
+        import hashlib
+
+        from .eaptls import split
+
+        return hashlib.sha256(split(secret)[1]).hexdigest()[:6]
+    return key_check_value(secret, gen.ckn)
+
+
 @dataclass
 class Status:
     rows: list[dict[str, Any]] = field(default_factory=list)
@@ -193,13 +236,14 @@ class Status:
 def status(store: KeyStore, plan: Plan, *, now: datetime) -> Status:
     """Per CA: the active generation, its age, whether it is due, pending ones, key check values."""
     out = Status()
-    described = {ca.id: ca for ca in plan.keyed()}
-    for ca_id, wanted in described.items():
-        if (ca_id not in store.entries or not store.entries[ca_id].generations) and _supported(wanted):
+    described = {ca.id: ca for ca in plan.keyed() if _supported(ca)}
+    eap = {i for ca in plan.keyed() if not _supported(ca) for i in eap_ids(ca)}
+    for ca_id in [*described, *sorted(eap)]:
+        if ca_id not in store.entries or not store.entries[ca_id].generations:
             out.missing.append(ca_id)
     for ca_id, entry in sorted(store.entries.items()):
         ca = described.get(ca_id)
-        if ca is None:
+        if ca is None and ca_id not in eap:
             out.orphaned.append(ca_id)
         current = entry.current(now)
         gens = []
@@ -211,13 +255,13 @@ def status(store: KeyStore, plan: Plan, *, now: datetime) -> Status:
                     "created": fmt_time(g.created),
                     "activation": fmt_time(g.activation),
                     "expiry": fmt_time(g.expiry) if g.expiry else None,
-                    "kcv": key_check_value(store.key(entry, g), g.ckn),
+                    "kcv": _check_value(store, entry, g),
                 }
             )
         out.rows.append(
             {
                 "id": ca_id,
-                "described": ca is not None,
+                "described": ca is not None or ca_id in eap,
                 "cipher": entry.cipher,
                 "active_generation": current.generation if current else None,
                 "age_sec": int((now - current.activation).total_seconds()) if current else None,

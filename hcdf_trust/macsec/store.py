@@ -52,6 +52,9 @@ from .backends import KeyStoreFormatError, Wrapper, b64, unb64
 STORE_NAME = "macsec-keys.json"
 LOCK_NAME = ".macsec-keys.lock"
 LOCK_WAIT_SEC = 30.0
+# Entries whose secret is a PEM bundle (EAP-TLS CA or device key and certificate), not an AES key.
+BLOB_KINDS = ("eap-tls-ca", "eap-tls-cert")
+MAX_BLOB_BYTES = 64 << 10
 FORMAT = "hcdf-trust-macsec-store"
 FORMAT_VERSION = 1
 MAX_STORE_BYTES = 512 << 20
@@ -276,6 +279,7 @@ class KeyStore:
         now: datetime,
         activation: datetime,
         ckns: set[bytes] | None = None,
+        secret: bytes | None = None,
     ) -> Generation:
         """Add generation N+1 to ``entry`` with a fresh key and a CKN unique in its first 16 octets."""
         taken = ckns if ckns is not None else self.known_ckns()
@@ -285,7 +289,7 @@ class KeyStore:
         taken.add(ckn[:16])
         number = (entry.generations[-1].generation + 1) if entry.generations else 1
         nonce = os.urandom(12)
-        key = os.urandom(entry.key_bytes)
+        key = os.urandom(entry.key_bytes) if secret is None else secret
         ciphertext = self._cipher().encrypt(nonce, key, _aad(self.store_id, entry.ca_id, number, ckn))
         gen = Generation(number, ckn, now, activation, None, nonce, ciphertext)
         entry.generations.append(gen)
@@ -309,6 +313,8 @@ class KeyStore:
                 f"{entry.ca_id} generation {gen.generation}: the key does not decrypt (changed or moved)",
                 file=str(self.path),
             ) from None
+        if entry.kind in BLOB_KINDS:
+            return key
         if len(key) not in (16, 32):  # a generation made before a cipher change keeps its own length
             raise KeyStoreIntegrityError(
                 f"{entry.ca_id} generation {gen.generation}: the key has the wrong length",
@@ -363,7 +369,7 @@ def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:
     if not isinstance(raw, dict) or not isinstance(raw.get("generations"), list):
         raise KeyStoreFormatError(f"{where} is malformed", file=source)
     key_bytes = raw.get("key_bytes")
-    if key_bytes not in (16, 32):
+    if key_bytes not in (16, 32) and not (raw.get("kind") in BLOB_KINDS and key_bytes == 0):
         raise KeyStoreFormatError(f"{where}: key_bytes is not 16 or 32", file=source, actual=repr(key_bytes)[:40])
     src_raw = raw.get("source")
     src: dict[str, Any] = src_raw if isinstance(src_raw, dict) else {}

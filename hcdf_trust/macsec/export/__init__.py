@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from datetime import datetime
 
 from ...errors import InputError, Notice
+from .. import eaptls
 from ..kdf import kdf
 from ..plan import PN_WARN_MBPS, Association, Plan, is_xpn, pn_lifetime_seconds
 from ..store import Entry, Generation, KeyStore
@@ -39,7 +40,7 @@ from ..store import Entry, Generation, KeyStore
 FORMATS = ("wpa_supplicant", "networkd", "iproute2", "json")
 # Interface and device names become file names and shell words: refuse anything else.
 _IFACE = re.compile(r"[A-Za-z0-9_.:@-]{1,15}")
-_DEVICE = re.compile(r"[A-Za-z0-9_.@-]{1,200}")
+DEVICE_NAME = re.compile(r"[A-Za-z0-9_.@-]{1,200}")
 
 
 def clean(text: str) -> str:
@@ -76,6 +77,16 @@ class Key:
         return (self.generation.generation - 1) % 4
 
 
+@dataclass(frozen=True)
+class Eap:
+    """A device's EAP-TLS material for one network: the CA certificate, its key and certificate (PEM)."""
+
+    network: str
+    ca_cert: bytes
+    key: bytes
+    cert: bytes
+
+
 @dataclass
 class PortKeys:
     """One port of the exported device in one association, with the keys it needs."""
@@ -88,6 +99,11 @@ class PortKeys:
     index: int  # position of this port among the association's member ports (1-based): SSCI, priority
     peers: list[tuple[str, str, int]]  # (device, port, index) of every other member port
     keys: list[Key]
+    eap: Eap | None = None  # key-agreement eap-tls: certificates instead of a CAK
+
+    @property
+    def eap_tls(self) -> bool:
+        return self.eap is not None
 
     def static_sak(self, key: Key) -> bytes:
         context = b"hcdf-trust static SAK" + key.generation.ckn[:16] + key.generation.generation.to_bytes(4, "big")
@@ -131,13 +147,20 @@ def collect(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> tuple
     notices: list[Notice] = []
     seen_ports: dict[str, str] = {}
     for ca in cas:
-        entry = store.entries.get(ca.id)
-        if entry is None or entry.current(now) is None:
-            raise ExportError(
-                f"{ca.id} has no active key in the store: run `macsec generate`", file=ca.file, line=ca.line
-            )
-        current = entry.current(now)
-        keys = [Key(g, store.key(entry, g), g is current) for g in entry.live(now)]
+        assert ca.policy is not None
+        eap = None
+        if ca.policy.key_agreement == "eap-tls":
+            eap = _eap(store, ca, device, now)
+            entry, keys = store.entries[eaptls.cert_id(eap.network, device)], []
+        else:
+            found = store.entries.get(ca.id)
+            current = found.current(now) if found is not None else None
+            if found is None or current is None:
+                raise ExportError(
+                    f"{ca.id} has no active key in the store: run `macsec generate`", file=ca.file, line=ca.line
+                )
+            entry = found
+            keys = [Key(g, store.key(entry, g), g is current) for g in entry.live(now)]
         member_ports = [(m.device, p) for m in ca.members.values() for p in m.ports]
         for port in ca.members[device].ports:
             if port in seen_ports:
@@ -151,9 +174,23 @@ def collect(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> tuple
             index = member_ports.index((device, port)) + 1
             peers = [(d, p, i + 1) for i, (d, p) in enumerate(member_ports) if (d, p) != (device, port)]
             iface = check_name(ca.ifaces.get(f"{device}/{port}", port), _IFACE, what="interface", ca=ca)
-            check_name(device, _DEVICE, what="device", ca=ca)
-            out.append(PortKeys(ca, entry, device, port, iface, index, peers, keys))
+            check_name(device, DEVICE_NAME, what="device", ca=ca)
+            out.append(PortKeys(ca, entry, device, port, iface, index, peers, keys, eap))
     return out, notices
+
+
+def _eap(store: KeyStore, ca: Association, device: str, now: datetime) -> Eap:
+    network = ca.elements[0].network
+    parts = []
+    for entry_id in (eaptls.ca_id(network), eaptls.cert_id(network, device)):
+        entry = store.entries.get(entry_id)
+        current = entry.current(now) if entry is not None else None
+        if entry is None or current is None:
+            raise ExportError(
+                f"{ca.id}: {entry_id} is not in the store: run `macsec generate`", file=ca.file, line=ca.line
+            )
+        parts.append(eaptls.split(store.key(entry, current)))
+    return Eap(network, ca_cert=parts[0][1], key=parts[1][0], cert=parts[1][1])
 
 
 def check_static(pk: PortKeys, notices: list[Notice], *, fmt: str) -> None:

@@ -67,6 +67,13 @@ def render(ports: list[PortKeys], *, device: str, age_recipient: str | None = No
                     for k in pk.keys
                 ],
             }
+        if pk.eap is not None:
+            item["eap_tls"] = {
+                "network": pk.eap.network,
+                "ca_cert": pk.eap.ca_cert.decode(),
+                "cert": pk.eap.cert.decode(),
+                "key": pk.eap.key.decode(),
+            }
         item["ports"].append({"port": pk.port, "iface": pk.iface, "sci": sci(pk.ca.id, pk.device, pk.port)})
         for d, p, _ in pk.peers:
             peer = {"device": d, "port": p, "sci": sci(pk.ca.id, d, p)}

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from ...errors import Notice
 from ..plan import is_xpn
-from . import Key, PortKeys, check_static, header, offset_notice, sci
+from . import ExportError, Key, PortKeys, check_static, header, offset_notice, sci
 
 
 def _sa(pk: PortKeys, key: Key, ssci: int, *, xpn: bool) -> str:
@@ -29,6 +29,12 @@ def render(ports: list[PortKeys], *, notices: list[Notice]) -> dict[str, bytes]:
     for n, pk in enumerate(ports):
         policy = pk.ca.policy
         assert policy is not None
+        if pk.eap_tls:
+            raise ExportError(
+                f"{pk.ca.id}: eap-tls needs MKA; static ip macsec keys cannot carry it (use --format wpa_supplicant)",
+                file=pk.ca.file,
+                line=pk.ca.line,
+            )
         check_static(pk, notices, fmt="iproute2")
         offset_notice(pk, notices, fmt="iproute2")
         dev = f"macsec{n}"

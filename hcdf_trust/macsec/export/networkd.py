@@ -19,6 +19,12 @@ def render(ports: list[PortKeys], *, notices: list[Notice]) -> dict[str, bytes]:
     for n, pk in enumerate(ports):
         policy = pk.ca.policy
         assert policy is not None
+        if pk.eap_tls:
+            raise ExportError(
+                f"{pk.ca.id}: eap-tls needs MKA; systemd-networkd has none (use --format wpa_supplicant)",
+                file=pk.ca.file,
+                line=pk.ca.line,
+            )
         if policy.cipher != "gcm-aes-128":
             raise ExportError(
                 f"{pk.ca.id}: systemd-networkd static MACsec supports only gcm-aes-128 (16-byte keys); "

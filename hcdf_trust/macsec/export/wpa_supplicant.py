@@ -13,7 +13,7 @@ and 32 for the others.
 from __future__ import annotations
 
 from ...errors import Notice
-from . import ExportError, PortKeys, header, offset_notice
+from . import DEVICE_NAME, ExportError, PortKeys, check_name, header, offset_notice
 
 DEFAULT_VERSION = "2.10"  # Debian 12's wpasupplicant
 
@@ -23,6 +23,36 @@ def parse_version(text: str) -> tuple[int, int]:
     if not (major.isdigit() and minor.isdigit()):
         raise ValueError(f"{text!r} is not a wpa_supplicant version like 2.10")
     return int(major), int(minor)
+
+
+CERT_DIR = "/etc/wpa_supplicant/hcdf"
+
+
+def _eap_block(pk: PortKeys, policy: str, version: tuple[int, int], files: dict[str, bytes]) -> list[str]:
+    """An EAP-TLS network block; the CA certificate, device certificate and key as files for CERT_DIR."""
+    assert pk.eap is not None and pk.ca.policy is not None
+    net = check_name(pk.eap.network, DEVICE_NAME, what="network", ca=pk.ca)
+    ca_file, cert_file, key_file = f"hcdf-{net}-ca.pem", f"hcdf-{net}-{pk.device}.pem", f"hcdf-{net}-{pk.device}.key"
+    files[ca_file], files[cert_file], files[key_file] = pk.eap.ca_cert, pk.eap.cert, pk.eap.key
+    block = [
+        f"# EAP-TLS: install {ca_file}, {cert_file} and {key_file} in {CERT_DIR} (root, 0600)",
+        "network={",
+        "\tkey_mgmt=IEEE8021X",
+        "\teap=TLS",
+        "\teapol_flags=0",
+        "\tmacsec_policy=1",
+        f"\tmacsec_integ_only={1 if policy == 'integrity-only' else 0}",
+        "\tmacsec_replay_protect=1",
+        "\tmacsec_replay_window=0",
+        "\tmacsec_port=1",
+        f'\tidentity="{pk.device}"',
+        f'\tca_cert="{CERT_DIR}/{ca_file}"',
+        f'\tclient_cert="{CERT_DIR}/{cert_file}"',
+        f'\tprivate_key="{CERT_DIR}/{key_file}"',
+    ]
+    if version >= (2, 11):
+        block.append(f"\tmacsec_csindex={1 if pk.ca.policy.cipher == 'gcm-aes-256' else 0}")
+    return [*block, "}"]
 
 
 def render(ports: list[PortKeys], *, version: tuple[int, int], notices: list[Notice]) -> dict[str, bytes]:
@@ -51,6 +81,10 @@ def render(ports: list[PortKeys], *, version: tuple[int, int], notices: list[Not
         offset_notice(pk, notices, fmt="wpa_supplicant")
         lines = header(pk)
         lines += ["ctrl_interface=/run/wpa_supplicant", "eapol_version=3", "ap_scan=0"]
+        if pk.eap is not None:
+            lines += _eap_block(pk, policy.policy, version, files)
+            files[f"wpa_supplicant-wired-{pk.iface}.conf"] = ("\n".join(lines) + "\n").encode()
+            continue
         for n, key in enumerate(sorted(pk.keys, key=lambda k: (k.sending, k.generation.generation))):
             g = key.generation
             block = [
