@@ -94,6 +94,12 @@ def plan_cmd(doc: str, as_json: bool) -> None:
 
 
 def store_options(func: Any) -> Any:
+    func = click.option(
+        "--tpm",
+        "tpm_tcti",
+        metavar="TCTI",
+        help="Seal the store's data key to a TPM 2.0 (e.g. device:/dev/tpmrm0, swtpm:host=127.0.0.1,port=2321).",
+    )(func)
     func = click.option("--pin-file", type=click.Path(dir_okay=False), help="File holding the PKCS#11 user PIN.")(func)
     func = click.option("--token-label", help="PKCS#11 token label (with --pkcs11-module).")(func)
     func = click.option(
@@ -131,9 +137,14 @@ def _now(text: str | None) -> Any:
 
 def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     """The wrapping-key backend the store options name: a passphrase, or a PKCS#11 token."""
-    from .macsec.backends import PassphraseWrapper, Pkcs11Wrapper, passphrase_from, pin_from
+    from .macsec.backends import PassphraseWrapper, Pkcs11Wrapper, TpmWrapper, passphrase_from, pin_from
 
     module, label, pin_file = backend.get("pkcs11_module"), backend.get("token_label"), backend.get("pin_file")
+    tcti = backend.get("tpm_tcti")
+    if tcti is not None:
+        if module or passphrase_file:
+            raise click.UsageError("--tpm, --pkcs11-module and --passphrase-file are different backends: give one")
+        return TpmWrapper(tcti)
     if module is None:
         if label or pin_file:
             raise click.UsageError("--token-label and --pin-file need --pkcs11-module")

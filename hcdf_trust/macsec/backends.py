@@ -276,3 +276,85 @@ def pin_from(file: str) -> bytes:
     if not data:
         raise InputError("the PIN file is empty", file=file)
     return data
+
+
+class TpmWrapper:
+    """The data key sealed to a TPM 2.0 (tpm2-pytss): only this TPM can unseal it.
+
+    ``tcti`` is a TSS2 TCTI string: ``device:/dev/tpmrm0``, ``swtpm:host=127.0.0.1,port=2321``.
+    The sealed object (keyed hash, ``fixedTPM``/``fixedParent``) lives under the owner
+    hierarchy's ECC P-256 storage primary, re-created from the TPM's seed on every run.
+    """
+
+    method = "tpm"
+    PRIMARY = "ecc256"
+
+    def __init__(self, tcti: str) -> None:
+        os.environ.setdefault("TSS2_LOG", "all+NONE")  # errors are reported once, by us, not by the TSS's logger
+        try:
+            import tpm2_pytss  # noqa: F401
+        except ImportError:  # pragma: no cover - depends on the install
+            raise InputError("the TPM backend needs tpm2-pytss: pip install 'hcdf-trust[tpm]'") from None
+        self.tcti = tcti
+
+    def _esapi(self) -> Any:
+        from tpm2_pytss import ESAPI, TSS2_Exception
+
+        try:
+            return ESAPI(self.tcti)
+        except (TSS2_Exception, RuntimeError, OSError) as exc:
+            raise InputError(f"cannot reach the TPM at {self.tcti!r}: {exc}", file=self.tcti) from None
+
+    def wrap(self, dek: bytes, aad: bytes) -> dict[str, Any]:
+        from tpm2_pytss import TPM2B_PUBLIC, TPM2B_SENSITIVE_CREATE, TPM2B_SENSITIVE_DATA, TPMS_SENSITIVE_CREATE
+        from tpm2_pytss.constants import TPMA_OBJECT
+
+        ectx = self._esapi()
+        try:
+            primary, *_ = ectx.create_primary(TPM2B_SENSITIVE_CREATE(), self.PRIMARY)
+            sensitive = TPM2B_SENSITIVE_CREATE(TPMS_SENSITIVE_CREATE(data=TPM2B_SENSITIVE_DATA(dek)))
+            attrs = TPMA_OBJECT.USERWITHAUTH | TPMA_OBJECT.FIXEDTPM | TPMA_OBJECT.FIXEDPARENT
+            template = TPM2B_PUBLIC.parse("keyedhash", objectAttributes=attrs)
+            private, public, *_ = ectx.create(primary, sensitive, template)
+            ectx.flush_context(primary)
+        finally:
+            ectx.close()
+        return {
+            "method": self.method,
+            "primary": self.PRIMARY,
+            "private": b64(bytes(private.marshal())),
+            "public": b64(bytes(public.marshal())),
+        }
+
+    def unwrap(self, params: dict[str, Any], aad: bytes, *, source: str) -> bytes:
+        from tpm2_pytss import TPM2B_PRIVATE, TPM2B_PUBLIC, TPM2B_SENSITIVE_CREATE, TSS2_Exception
+
+        if params.get("primary") != self.PRIMARY:
+            raise KeyStoreFormatError("unknown TPM primary template", file=source, expected=self.PRIMARY)
+        private_blob = unb64(params.get("private"), what="TPM private blob", source=source)
+        public_blob = unb64(params.get("public"), what="TPM public blob", source=source)
+        try:
+            private, _ = TPM2B_PRIVATE.unmarshal(private_blob)
+            public, _ = TPM2B_PUBLIC.unmarshal(public_blob)
+        except (TSS2_Exception, ValueError, TypeError):
+            raise KeyStoreFormatError("the TPM blobs are malformed", file=source) from None
+        ectx = self._esapi()
+        try:
+            primary, *_ = ectx.create_primary(TPM2B_SENSITIVE_CREATE(), self.PRIMARY)
+            try:
+                sealed = ectx.load(primary, private, public)
+                dek = bytes(ectx.unseal(sealed))
+                ectx.flush_context(sealed)
+            except TSS2_Exception:
+                raise WrongCredentialError(
+                    f"the TPM at {self.tcti!r} cannot unseal this key store: it was sealed to another TPM "
+                    f"(nothing was changed)",
+                    file=source,
+                ) from None
+            finally:
+                ectx.flush_context(primary)
+        finally:
+            ectx.close()
+        if len(dek) != 32:
+            raise KeyStoreFormatError("the unsealed data key has the wrong length", file=source)
+        return dek

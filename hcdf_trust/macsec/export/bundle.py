@@ -27,7 +27,7 @@ def encrypt_to(recipient: str, data: bytes) -> bytes:
     Raises:
         ExportError: the recipient is not an age X25519 public key.
     """
-    import pyrage  # type: ignore[import-untyped]
+    import pyrage
 
     try:
         to = pyrage.x25519.Recipient.from_str(recipient.strip())
