@@ -316,6 +316,35 @@ def test_killed_rotation_leaves_the_store_before_or_after(env, tmp_path, when):
             ks.key(e, g)
 
 
+@pytest.mark.parametrize("when", ["before", "after"])
+def test_killed_generate_and_retire_leave_the_store_before_or_after(env, tmp_path, when):
+    doc, store, _run = env
+    pp = str(tmp_path / "pass")
+
+    def killed(*args: str) -> None:
+        cmd = [sys.executable, "-c", KILLER, when, "macsec", *args, "--store", str(store), "--passphrase-file", pp]
+        proc = subprocess.run(cmd, cwd=PROJECT, capture_output=True, timeout=60)
+        assert proc.returncode == -9, proc.stderr
+
+    killed("generate", str(doc), "--now", T0)  # a first generate: no store before, a whole store after
+    assert (store / STORE_NAME).exists() == (when == "after")
+    assert _run("generate", "--now", T0).exit_code == 0
+    assert sorted(os.listdir(store)) == [".macsec-keys.lock", STORE_NAME]  # a killed run's temporary is cleaned
+    assert _run("rotate", "--now", T0, "--overlap", "60").exit_code == 0
+    before = (store / STORE_NAME).read_bytes()
+    killed("retire", "--now", "2026-01-02T00:00:00Z")
+    ks = _open(store)
+    counts = {len(e.generations) for e in ks.entries.values()}
+    if when == "before":
+        assert (store / STORE_NAME).read_bytes() == before and counts == {2}
+    else:
+        assert counts == {1}
+    for e in ks.entries.values():  # every remaining key decrypts: a device's key is never lost
+        assert e.current(datetime(2026, 1, 2, tzinfo=UTC)) is not None
+        for g in e.generations:
+            ks.key(e, g)
+
+
 def test_failed_write_is_exit_3_and_leaves_nothing(env, monkeypatch):
     _doc_path, store, run = env
     assert run("generate", "--now", T0).exit_code == 0

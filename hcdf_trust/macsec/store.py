@@ -97,9 +97,19 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
                         f"the key store is locked by another run (waited {LOCK_WAIT_SEC:g} s)", file=str(path)
                     ) from None
                 time.sleep(0.05)
+        _remove_stale_temporaries(path.parent)
         yield
     finally:
         os.close(fd)
+
+
+def _remove_stale_temporaries(folder: Path) -> None:
+    """Temporary store files a killed run left behind (we hold the lock: no run is writing them)."""
+    for name in os.listdir(folder):
+        if name.startswith(f".{STORE_NAME}.") and name.endswith(".tmp"):
+            with contextlib.suppress(OSError):
+                if stat.S_ISREG(os.lstat(folder / name).st_mode):
+                    os.unlink(folder / name)
 
 
 def now_utc() -> datetime:
