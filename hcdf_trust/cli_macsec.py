@@ -370,7 +370,7 @@ def export(
     """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
     import os
 
-    from .macsec.export import collect, render
+    from .macsec.export import collect, mesh_keys, render
     from .macsec.store import KeyStore
     from .outputs import OutputPlan
 
@@ -380,7 +380,10 @@ def export(
     p = plan(doc)
     store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     ports, notices = collect(p, store, device, now=now)
-    files = render(fmt, ports, device=device, wpa_version=wpa_version, notices=notices, age_recipient=age_recipient)
+    mesh = mesh_keys(p, store, device, now=now)
+    files = render(
+        fmt, ports, device=device, wpa_version=wpa_version, notices=notices, age_recipient=age_recipient, mesh=mesh
+    )
     out = OutputPlan()
     for path in p.inputs:
         out.protect(path, what="an input of this run")
@@ -399,7 +402,7 @@ def export(
                 "ok": True,
                 "device": device,
                 "format": fmt,
-                "associations": sorted({pk.ca.id for pk in ports}),
+                "associations": sorted({pk.ca.id for pk in ports} | {m.ca.id for m in mesh}),
                 "files": [str(w) for w in written],
                 "warnings": [n.to_dict() for n in notices],
             }

@@ -345,3 +345,33 @@ def test_bundle_encrypted_to_the_device_age_key(provisioned, tmp_path):
     assert r.exit_code == 3 and "not an age X25519 public key" in r.stderr
     r, _ = export("head", "wpa_supplicant", "--age-recipient", str(identity.to_public()))
     assert r.exit_code == 3
+
+
+def test_mesh_network_keys_go_to_mesh_nodes_only(tmp_path, cli):
+    caps = ("gcm-aes-128",)
+    body = [comp("a", port("p0", *caps)), comp("b", port("p0", *caps)), comp("c"), '<network name="n">']
+    body += [link("l0", "a/p0", "b/p0", '<macsec policy="must-secure"/>')]
+    body += ['<mesh name="skin" standard="802.15.4" network-key-ref="thread">']
+    body += ['<node device="a" antenna="x"/><node device="c" antenna="x"/></mesh>', "</network>"]
+    doc = tree(tmp_path / "d", {"robot.hcdf": hcdf(*body)})
+    pp = tmp_path / "pass"
+    pp.write_bytes(PASS)
+    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
+    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    ks = KeyStore.open(tmp_path / "keys", PassphraseWrapper(PASS))
+    entry = ks.entries["mesh-key:thread"]
+    mesh_key = ks.key(entry, entry.generations[0]).hex()
+    assert len(mesh_key) == 32
+
+    def bundle(device: str) -> dict:
+        out = tmp_path / f"o-{device}"
+        r = cli("macsec", "export", doc, *base, "--device", device, "--format", "json", "--out", out)
+        assert r.exit_code == 0, r.stderr
+        return json.loads((out / f"{device}.macsec.json").read_text())
+
+    assert [m["generations"][0]["key"] for m in bundle("c")["mesh_keys"]] == [mesh_key]
+    assert bundle("c")["associations"] == []
+    assert [m["id"] for m in bundle("a")["mesh_keys"]] == ["mesh-key:thread"]
+    assert bundle("b")["mesh_keys"] == [] and mesh_key not in json.dumps(bundle("b"))
+    r = cli("macsec", "export", doc, *base, "--device", "c", "--format", "wpa_supplicant", "--out", tmp_path / "w")
+    assert r.exit_code == 3 and "only mesh network keys" in r.stderr

@@ -135,7 +135,7 @@ def collect(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> tuple
         ExportError: the device is in no keyed association, or one of them has no key yet.
     """
     cas = [ca for ca in plan.for_device(device) if ca.kind == "macsec"]
-    if not cas:
+    if not plan.for_device(device):
         known = sorted({d for ca in plan.keyed() for d in ca.members})
         raise ExportError(
             f"device {device!r} is a member of no keyed MACsec association",
@@ -177,6 +177,32 @@ def collect(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> tuple
             check_name(device, DEVICE_NAME, what="device", ca=ca)
             out.append(PortKeys(ca, entry, device, port, iface, index, peers, keys, eap))
     return out, notices
+
+
+@dataclass
+class MeshKeys:
+    """A mesh network key the device holds as a mesh node."""
+
+    ca: Association
+    keys: list[Key]
+
+
+def mesh_keys(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> list[MeshKeys]:
+    """The mesh network keys of every mesh the device is a node of.
+
+    Raises:
+        ExportError: one of them has no key in the store yet.
+    """
+    out = []
+    for ca in plan.for_device(device):
+        if ca.kind != "mesh-key":
+            continue
+        entry = store.entries.get(ca.id)
+        current = entry.current(now) if entry is not None else None
+        if entry is None or current is None:
+            raise ExportError(f"{ca.id} has no key in the store: run `macsec generate`", file=ca.file, line=ca.line)
+        out.append(MeshKeys(ca, [Key(g, store.key(entry, g), g is current) for g in entry.live(now)]))
+    return out
 
 
 def _eap(store: KeyStore, ca: Association, device: str, now: datetime) -> Eap:
@@ -268,6 +294,7 @@ def render(
     wpa_version: tuple[int, int],
     notices: list[Notice],
     age_recipient: str | None = None,
+    mesh: list[MeshKeys] | None = None,
 ) -> dict[str, bytes]:
     """File name -> content for ``fmt`` (one of :data:`FORMATS`); ``age_recipient`` encrypts the JSON bundle.
 
@@ -276,6 +303,13 @@ def render(
     """
     if age_recipient is not None and fmt != "json":
         raise ExportError("--age-recipient encrypts the JSON bundle: use it with --format json")
+    if fmt != "json":
+        if not ports:
+            raise ExportError(f"device {device!r} holds only mesh network keys: export them with --format json")
+        for m in mesh or []:
+            notices.append(
+                Notice("macsec-mesh-key", f"{m.ca.id}: a mesh network key is exported only by --format json")
+            )
     if fmt == "wpa_supplicant":
         from . import wpa_supplicant
 
@@ -290,4 +324,4 @@ def render(
         return iproute2.render(ports, notices=notices)
     from . import bundle
 
-    return bundle.render(ports, device=device, age_recipient=age_recipient)
+    return bundle.render(ports, device=device, age_recipient=age_recipient, mesh=mesh or [])

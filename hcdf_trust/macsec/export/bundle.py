@@ -3,7 +3,8 @@
 ``{"format": "hcdf-trust-macsec-bundle", "version": 1, "device", "associations": [{"id",
 "policy", "cipher", "key_agreement", "confidentiality_offset", "ports": [{"port", "iface",
 "sci"}], "peers": [{"device", "port", "sci"}], "generations": [{"generation", "an", "ckn",
-"cak", "activation", "expiry", "sending", "kcv"}]}]}`` — hex strings, UTC times.
+"cak", "activation", "expiry", "sending", "kcv"}]}], "mesh_keys": [{"id", "nodes",
+"generations": [{"generation", "key", "activation", "expiry", "sending"}]}]}`` — hex strings, UTC times.
 
 With ``--age-recipient age1…`` (the device's X25519 public key) the bundle is written only
 as ``<device>.macsec.json.age``, encrypted with age (pyrage); the plaintext never touches disk.
@@ -16,7 +17,7 @@ from typing import Any
 
 from ..kdf import key_check_value
 from ..store import fmt_time
-from . import ExportError, PortKeys, sci
+from . import ExportError, MeshKeys, PortKeys, sci
 
 BUNDLE_FORMAT = "hcdf-trust-macsec-bundle"
 
@@ -38,7 +39,9 @@ def encrypt_to(recipient: str, data: bytes) -> bytes:
     return bytes(pyrage.encrypt(data, [to]))
 
 
-def render(ports: list[PortKeys], *, device: str, age_recipient: str | None = None) -> dict[str, bytes]:
+def render(
+    ports: list[PortKeys], *, device: str, age_recipient: str | None = None, mesh: list[MeshKeys] | None = None
+) -> dict[str, bytes]:
     by_ca: dict[str, dict[str, Any]] = {}
     for pk in ports:
         policy = pk.ca.policy
@@ -79,7 +82,30 @@ def render(ports: list[PortKeys], *, device: str, age_recipient: str | None = No
             peer = {"device": d, "port": p, "sci": sci(pk.ca.id, d, p)}
             if d != device and peer not in item["peers"]:
                 item["peers"].append(peer)
-    doc = {"format": BUNDLE_FORMAT, "version": 1, "device": device, "associations": list(by_ca.values())}
+    meshes = [
+        {
+            "id": m.ca.id,
+            "nodes": sorted(m.ca.members),
+            "generations": [
+                {
+                    "generation": k.generation.generation,
+                    "key": k.cak.hex(),
+                    "activation": fmt_time(k.generation.activation),
+                    "expiry": fmt_time(k.generation.expiry) if k.generation.expiry else None,
+                    "sending": k.sending,
+                }
+                for k in m.keys
+            ],
+        }
+        for m in mesh or []
+    ]
+    doc = {
+        "format": BUNDLE_FORMAT,
+        "version": 1,
+        "device": device,
+        "associations": list(by_ca.values()),
+        "mesh_keys": meshes,
+    }
     data = (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode()
     if age_recipient is not None:
         return {f"{device}.macsec.json.age": encrypt_to(age_recipient, data)}
