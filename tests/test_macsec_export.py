@@ -375,3 +375,11 @@ def test_mesh_network_keys_go_to_mesh_nodes_only(tmp_path, cli):
     assert bundle("b")["mesh_keys"] == [] and mesh_key not in json.dumps(bundle("b"))
     r = cli("macsec", "export", doc, *base, "--device", "c", "--format", "wpa_supplicant", "--out", tmp_path / "w")
     assert r.exit_code == 3 and "only mesh network keys" in r.stderr
+
+
+def test_cli_formats_are_the_exporters():
+    from hcdf_trust.cli_macsec import export as command
+    from hcdf_trust.macsec.export import FORMATS
+
+    option = next(p for p in command.params if p.name == "fmt")
+    assert tuple(option.type.choices) == FORMATS
