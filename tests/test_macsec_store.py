@@ -415,3 +415,23 @@ def test_a_held_lock_is_waited_for_then_refused(env, monkeypatch):
         fcntl.flock(held, fcntl.LOCK_EX)
         r = run("rotate")
     assert r.exit_code == 3 and "locked by another run" in r.stderr
+
+
+def test_a_colliding_ckn_is_drawn_again(env, monkeypatch):
+    """The CSPRNG repeating a CKN's first 16 octets (forced here) never yields two equal CKNs."""
+    _doc_path, store, run = env
+    assert run("generate").exit_code == 0
+    ks = _open(store)
+    taken = next(iter(ks.entries.values())).generations[0].ckn
+    import hcdf_trust.macsec.store as store_mod
+
+    real = os.urandom
+    forced = [taken]
+
+    def urandom(n: int) -> bytes:
+        return forced.pop() if n == 16 and forced else real(n)
+
+    monkeypatch.setattr(store_mod.os, "urandom", urandom)
+    entry = ks.entries["key-ref:k0"]
+    gen = ks.new_generation(entry, now=entry.generations[0].created, activation=entry.generations[0].created)
+    assert not forced and gen.ckn != taken and gen.ckn[:16] not in {taken[:16]}

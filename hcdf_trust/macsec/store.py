@@ -294,7 +294,7 @@ class KeyStore:
         """Add generation N+1 to ``entry`` with a fresh key and a CKN unique in its first 16 octets."""
         taken = ckns if ckns is not None else self.known_ckns()
         ckn = os.urandom(CKN_BYTES)
-        while ckn[:16] in taken:  # pragma: no cover - 2^-128
+        while ckn[:16] in taken:
             ckn = os.urandom(CKN_BYTES)
         taken.add(ckn[:16])
         number = (entry.generations[-1].generation + 1) if entry.generations else 1
