@@ -313,8 +313,9 @@ class _Planner:
         self.plan = Plan(document=documents[root].source)
         self._defined: dict[str, frozenset[str]] = {}
         self._comps: dict[str, dict[str, etree._Element]] = {}
-        self._key_scope: dict[str, tuple[str, str]] = {}
-        self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}  # scoped key-ref -> (instance scope, where)
+        self._key_scope: dict[str, tuple[str, str]] = {}  # scoped key-ref -> (instance, where first written)
+        self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
+        self._override_cache: dict[tuple[tuple[Any, ...], Policy | None], Policy] = {}
 
     def run(self) -> Plan:
         for inst in self._instances():
@@ -555,7 +556,15 @@ class _Planner:
     ) -> tuple[Policy | None, str | None]:
         if el is None:
             return default, None
-        policy = self._policy(doc, el, default, network_level=False)
+        # Overrides repeat (every link of a network written alike): parse each distinct one once.
+        attrs = tuple(kv for kv in el.attrib.items() if kv[0] != "key-ref")
+        cache_key = (attrs, default)
+        policy = self._override_cache.get(cache_key)
+        if policy is None:
+            errors = len(self.errors)
+            policy = self._policy(doc, el, default, network_level=False)
+            if policy is not None and len(self.errors) == errors:
+                self._override_cache[cache_key] = policy
         ref = el.get("key-ref")
         return policy, (ref.strip() or None) if ref is not None else None
 

@@ -38,7 +38,7 @@ import json
 import os
 import stat
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, MutableMapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -184,6 +184,44 @@ class Entry:
         return [g for g in self.generations if g.state_at(now) != "retired"]
 
 
+class Entries(MutableMapping[str, Entry]):
+    """The store's associations, each parsed from its JSON only when first used.
+
+    An export touches a handful of a large store's entries; everything else stays raw.
+    """
+
+    def __init__(self, raw: dict[str, Any], *, source: str) -> None:
+        self._raw = raw
+        self._parsed: dict[str, Entry] = {}
+        self._source = source
+
+    def __getitem__(self, ca_id: str) -> Entry:
+        entry = self._parsed.get(ca_id)
+        if entry is None:
+            if ca_id not in self._raw:
+                raise KeyError(ca_id)
+            entry = self._parsed[ca_id] = _entry(ca_id, self._raw.pop(ca_id), source=self._source)
+        return entry
+
+    def __setitem__(self, ca_id: str, entry: Entry) -> None:
+        self._raw.pop(ca_id, None)
+        self._parsed[ca_id] = entry
+
+    def __delitem__(self, ca_id: str) -> None:
+        if self._raw.pop(ca_id, None) is None:
+            del self._parsed[ca_id]
+
+    def __iter__(self) -> Iterator[str]:
+        yield from list(self._parsed)
+        yield from list(self._raw)
+
+    def __len__(self) -> int:
+        return len(self._parsed) + len(self._raw)
+
+    def __contains__(self, ca_id: object) -> bool:
+        return ca_id in self._parsed or ca_id in self._raw
+
+
 def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
     """Associated data binding a key to its place: NUL-separated (XML names cannot hold NUL)."""
     return f"{FORMAT}\0{store_id}\0{ca_id}\0{generation}\0{ckn.hex()}".encode()
@@ -198,7 +236,7 @@ class KeyStore:
         self.wrap = wrap
         self._dek = dek
         self._aead: Any = None
-        self.entries: dict[str, Entry] = {}
+        self.entries: MutableMapping[str, Entry] = {}
         self.changed = False
 
     # -- open / create ---------------------------------------------------------------------
@@ -266,8 +304,7 @@ class KeyStore:
         assocs = doc.get("associations")
         if not isinstance(assocs, dict):
             raise KeyStoreFormatError("the key store has no associations object", file=source)
-        for ca_id, raw_entry in assocs.items():
-            store.entries[ca_id] = _entry(ca_id, raw_entry, source=source)
+        store.entries = Entries(assocs, source=source)
         return store
 
     # -- keys --------------------------------------------------------------------------------
