@@ -13,6 +13,8 @@ from typing import Any
 
 import click
 
+from .errors import HcdfTrustError
+
 
 def handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     """:func:`hcdf_trust.cli.handle_errors`, looked up at call time (``cli`` imports this module)."""
@@ -131,8 +133,9 @@ def _now(text: str | None) -> Any:
         return now_utc()
     try:
         return parse_time(text, what="--now", source="--now")
-    except Exception as exc:
-        raise click.BadParameter(str(exc), param_hint="--now") from None
+    except HcdfTrustError as exc:
+        example = "2026-01-01T00:00:00Z"
+        raise click.BadParameter(f"{exc.actual!r} is not an ISO 8601 time with a zone (e.g. {example})") from None
 
 
 def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:

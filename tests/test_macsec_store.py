@@ -435,3 +435,10 @@ def test_a_colliding_ckn_is_drawn_again(env, monkeypatch):
     entry = ks.entries["key-ref:k0"]
     gen = ks.new_generation(entry, now=entry.generations[0].created, activation=entry.generations[0].created)
     assert not forced and gen.ckn != taken and gen.ckn[:16] not in {taken[:16]}
+
+
+@pytest.mark.parametrize("value", ["yesterday", "2026-01-01T00:00:00"])
+def test_bad_now_is_a_usage_error(env, value):
+    _doc_path, _store, run = env
+    r = run("status", "--now", value)
+    assert r.exit_code == 2 and "ISO 8601" in r.stderr and "None" not in r.stderr
