@@ -303,7 +303,7 @@ def test_two_namespaces_exchange_traffic_over_our_iproute2_export(tmp_path, cli,
         for ns in (a, b):
             subprocess.run(["ip", "netns", "add", ns], check=True)
         subprocess.run(
-            ["ip", "link", "add", "eth0", "netns", a, "type", "veth", "peer", "eth0", "netns", b], check=True
+            ["ip", "link", "add", "eth0", "netns", a, "type", "veth", "peer", "name", "eth0", "netns", b], check=True
         )
         for ns, device, addr in ((a, "compute", "10.99.0.1/24"), (b, "head_camera", "10.99.0.2/24")):
             out = tmp_path / device
@@ -383,3 +383,16 @@ def test_cli_formats_are_the_exporters():
 
     option = next(p for p in command.params if p.name == "fmt")
     assert tuple(option.type.choices) == FORMATS
+
+
+def test_iproute2_scripts_are_valid_shell(provisioned):
+    _doc, _store, _base, export = provisioned
+    r, out = export("s32j100", "iproute2")
+    assert r.exit_code == 0, r.stderr
+    scripts = sorted(out.glob("macsec-*.sh"))
+    assert len(scripts) == 8
+    for script in scripts:
+        proc = subprocess.run(["sh", "-n", script], capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+        body = script.read_text()
+        assert "validate strict" in body and "protect on" in body and "encrypt on" in body  # must-secure
