@@ -243,7 +243,8 @@ class KeyStore:
 
     @staticmethod
     def file_in(folder: str | os.PathLike[str]) -> Path:
-        return Path(os.path.abspath(folder)) / STORE_NAME
+        """The store file in ``folder``, named as the user gave the folder (messages show it so)."""
+        return Path(folder) / STORE_NAME
 
     @classmethod
     def exists(cls, folder: str | os.PathLike[str]) -> bool:
