@@ -284,6 +284,9 @@ class TpmWrapper:
     ``tcti`` is a TSS2 TCTI string: ``device:/dev/tpmrm0``, ``swtpm:host=127.0.0.1,port=2321``.
     The sealed object (keyed hash, ``fixedTPM``/``fixedParent``) lives under the owner
     hierarchy's ECC P-256 storage primary, re-created from the TPM's seed on every run.
+    The sealed object has an empty authorization value: anyone who can use this TPM can
+    unseal it, and could seal a substitute data key of their own, so the store folder must
+    be writable by its owner only (as the 0700/0600 modes make it).
     """
 
     method = "tpm"
