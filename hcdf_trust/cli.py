@@ -536,5 +536,9 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
         click.echo(f"wrote {path}", err=True)
 
 
+from .cli_macsec import macsec as _macsec  # noqa: E402
+
+main.add_command(_macsec)
+
 if __name__ == "__main__":  # pragma: no cover
     main()

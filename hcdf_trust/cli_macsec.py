@@ -1,0 +1,417 @@
+"""``hcdf-trust macsec``: plan, generate, status, rotate, retire, export. Parses, calls, renders.
+
+Library modules (lxml, cryptography, the resolver) are imported inside the commands.
+No key material is ever printed: human output and ``--json`` carry ids, CKNs' owners,
+times and key check values only.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import click
+
+from .errors import HcdfTrustError
+
+
+def handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
+    """:func:`hcdf_trust.cli.handle_errors`, looked up at call time (``cli`` imports this module)."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from .cli import handle_errors as handle
+
+        return handle(func)(*args, **kwargs)
+
+    return wrapper
+
+
+def emit_json(payload: dict[str, Any]) -> None:
+    from .cli import emit_json as emit
+
+    emit(payload)
+
+
+@click.group()
+def macsec() -> None:
+    """Provision MACsec keys for the connectivity associations an HCDF describes."""
+
+
+def _plan_lines(p: Any) -> None:
+    for ca in p.associations.values():
+        d = ca.to_dict()
+        if ca.kind == "mesh-key":
+            head = f"{ca.id}: mesh network key ({ca.key_bytes * 8}-bit)"
+        else:
+            head = f"{ca.id}: {d['policy']} {d['cipher']} {d['key_agreement']}"
+            if d["confidentiality_offset"]:
+                head += f" offset {d['confidentiality_offset']}"
+            if d["rekey_interval_sec"] is not None:
+                head += f" rekey {d['rekey_interval_sec']} s"
+            store = d["key_store"]
+            if store["type"]:
+                head += f" key-store {store['type']}" + (f":{store['ref']}" if store["ref"] else "")
+            if not ca.keyed:
+                head += " (no key)"
+        click.echo(head)
+        for el in ca.elements:
+            scope = f" scope {el.scope}" if el.scope else ""
+            click.echo(f"  {el.kind} {el.network}/{el.name} ({el.file}:{el.line}{scope})")
+        if ca.shared:
+            click.echo(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s")
+        members = ", ".join(f"{m.device}[{' '.join(m.ports)}]" for m in ca.members.values())
+        click.echo(f"  members: {members}")
+    for el in p.unprotected:
+        click.echo(f"unprotected: {el.label} ({el.file}:{el.line})")
+    for el, reason in p.skipped:
+        click.echo(f"skipped: {el.label}: {reason}")
+    for w in p.warnings:
+        click.echo(f"warning: {w}", err=True)
+
+
+@macsec.command("plan")
+@click.argument("doc", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def plan_cmd(doc: str, as_json: bool) -> None:
+    """Show the connectivity associations DOC's MACsec policy asks for.
+
+    The include tree is resolved and verified first (offline, against its lock file);
+    any resolve error refuses the plan.
+    """
+    from .macsec.plan import plan
+
+    p = plan(doc)
+    if as_json:
+        emit_json({"ok": True, **p.to_dict()})
+        return
+    _plan_lines(p)
+    keyed = p.keyed()
+    click.echo(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled", err=True)
+
+
+# --- the key store ---------------------------------------------------------------------------
+
+
+def store_options(func: Any) -> Any:
+    func = click.option(
+        "--tpm",
+        "tpm_tcti",
+        metavar="TCTI",
+        help="Seal the store's data key to a TPM 2.0 (e.g. device:/dev/tpmrm0, swtpm:host=127.0.0.1,port=2321).",
+    )(func)
+    func = click.option("--pin-file", type=click.Path(dir_okay=False), help="File holding the PKCS#11 user PIN.")(func)
+    func = click.option("--token-label", help="PKCS#11 token label (with --pkcs11-module).")(func)
+    func = click.option(
+        "--pkcs11-module",
+        type=click.Path(dir_okay=False),
+        help="Keep the store's wrapping key in this PKCS#11 token (e.g. /usr/lib/softhsm/libsofthsm2.so).",
+    )(func)
+    func = click.option(
+        "--now",
+        "now_text",
+        metavar="TIME",
+        help="Act as if the time were TIME (ISO 8601 UTC), e.g. to plan a rotation or in tests.",
+    )(func)
+    func = click.option(
+        "--passphrase-file",
+        type=click.Path(dir_okay=False),
+        help="File holding the store passphrase (else $HCDF_TRUST_MACSEC_PASSPHRASE; never an argument).",
+    )(func)
+    func = click.option(
+        "--store", "store_dir", required=True, type=click.Path(file_okay=False), help="Key store folder."
+    )(func)
+    return func
+
+
+def _now(text: str | None) -> Any:
+    from .macsec.store import now_utc, parse_time
+
+    if text is None:
+        return now_utc()
+    try:
+        return parse_time(text, what="--now", source="--now")
+    except HcdfTrustError as exc:
+        example = "2026-01-01T00:00:00Z"
+        raise click.BadParameter(f"{exc.actual!r} is not an ISO 8601 time with a zone (e.g. {example})") from None
+
+
+def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
+    """The wrapping-key backend the store options name: a passphrase, or a PKCS#11 token."""
+    from .macsec.backends import PassphraseWrapper, Pkcs11Wrapper, TpmWrapper, passphrase_from, pin_from
+
+    module, label, pin_file = backend.get("pkcs11_module"), backend.get("token_label"), backend.get("pin_file")
+    tcti = backend.get("tpm_tcti")
+    if tcti is not None:
+        if module or passphrase_file:
+            raise click.UsageError("--tpm, --pkcs11-module and --passphrase-file are different backends: give one")
+        return TpmWrapper(tcti)
+    if module is None:
+        if label or pin_file:
+            raise click.UsageError("--token-label and --pin-file need --pkcs11-module")
+        return PassphraseWrapper(passphrase_from(passphrase_file))
+    if not label or not pin_file:
+        raise click.UsageError("--pkcs11-module needs --token-label and --pin-file")
+    if passphrase_file:
+        raise click.UsageError("--passphrase-file and --pkcs11-module are two different backends: give one")
+    return Pkcs11Wrapper(module, label, pin_from(pin_file))
+
+
+def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | None, backend: dict[str, Any]) -> None:
+    """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
+    import os
+
+    from .outputs import OutputPlan
+
+    out = OutputPlan()
+    for path in inputs:
+        out.protect(path, what="an input of this run")
+    if passphrase_file:
+        out.protect(passphrase_file, what="the passphrase file")
+    if backend.get("pin_file"):
+        out.protect(backend["pin_file"], what="the PIN file")
+    store.plan_write(out, now=now)
+    os.makedirs(store.path.parent, mode=0o700, exist_ok=True)
+    out.commit()
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def generate(
+    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+) -> None:
+    """Create every missing key DOC's associations need (running it again changes nothing)."""
+    from .macsec.plan import plan
+    from .macsec.rotation import generate as run
+    from .macsec.store import KeyStore, locked
+
+    now = _now(now_text)
+    p = plan(doc)
+    wrapper = _wrapper(passphrase_file, backend)
+    with locked(store_dir):
+        exists = KeyStore.exists(store_dir)
+        store = KeyStore.open(store_dir, wrapper) if exists else KeyStore.create(store_dir, wrapper)
+        created, notices = run(store, p, now=now)
+        if store.changed:
+            _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
+    warnings = [*p.warnings, *notices]
+    if as_json:
+        emit_json(
+            {"ok": True, "store": str(store.path), "created": created, "warnings": [w.to_dict() for w in warnings]}
+        )
+        return
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+    for ca_id in created:
+        click.echo(f"created {ca_id} generation 1")
+    click.echo(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do", err=True)
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def status(
+    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+) -> None:
+    """Per association: active generation, age, due under rekey-interval-sec, key check values."""
+    from .macsec.plan import plan
+    from .macsec.rotation import status as run
+    from .macsec.store import KeyStore
+
+    now = _now(now_text)
+    p = plan(doc)
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
+    st = run(store, p, now=now)
+    if as_json:
+        emit_json({"ok": True, **st.to_dict()})
+        return
+    for row in st.rows:
+        gens = " ".join(f"g{g['generation']}:{g['state']}:kcv={g['kcv']}" for g in row["generations"])
+        age = f" age {row['age_sec']} s" if row["age_sec"] is not None else ""
+        flags = (" DUE" if row["due"] else "") + ("" if row["described"] else " (no longer described)")
+        click.echo(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}")
+    for ca_id in st.missing:
+        click.echo(f"{ca_id}: no key (run generate)")
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--network", help="Only associations of this network.")
+@click.option("--key-ref", help="Only the association of this key-ref (as scoped in the plan).")
+@click.option("--due", is_flag=True, help="Only associations due under rekey-interval-sec.")
+@click.option(
+    "--overlap",
+    type=click.IntRange(min=0),
+    default=3600,
+    show_default=True,
+    help="Seconds until the new generation sends, and again until the old one stops being accepted.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def rotate(
+    doc: str,
+    store_dir: str,
+    passphrase_file: str | None,
+    now_text: str | None,
+    network: str | None,
+    key_ref: str | None,
+    due: bool,
+    overlap: int,
+    as_json: bool,
+    **backend: Any,
+) -> None:
+    """Add generation N+1 (pending, with an activation time) to the selected associations."""
+    from .macsec.plan import plan
+    from .macsec.rotation import rotate as run
+    from .macsec.rotation import select
+    from .macsec.store import KeyStore, fmt_time, locked
+
+    now = _now(now_text)
+    p = plan(doc)
+    wrapper = _wrapper(passphrase_file, backend)
+    with locked(store_dir):
+        store = KeyStore.open(store_dir, wrapper)
+        done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
+        if store.changed:
+            _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
+    rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
+    if as_json:
+        emit_json({"ok": True, "rotated": rows})
+        return
+    for r in rows:
+        click.echo(f"{r['id']}: generation {r['generation']} pending, sends from {r['activation']}")
+    if not rows:
+        click.echo("nothing to rotate", err=True)
+
+
+@macsec.command()
+@store_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
+@handle_errors
+def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any) -> None:
+    """Remove generations past their overlap (and only those)."""
+    from .macsec.rotation import retire as run
+    from .macsec.store import KeyStore, locked
+
+    now = _now(now_text)
+    wrapper = _wrapper(passphrase_file, backend)
+    with locked(store_dir):
+        store = KeyStore.open(store_dir, wrapper)
+        removed = run(store, now=now)
+        if store.changed:
+            _save(store, now, inputs=[], passphrase_file=passphrase_file, backend=backend)
+    if as_json:
+        emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
+        return
+    for ca_id, g in removed:
+        click.echo(f"{ca_id}: generation {g} retired")
+    if not removed:
+        click.echo("nothing to retire", err=True)
+
+
+def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
+    from .macsec.export.wpa_supplicant import parse_version
+
+    try:
+        version = parse_version(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+    if version < (2, 10):
+        raise click.BadParameter(f"{value}: only wpa_supplicant 2.10 and later are supported")
+    return version
+
+
+@macsec.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@store_options
+@click.option("--device", required=True, help="The comp (as named in the plan) whose keys to export.")
+@click.option(
+    "--format",
+    "fmt",
+    required=True,
+    type=click.Choice(["wpa_supplicant", "networkd", "iproute2", "json"]),
+    help="The consumer of the exported files.",
+)
+@click.option(
+    "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder for the files (mode 0600)."
+)
+@click.option(
+    "--wpa-version",
+    default="2.10",
+    show_default=True,
+    callback=_wpa_version,
+    help="wpa_supplicant version on the device (2.10 is Debian 12's); only its keys are written.",
+)
+@click.option(
+    "--age-recipient",
+    metavar="AGE1…",
+    help="Encrypt the JSON bundle to the device's age X25519 public key (writes DEVICE.macsec.json.age).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (file names, no keys).")
+@handle_errors
+def export(
+    doc: str,
+    store_dir: str,
+    passphrase_file: str | None,
+    now_text: str | None,
+    device: str,
+    fmt: str,
+    out_dir: str,
+    wpa_version: tuple[int, int],
+    age_recipient: str | None,
+    as_json: bool,
+    **backend: Any,
+) -> None:
+    """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
+    import os
+
+    from .macsec.export import collect, mesh_keys, render
+    from .macsec.store import KeyStore
+    from .outputs import OutputPlan
+
+    now = _now(now_text)
+    from .macsec.plan import plan
+
+    p = plan(doc)
+    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
+    ports, notices = collect(p, store, device, now=now)
+    mesh = mesh_keys(p, store, device, now=now)
+    files = render(
+        fmt, ports, device=device, wpa_version=wpa_version, notices=notices, age_recipient=age_recipient, mesh=mesh
+    )
+    out = OutputPlan()
+    for path in p.inputs:
+        out.protect(path, what="an input of this run")
+    out.protect(store.path, what="the key store")
+    if passphrase_file:
+        out.protect(passphrase_file, what="the passphrase file")
+    if backend.get("pin_file"):
+        out.protect(backend["pin_file"], what="the PIN file")
+    for name in sorted(files):
+        out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
+    os.makedirs(out_dir, mode=0o700, exist_ok=True)
+    written = out.commit()
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "device": device,
+                "format": fmt,
+                "associations": sorted({pk.ca.id for pk in ports} | {m.ca.id for m in mesh}),
+                "files": [str(w) for w in written],
+                "warnings": [n.to_dict() for n in notices],
+            }
+        )
+        return
+    for n in notices:
+        click.echo(f"warning: {n}", err=True)
+    for w in written:
+        click.echo(f"wrote {w}", err=True)

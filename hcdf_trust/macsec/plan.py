@@ -1,0 +1,809 @@
+"""Plan: from HCDF MACsec policy to connectivity associations (CAs).
+
+:func:`plan` resolves and verifies the whole include tree first (locked, offline, no cache
+writes: a key is never provisioned for a description that fails its pins), then reads the
+parsed documents of that :class:`~hcdf_trust.include.resolver.Resolution`; it parses nothing
+itself. :func:`plan_resolution` is the pure part.
+
+Rules this module defines (HCDF 1.0 states the intent, not these details):
+
+Effective policy
+    A ``<network><macsec>`` sets the network's default for every Ethernet link and chain in
+    it. A link's ``<wired><macsec>`` or a chain's ``<macsec>`` overrides it attribute by
+    attribute: an attribute the override leaves out keeps the network's value (so an
+    override never silently weakens the network's cipher), and only without either falls
+    back to the schema default (``gcm-aes-128``, ``psk``, offset 0). ``rekey-interval-sec``
+    and ``<key-store>`` exist only network-wide. A link or chain with neither element is
+    listed as unprotected. ``policy="disabled"`` is listed and gets no key.
+
+Which elements
+    Wired links whose two ports are of type ``ethernet`` (or not found, which is also a
+    warning), and every chain. Wireless links, buses and non-Ethernet wired links
+    (SIGNAL, POWER, CAN) have no MACsec and are listed as skipped. A ``<mesh
+    network-key-ref>`` is its own entry: a 128-bit mesh network key (no MACsec policy).
+
+Connectivity association ids (stable; the key store is indexed by them)
+    ``key-ref:<key-ref>``             every link and chain naming that ``key-ref`` (one CAK)
+    ``link:<network>/<link>``         a link without ``key-ref``
+    ``chain:<network>/<chain>``       a chain without ``key-ref``
+    ``mesh-key:<network-key-ref>``    a mesh network key
+
+Include instances
+    Names are scoped exactly as :mod:`hcdf_trust.include.flatten` prefixes them: an
+    include's ``name`` joined with ``_``, outermost first. Networks, links, chains,
+    ``key-ref`` and ``network-key-ref`` written in an included file are always prefixed
+    (so an arm included as ``left_arm`` and ``right_arm`` gets two CAKs); a device
+    reference is prefixed when the included file (with its own includes) defines that
+    comp. Two include instances that end up with the same key-ref (an include without
+    ``name``, included twice) are an error: they would share a CAK.
+
+Conflicts and warnings
+    One CA has one cipher, policy, key agreement, confidentiality offset, rekey interval
+    and key store: members that disagree are an error naming both places. Warnings
+    (:class:`~hcdf_trust.errors.Notice`): an endpoint port whose declared MACsec
+    capabilities lack the CA's cipher (or declare none); a non-XPN cipher on a port of
+    10 Gb/s or more (32-bit packet numbers last minutes there); a confidentiality offset
+    no Linux tool can set; a port the description does not define.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lxml import etree
+
+from ..document import Document
+from ..errors import ErrorGroup, HcdfTrustError, InputError, Notice
+from ..include.flatten import SEPARATOR
+from ..xml import sourceline
+
+POLICIES = ("must-secure", "should-secure", "integrity-only", "disabled")
+CIPHERS = ("gcm-aes-128", "gcm-aes-256", "gcm-aes-xpn-128", "gcm-aes-xpn-256")
+KEY_AGREEMENTS = ("psk", "eap-tls")
+OFFSETS = (0, 30, 50)
+KEY_STORE_TYPES = ("secure-element", "hsm", "tpm", "file", "runtime")
+MESH_KEY_BYTES = 16
+MAX_INSTANCES = 10_000
+# IEEE 802.1AE: 32-bit packet numbers; minimum frames of 64 B + 20 B preamble/IFG + 32 B SecTAG/ICV.
+PN_SPACE = 2**32 - 1
+MIN_FRAME_BITS = 116 * 8
+PN_WARN_MBPS = 10_000
+
+
+class MacsecPlanError(InputError):
+    """The description's MACsec policy is malformed or contradicts itself."""
+
+    code = "macsec-plan"
+
+
+def cak_length(cipher: str) -> int:
+    """CAK length in bytes for a cipher suite: 16 for the 128-bit suites, 32 for the 256-bit ones."""
+    return 32 if cipher.endswith("256") else 16
+
+
+def is_xpn(cipher: str) -> bool:
+    return "-xpn-" in cipher
+
+
+def pn_lifetime_seconds(mbps: float) -> float:
+    """How long a 32-bit packet number lasts at ``mbps`` with minimum-size MACsec frames."""
+    return PN_SPACE * MIN_FRAME_BITS / (mbps * 1e6)
+
+
+@dataclass(frozen=True)
+class Policy:
+    policy: str
+    cipher: str
+    key_agreement: str
+    confidentiality_offset: int
+    rekey_interval_sec: int | None
+    key_store_type: str | None
+    key_store_ref: str | None
+
+    def conflicts(self, other: Policy) -> list[tuple[str, str, str]]:
+        out = []
+        for name in self.__dataclass_fields__:
+            a, b = getattr(self, name), getattr(other, name)
+            if a != b:
+                out.append((name.replace("_", "-"), str(a), str(b)))
+        return out
+
+
+@dataclass
+class Member:
+    device: str
+    ports: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"device": self.device, "ports": self.ports}
+
+
+@dataclass
+class Element:
+    """One link, chain or mesh that belongs to an association."""
+
+    kind: str  # link | chain | mesh
+    network: str  # scoped
+    name: str  # scoped
+    file: str
+    line: int | None
+    scope: str  # include instance ("" for the root document)
+
+    @property
+    def label(self) -> str:
+        return f"{self.kind}:{self.network}/{self.name}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "network": self.network,
+            "name": self.name,
+            "file": self.file,
+            "line": self.line,
+            "scope": self.scope,
+        }
+
+
+@dataclass
+class Association:
+    """A connectivity association: one CAK (or one mesh network key) and who holds it."""
+
+    id: str
+    kind: str  # macsec | mesh-key
+    key_ref: str | None  # scoped
+    policy: Policy | None  # None for a mesh key
+    elements: list[Element] = field(default_factory=list)
+    members: dict[str, Member] = field(default_factory=dict)
+    port_speeds_mbps: dict[str, float] = field(default_factory=dict)  # "device/port" -> Mb/s
+    ifaces: dict[str, str] = field(default_factory=dict)  # "device/port" -> OS interface (``iface``, else port)
+    warned: set[str] = field(default_factory=set, repr=False)  # warnings already given (one per port)
+
+    @property
+    def keyed(self) -> bool:
+        return self.policy is None or self.policy.policy != "disabled"
+
+    @property
+    def shared(self) -> bool:
+        """The same CAK is used on more than one link or chain."""
+        return len(self.elements) > 1
+
+    @property
+    def file(self) -> str:
+        return self.elements[0].file
+
+    @property
+    def line(self) -> int | None:
+        return self.elements[0].line
+
+    @property
+    def key_bytes(self) -> int:
+        return MESH_KEY_BYTES if self.policy is None else cak_length(self.policy.cipher)
+
+    @property
+    def max_speed_mbps(self) -> float | None:
+        return max(self.port_speeds_mbps.values(), default=None)
+
+    def add_member(self, device: str, port: str | None) -> None:
+        member = self.members.setdefault(device, Member(device))
+        if port and port not in member.ports:
+            member.ports.append(port)
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "id": self.id,
+            "kind": self.kind,
+            "key_ref": self.key_ref,
+            "keyed": self.keyed,
+            "key_bytes": self.key_bytes if self.keyed else 0,
+            "shared": self.shared,
+            "elements": [e.to_dict() for e in self.elements],
+            "members": [m.to_dict() for m in self.members.values()],
+            "max_speed_mbps": self.max_speed_mbps,
+        }
+        if self.policy is not None:
+            p = self.policy
+            out.update(
+                policy=p.policy,
+                cipher=p.cipher,
+                key_agreement=p.key_agreement,
+                confidentiality_offset=p.confidentiality_offset,
+                rekey_interval_sec=p.rekey_interval_sec,
+                key_store={"type": p.key_store_type, "ref": p.key_store_ref},
+            )
+        return out
+
+
+@dataclass
+class Plan:
+    document: str
+    associations: dict[str, Association] = field(default_factory=dict)
+    unprotected: list[Element] = field(default_factory=list)
+    skipped: list[tuple[Element, str]] = field(default_factory=list)
+    warnings: list[Notice] = field(default_factory=list)
+    inputs: list[str] = field(default_factory=list)  # local files read (documents, lock): never an output
+
+    def keyed(self) -> list[Association]:
+        return [ca for ca in self.associations.values() if ca.keyed]
+
+    def for_device(self, device: str) -> list[Association]:
+        """The keyed associations ``device`` is a member of (least privilege for exports)."""
+        return [ca for ca in self.keyed() if device in ca.members]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "document": self.document,
+            "associations": [ca.to_dict() for ca in self.associations.values()],
+            "unprotected": [e.to_dict() for e in self.unprotected],
+            "skipped": [dict(e.to_dict(), reason=r) for e, r in self.skipped],
+            "warnings": [w.to_dict() for w in self.warnings],
+        }
+
+
+def plan(doc_path: str | Path) -> Plan:
+    """Resolve and verify ``doc_path`` (locked, offline), then plan its associations.
+
+    Raises:
+        ErrorGroup / HcdfTrustError: the tree fails to resolve or verify (a missing or
+            drifted lock included), or its MACsec policy is malformed or contradictory.
+    """
+    from ..include.resolver import ResolveOptions, resolve
+
+    res = resolve(doc_path, ResolveOptions(locked=True, offline=True, write_cache=False))
+    if res.errors:
+        raise ErrorGroup(list(res.errors))
+    result = plan_resolution(res.documents, res.includes, res.root_location.url)
+    result.warnings[:0] = res.warnings  # already Notice objects
+    paths = [res.root_location.path, str(res.lock_path), *(a.location.path for a in res.artifacts.values())]
+    result.inputs = [p for p in paths if p]
+    return result
+
+
+# --- the pure part -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Instance:
+    url: str
+    names: tuple[str, ...]  # include names from the root down to this instance ("" = no prefix)
+    chain: tuple[str, ...]  # document urls from the root down to this instance
+    sites: tuple[int, ...] = ()  # which <include> of its parent each level is: tells unnamed copies apart
+
+
+def _local(el: Any) -> str | None:
+    tag = el.tag
+    return tag[tag.rfind("}") + 1 :] if isinstance(tag, str) else None
+
+
+def _children(el: etree._Element, tag: str) -> list[etree._Element]:
+    """Child elements named ``tag`` in any namespace or none (matched by lxml, in C)."""
+    return list(el.iterchildren("{*}" + tag))
+
+
+def _by_tag(el: etree._Element) -> dict[str, list[etree._Element]]:
+    """Child elements grouped by local name, in one pass."""
+    out: dict[str, list[etree._Element]] = {}
+    for child in el:
+        tag = child.tag
+        if isinstance(tag, str):
+            out.setdefault(tag[tag.rfind("}") + 1 :], []).append(child)
+    return out
+
+
+def plan_resolution(
+    documents: dict[str, Document],
+    includes: dict[str, list[tuple[Any, str]]],
+    root_url: str,
+) -> Plan:
+    """Plan the associations of a resolved tree (``Resolution.documents`` / ``.includes``).
+
+    Raises:
+        ErrorGroup: malformed MACsec attributes or contradictory associations.
+    """
+    return _Planner(documents, includes, root_url).run()
+
+
+class _Planner:
+    def __init__(self, documents: dict[str, Document], includes: dict[str, list[tuple[Any, str]]], root: str) -> None:
+        self.docs = documents
+        self.includes = includes
+        self.root = root
+        self.errors: list[HcdfTrustError] = []
+        self.plan = Plan(document=documents[root].source)
+        self._defined: dict[str, frozenset[str]] = {}
+        self._comps: dict[str, dict[str, etree._Element]] = {}
+        self._key_scope: dict[str, tuple[str, str]] = {}  # scoped key-ref -> (instance, where first written)
+        self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
+        self._override_cache: dict[tuple[tuple[Any, ...], Policy | None], Policy] = {}
+
+    def run(self) -> Plan:
+        for inst in self._instances():
+            doc = self.docs[inst.url]
+            for net in _children(doc.root, "network"):
+                self._network(inst, doc, net)
+        if self.errors:
+            raise ErrorGroup(self.errors)
+        for ca in self.plan.keyed():
+            self._pn_warning(ca)
+        return self.plan
+
+    def _pn_warning(self, ca: Association) -> None:
+        if ca.policy is None or is_xpn(ca.policy.cipher):
+            return
+        fast = sorted(p for p, mbps in ca.port_speeds_mbps.items() if mbps >= PN_WARN_MBPS)
+        if not fast:
+            return
+        speed = max(ca.port_speeds_mbps[p] for p in fast)
+        self.plan.warnings.append(
+            Notice(
+                "macsec-pn-exhaustion",
+                f"{ca.id}: {', '.join(fast)} run at up to {speed:g} Mb/s, where a 32-bit packet number lasts "
+                f"{pn_lifetime_seconds(speed):.0f} s with minimum-size frames; {ca.policy.cipher} needs MKA "
+                f"rekeying on packet number (static keys are refused at export); prefer an XPN cipher",
+                file=ca.file,
+                line=ca.line,
+            )
+        )
+
+    # -- include instances and name scoping ---------------------------------------------
+
+    def _instances(self) -> list[_Instance]:
+        out: list[_Instance] = []
+        stack = [_Instance(self.root, (), (self.root,))]
+        while stack:
+            inst = stack.pop()
+            out.append(inst)
+            if len(out) > MAX_INSTANCES:
+                raise MacsecPlanError(
+                    f"the include tree expands to more than {MAX_INSTANCES} instances",
+                    file=self.docs[self.root].source,
+                )
+            for index, (ref, child) in reversed(list(enumerate(self.includes.get(inst.url, [])))):
+                if child in self.docs and child not in inst.chain:
+                    stack.append(
+                        _Instance(
+                            child,
+                            (*inst.names, (ref.name or "").strip()),
+                            (*inst.chain, child),
+                            (*inst.sites, index),
+                        )
+                    )
+        return out
+
+    def _defined_comps(self, url: str, seen: tuple[str, ...] = ()) -> frozenset[str]:
+        """Comp names the expansion of ``url`` defines, as they stand at that level (flatten's rule)."""
+        if url in self._defined:
+            return self._defined[url]
+        names = set(self._own_comps(url))
+        for ref, child in self.includes.get(url, []):
+            if child in self.docs and child not in seen:
+                prefix = (ref.name or "").strip()
+                inner = self._defined_comps(child, (*seen, url))
+                names.update(f"{prefix}{SEPARATOR}{n}" if prefix else n for n in inner)
+        self._defined[url] = frozenset(names)
+        return self._defined[url]
+
+    def _own_comps(self, url: str) -> dict[str, etree._Element]:
+        if url not in self._comps:
+            root = self.docs[url].root
+            self._comps[url] = {c.get("name", ""): c for c in _children(root, "comp") if c.get("name")}
+        return self._comps[url]
+
+    @staticmethod
+    def _scoped(inst: _Instance, name: str) -> str:
+        """A name the instance's own file defines: every include name, outermost first."""
+        return SEPARATOR.join([*(n for n in inst.names if n), name])
+
+    def _device(self, inst: _Instance, name: str) -> str:
+        """A comp reference written in the instance's file, renamed level by level as flatten does."""
+        value = name.strip()
+        for level in range(len(inst.chain) - 1, 0, -1):
+            prefix = inst.names[level - 1]
+            if prefix and value in self._defined_comps(inst.chain[level]):
+                value = f"{prefix}{SEPARATOR}{value}"
+        return value
+
+    def _find_comp(self, inst: _Instance, written: str) -> tuple[etree._Element, str] | None:
+        """The comp element a device reference names, searched from the instance outwards."""
+        value = written.strip()
+        for level in range(len(inst.chain) - 1, -1, -1):
+            url = inst.chain[level]
+            comp = self._own_comps(url).get(value)
+            if comp is not None:
+                return comp, self.docs[url].source
+            for ref, child in self.includes.get(url, []):
+                prefix = (ref.name or "").strip()
+                if prefix and value.startswith(prefix + SEPARATOR) and child in self.docs:
+                    found = self._find_in(child, value[len(prefix) + 1 :], depth=0)
+                    if found is not None:
+                        return found
+            if level:
+                prefix = inst.names[level - 1]
+                if prefix and value in self._defined_comps(url):
+                    value = f"{prefix}{SEPARATOR}{value}"
+        return None
+
+    def _find_in(self, url: str, name: str, *, depth: int) -> tuple[etree._Element, str] | None:
+        comp = self._own_comps(url).get(name)
+        if comp is not None:
+            return comp, self.docs[url].source
+        if depth > 64:
+            return None
+        for ref, child in self.includes.get(url, []):
+            prefix = (ref.name or "").strip()
+            if child not in self.docs:
+                continue
+            if not prefix:
+                found = self._find_in(child, name, depth=depth + 1)
+            elif name.startswith(prefix + SEPARATOR):
+                found = self._find_in(child, name[len(prefix) + 1 :], depth=depth + 1)
+            else:
+                continue
+            if found is not None:
+                return found
+        return None
+
+    def _port(self, comp: tuple[etree._Element, str] | None, name: str) -> _PortRef:
+        if comp is None:
+            return None
+        ports = self._ports.get(comp[0])
+        if ports is None:
+            ports = self._ports[comp[0]] = _read_ports(*comp)
+        return ports.get(name)
+
+    # -- networks ------------------------------------------------------------------------
+
+    def _network(self, inst: _Instance, doc: Document, net: etree._Element) -> None:
+        net_name = self._scoped(inst, net.get("name", "").strip())
+        default = None
+        parts = _by_tag(net)
+        cfg = parts.get("macsec")
+        if cfg:
+            default = self._policy(doc, cfg[0], None, network_level=True)
+        for link in parts.get("link", ()):
+            self._link(inst, doc, net_name, link, default)
+        for chain in parts.get("chain", ()):
+            self._chain(inst, doc, net_name, chain, default)
+        for mesh in parts.get("mesh", ()):
+            self._mesh(inst, doc, net_name, mesh)
+        for bus in parts.get("bus", ()):
+            el = self._element(inst, doc, "bus", net_name, bus)
+            self.plan.skipped.append((el, "a bus has no MACsec"))
+
+    def _element(self, inst: _Instance, doc: Document, kind: str, net: str, el: etree._Element) -> Element:
+        return Element(
+            kind=kind,
+            network=net,
+            name=self._scoped(inst, el.get("name", "").strip()),
+            file=doc.source,
+            line=sourceline(el),
+            scope=SEPARATOR.join(n for n in inst.names if n),
+        )
+
+    def _policy(self, doc: Document, el: etree._Element, base: Policy | None, *, network_level: bool) -> Policy | None:
+        line = sourceline(el)
+
+        def pick(attr: str, allowed: tuple[str, ...], inherited: str | None, default: str) -> str:
+            value = el.get(attr)
+            if value is None:
+                return inherited if inherited is not None else default
+            value = value.strip()
+            if value not in allowed:
+                self.errors.append(
+                    MacsecPlanError(
+                        f"<macsec {attr}> is not one of {', '.join(allowed)}",
+                        file=doc.source,
+                        line=line,
+                        expected=" | ".join(allowed),
+                        actual=value,
+                    )
+                )
+            return value
+
+        if el.get("policy") is None:
+            self.errors.append(
+                MacsecPlanError(
+                    "<macsec> has no policy attribute (it is required)",
+                    file=doc.source,
+                    line=line,
+                    expected=" | ".join(POLICIES),
+                    actual="(missing)",
+                )
+            )
+            return None
+        policy = pick("policy", POLICIES, None, "")
+        cipher = pick("cipher", CIPHERS, base.cipher if base else None, "gcm-aes-128")
+        agreement = pick("key-agreement", KEY_AGREEMENTS, base.key_agreement if base else None, "psk")
+        offset_text = pick("confidentiality-offset", tuple(str(o) for o in OFFSETS), None, "0")
+        offset = int(offset_text) if offset_text.isdigit() else 0
+        rekey = base.rekey_interval_sec if base else None
+        store_type = base.key_store_type if base else None
+        store_ref = base.key_store_ref if base else None
+        if network_level:
+            text = el.get("rekey-interval-sec")
+            if text is not None:
+                if not text.strip().isdigit() or int(text) > 2**32 - 1:
+                    self.errors.append(
+                        MacsecPlanError(
+                            "<macsec rekey-interval-sec> is not an unsigned 32-bit integer",
+                            file=doc.source,
+                            line=line,
+                            expected="0..4294967295",
+                            actual=text,
+                        )
+                    )
+                else:
+                    rekey = int(text)
+            stores = _children(el, "key-store")
+            if stores:
+                store_type = stores[0].get("type", "").strip()
+                store_ref = (stores[0].get("ref") or "").strip() or None
+                if store_type not in KEY_STORE_TYPES:
+                    self.errors.append(
+                        MacsecPlanError(
+                            "<key-store type> is not a known key store",
+                            file=doc.source,
+                            line=sourceline(stores[0]),
+                            expected=" | ".join(KEY_STORE_TYPES),
+                            actual=store_type or "(missing)",
+                        )
+                    )
+        return Policy(policy, cipher, agreement, offset, rekey, store_type, store_ref)
+
+    def _override(
+        self, doc: Document, el: etree._Element | None, default: Policy | None
+    ) -> tuple[Policy | None, str | None]:
+        if el is None:
+            return default, None
+        # Overrides repeat (every link of a network written alike): parse each distinct one once.
+        attrs = tuple(kv for kv in el.attrib.items() if kv[0] != "key-ref")
+        cache_key = (attrs, default)
+        policy = self._override_cache.get(cache_key)
+        if policy is None:
+            errors = len(self.errors)
+            policy = self._policy(doc, el, default, network_level=False)
+            if policy is not None and len(self.errors) == errors:
+                self._override_cache[cache_key] = policy
+        ref = el.get("key-ref")
+        return policy, (ref.strip() or None) if ref is not None else None
+
+    def _link(self, inst: _Instance, doc: Document, net: str, link: etree._Element, default: Policy | None) -> None:
+        element = self._element(inst, doc, "link", net, link)
+        wired = _children(link, "wired")
+        if not wired:
+            self.plan.skipped.append((element, "a wireless link has no MACsec"))
+            return
+        parts = _by_tag(wired[0])
+        ports = [(p.text or "").strip() for p in parts.get("port", ())]
+        endpoints: list[tuple[str, str, _PortRef]] = []
+        for text in ports:
+            device, _, port = text.partition("/")
+            endpoints.append((self._device(inst, device), port, self._port(self._find_comp(inst, device), port)))
+        types = {p.type for *_, p in endpoints if p is not None}
+        if types and types != {"ethernet"}:
+            self.plan.skipped.append((element, f"not an Ethernet link (port type {', '.join(sorted(types))})"))
+            return
+        overrides = parts.get("macsec", [])
+        policy, key_ref = self._override(doc, overrides[0] if overrides else None, default)
+        if policy is None:
+            self.plan.unprotected.append(element)
+            return
+        ca = self._association(inst, doc, element, policy, key_ref, overrides[0] if overrides else link)
+        if ca is None:
+            return
+        for device, port, port_ref in endpoints:
+            self._endpoint(ca, element, device, port, port_ref)
+
+    def _chain(self, inst: _Instance, doc: Document, net: str, chain: etree._Element, default: Policy | None) -> None:
+        element = self._element(inst, doc, "chain", net, chain)
+        overrides = _children(chain, "macsec")
+        policy, key_ref = self._override(doc, overrides[0] if overrides else None, default)
+        if policy is None:
+            self.plan.unprotected.append(element)
+            return
+        ca = self._association(inst, doc, element, policy, key_ref, overrides[0] if overrides else chain)
+        if ca is None:
+            return
+        for hop in _children(chain, "hop"):
+            device = hop.get("device", "").strip()
+            comp = self._find_comp(inst, device)
+            scoped = self._device(inst, device)
+            hop_ports = [hop.get(a, "").strip() for a in ("port", "port-secondary", "ingress", "egress")]
+            for spur in _children(hop, "spur"):
+                via = spur.get("via", "").strip()
+                hop_ports.append(via)
+                spur_device = spur.get("device", "").strip()
+                spur_port = spur.get("port", "").strip()
+                self._endpoint(
+                    ca,
+                    element,
+                    self._device(inst, spur_device),
+                    spur_port,
+                    self._port(self._find_comp(inst, spur_device), spur_port),
+                )
+            if not any(hop_ports):
+                ca.add_member(scoped, None)
+            for port in hop_ports:
+                if port:
+                    self._endpoint(ca, element, scoped, port, self._port(comp, port))
+
+    def _mesh(self, inst: _Instance, doc: Document, net: str, mesh: etree._Element) -> None:
+        element = self._element(inst, doc, "mesh", net, mesh)
+        ref = (mesh.get("network-key-ref") or "").strip()
+        if not ref:
+            self.plan.unprotected.append(element)
+            return
+        scoped = self._scoped(inst, ref)
+        ca_id = f"mesh-key:{scoped}"
+        ca = self.plan.associations.get(ca_id)
+        if ca is None:
+            ca = self.plan.associations[ca_id] = Association(ca_id, "mesh-key", scoped, None)
+        ca.elements.append(element)
+        for node in _children(mesh, "node"):
+            ca.add_member(self._device(inst, node.get("device", "")), node.get("antenna", "").strip() or None)
+
+    def _association(
+        self,
+        inst: _Instance,
+        doc: Document,
+        element: Element,
+        policy: Policy,
+        key_ref: str | None,
+        where: etree._Element,
+    ) -> Association | None:
+        if key_ref is None:
+            ca_id = element.label
+            if ca_id in self.plan.associations:
+                self.errors.append(
+                    MacsecPlanError(
+                        f"two {element.kind}s are named {element.network}/{element.name}",
+                        file=doc.source,
+                        line=element.line,
+                    )
+                )
+                return None
+            ca = self.plan.associations[ca_id] = Association(ca_id, "macsec", None, policy)
+            ca.elements.append(element)
+            return ca
+        scoped = self._scoped(inst, key_ref)
+        here = f"{doc.source}:{sourceline(where)}"
+        instance = repr((inst.chain, inst.sites))
+        first = self._key_scope.setdefault(scoped, (instance, here))
+        if first[0] != instance:
+            self.errors.append(
+                MacsecPlanError(
+                    f"key-ref {scoped!r} is written by two include instances ({first[1]} and {here}): "
+                    f"they would share a CAK; give each <include> a name",
+                    file=doc.source,
+                    line=sourceline(where),
+                )
+            )
+            return None
+        ca_id = f"key-ref:{scoped}"
+        existing = self.plan.associations.get(ca_id)
+        if existing is None:
+            ca = self.plan.associations[ca_id] = Association(ca_id, "macsec", scoped, policy)
+        else:
+            ca = existing
+            assert ca.policy is not None
+            for attr, want, got in ca.policy.conflicts(policy):
+                self.errors.append(
+                    MacsecPlanError(
+                        f"key-ref {scoped!r} is used with two different {attr} values "
+                        f"({ca.elements[0].label} at {ca.file}:{ca.line} and {element.label}): one CAK, one {attr}",
+                        file=doc.source,
+                        line=sourceline(where),
+                        expected=want,
+                        actual=got,
+                    )
+                )
+        ca.elements.append(element)
+        return ca
+
+    def _endpoint(self, ca: Association, element: Element, device: str, port: str, port_ref: _PortRef) -> None:
+        ca.add_member(device, port or None)
+        if not port:
+            return
+        label = f"{device}/{port}"
+        if port_ref is None:
+            self.plan.warnings.append(
+                Notice(
+                    "macsec-port",
+                    f"{element.label}: port {label} is not defined in the description; "
+                    f"its MACsec capabilities cannot be checked",
+                    file=element.file,
+                    line=element.line,
+                )
+            )
+            return
+        ca.ifaces[label] = port_ref.iface
+        speed = port_ref.speed_mbps
+        if speed is not None:
+            ca.port_speeds_mbps[label] = speed
+        policy = ca.policy
+        if policy is None or policy.policy == "disabled":
+            return
+        ciphers = port_ref.ciphers
+        if policy.cipher not in ciphers:
+            what = f"declares only {', '.join(ciphers)}" if ciphers else "declares no MACsec capability"
+            self.plan.warnings.append(
+                Notice(
+                    "macsec-capability",
+                    f"{ca.id}: device {device} port {port} {what}; the association needs {policy.cipher}",
+                    file=port_ref.file,
+                    line=port_ref.line,
+                )
+            )
+        if policy.confidentiality_offset and f"offset {device}" not in ca.warned:
+            ca.warned.add(f"offset {device}")
+            self.plan.warnings.append(
+                Notice(
+                    "macsec-offset",
+                    f"{ca.id}: confidentiality offset {policy.confidentiality_offset} cannot be set by "
+                    f"wpa_supplicant, iproute2 or systemd-networkd on {device}",
+                    file=element.file,
+                    line=element.line,
+                )
+            )
+
+
+@dataclass(frozen=True)
+class _PortInfo:
+    """What the plan needs of one ``<port>`` definition, read once."""
+
+    file: str
+    line: int | None
+    type: str
+    iface: str
+    speed_mbps: float | None
+    ciphers: tuple[str, ...]
+
+
+_PortRef = _PortInfo | None
+
+
+def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
+    """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass."""
+    out: dict[str, _PortInfo] = {}
+    for el in comp.iter("{*}port"):
+        name = el.get("name")
+        if name is None or name in out:
+            continue
+        ciphers: list[str] = []
+        speed: float | None = None
+        for caps in el:
+            if _local(caps) != "capabilities":
+                continue
+            for item in caps:
+                tag = _local(item)
+                if tag == "macsec":
+                    ciphers.extend((c.text or "").strip() for c in item if _local(c) == "cipher")
+                elif tag in ("speed", "speed-tx", "speed-rx"):
+                    mbps = _mbps(item)
+                    if mbps is not None:
+                        speed = max(speed or 0.0, mbps)
+        out[name] = _PortInfo(
+            file=file,
+            line=sourceline(el),
+            type=(el.get("type") or "").strip().lower(),
+            iface=(el.get("iface") or "").strip() or name,
+            speed_mbps=speed,
+            ciphers=tuple(ciphers),
+        )
+    return out
+
+
+_UNITS = {"bps": 1e-6, "kbps": 1e-3, "mbps": 1.0, "gbps": 1e3, "tbps": 1e6}
+
+
+def _mbps(el: etree._Element) -> float | None:
+    """A ``<speed unit>`` value in Mb/s (default unit Mbps); None when unreadable."""
+    try:
+        value = float((el.text or "").strip())
+    except ValueError:
+        return None
+    factor = _UNITS.get((el.get("unit") or "Mbps").strip().lower())
+    if factor is None or value != value or value <= 0 or value == float("inf"):
+        return None
+    return value * factor

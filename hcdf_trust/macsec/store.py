@@ -1,0 +1,457 @@
+"""The MACsec key store: one file, every key encrypted on its own, written all or nothing.
+
+Layout of ``DIR/macsec-keys.json`` (:data:`STORE_NAME`, mode 0600, format version
+:data:`FORMAT_VERSION`)::
+
+    {"format": "hcdf-trust-macsec-store", "version": 1, "store_id": HEX,
+     "wrap": {"method": "scrypt" | "pkcs11", ...},       # the wrapped 256-bit data key
+     "associations": {CA_ID: {"kind", "cipher", "key_bytes", "source": {"file", "line"},
+                              "generations": [{"generation", "ckn", "created", "activation",
+                                               "expiry", "state", "nonce", "ciphertext"}]}},
+     "mac": HEX}
+
+* Each key (CAK or mesh network key) is AES-256-GCM encrypted under the data key with a
+  fresh nonce and, as associated data, the store id, CA id, generation and CKN: an entry
+  moved to another CA or generation does not decrypt. Adding or rotating one key encrypts
+  that key only; nothing else is re-encrypted or re-derived.
+* ``mac`` is HMAC-SHA256 (a key derived from the data key) over all metadata (times,
+  states, CKNs, ciphertexts): an edited activation time or a dropped generation is an
+  integrity error (exit 1).
+* CKNs are 16 random octets, unique across the store: only the first 16 octets of a CKN
+  reach the 802.1X KDF.
+* The file is read through :func:`hcdf_trust.localfile.read_input` (bounded, regular file
+  only) and replaced through :class:`hcdf_trust.outputs.OutputPlan` (0600 from the first
+  byte, renamed into place only when fully written), so a crash leaves it as it was
+  before or as it is after.
+
+Times are UTC, ISO 8601 with a ``Z``. A generation is *pending* before its activation,
+*active* from then until its expiry (``null``: none yet) and *retired* after it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import hmac
+import json
+import os
+import stat
+import time
+from collections.abc import Iterator, MutableMapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError, IntegrityError
+from ..localfile import read_input
+from ..outputs import OutputPlan
+from .backends import KeyStoreFormatError, Wrapper, b64, unb64
+
+STORE_NAME = "macsec-keys.json"
+LOCK_NAME = ".macsec-keys.lock"
+LOCK_WAIT_SEC = 30.0
+# Entries whose secret is a PEM bundle (EAP-TLS CA or device key and certificate), not an AES key.
+BLOB_KINDS = ("eap-tls-ca", "eap-tls-cert")
+MAX_BLOB_BYTES = 64 << 10
+FORMAT = "hcdf-trust-macsec-store"
+FORMAT_VERSION = 1
+MAX_STORE_BYTES = 512 << 20
+CKN_BYTES = 16
+
+
+class KeyStoreIntegrityError(IntegrityError):
+    """The key store's metadata or a key's ciphertext was changed outside this tool."""
+
+    code = "key-store-integrity"
+
+
+@contextlib.contextmanager
+def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold the store folder's lock (``flock`` on :data:`LOCK_NAME`) for one read-modify-write.
+
+    Two runs on one store never interleave (the second waits up to :data:`LOCK_WAIT_SEC`).
+    The folder is made 0700 if missing; a lock path that is not a regular file is refused.
+
+    Raises:
+        InputError: the folder cannot be made, the lock is not a regular file, or it stays held.
+    """
+    path = Path(os.path.abspath(folder)) / LOCK_NAME
+    try:
+        os.makedirs(path.parent, mode=0o700, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise InputError(f"cannot lock the key store: {exc.strerror or exc}", file=str(path)) from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise InputError("the key store lock is not a regular file", file=str(path))
+        deadline = time.monotonic() + LOCK_WAIT_SEC
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise InputError(
+                        f"the key store is locked by another run (waited {LOCK_WAIT_SEC:g} s)", file=str(path)
+                    ) from None
+                time.sleep(0.05)
+        _remove_stale_temporaries(path.parent)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _remove_stale_temporaries(folder: Path) -> None:
+    """Temporary store files a killed run left behind (we hold the lock: no run is writing them)."""
+    for name in os.listdir(folder):
+        if name.startswith(f".{STORE_NAME}.") and name.endswith(".tmp"):
+            with contextlib.suppress(OSError):
+                if stat.S_ISREG(os.lstat(folder / name).st_mode):
+                    os.unlink(folder / name)
+
+
+def now_utc() -> datetime:
+    return datetime.now(UTC).replace(microsecond=0)
+
+
+def fmt_time(t: datetime) -> str:
+    return t.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def parse_time(text: Any, *, what: str, source: str) -> datetime:
+    if not isinstance(text, str):
+        raise KeyStoreFormatError(f"{what} is not a time string", file=source, actual=repr(text)[:40])
+    try:
+        t = datetime.fromisoformat(text)
+    except ValueError:
+        raise KeyStoreFormatError(f"{what} is not an ISO 8601 time", file=source, actual=text[:40]) from None
+    if t.tzinfo is None:
+        raise KeyStoreFormatError(f"{what} has no time zone", file=source, actual=text[:40])
+    return t
+
+
+@dataclass
+class Generation:
+    generation: int
+    ckn: bytes
+    created: datetime
+    activation: datetime
+    expiry: datetime | None
+    nonce: bytes
+    ciphertext: bytes
+
+    def state_at(self, now: datetime) -> str:
+        if now < self.activation:
+            return "pending"
+        if self.expiry is not None and now >= self.expiry:
+            return "retired"
+        return "active"
+
+    def to_json(self, now: datetime) -> dict[str, Any]:
+        return {
+            "generation": self.generation,
+            "ckn": self.ckn.hex(),
+            "created": fmt_time(self.created),
+            "activation": fmt_time(self.activation),
+            "expiry": fmt_time(self.expiry) if self.expiry else None,
+            "state": self.state_at(now),
+            "nonce": b64(self.nonce),
+            "ciphertext": b64(self.ciphertext),
+        }
+
+
+@dataclass
+class Entry:
+    """One association's key chain: its generations, oldest first."""
+
+    ca_id: str
+    kind: str
+    cipher: str | None
+    key_bytes: int
+    source_file: str
+    source_line: int | None
+    generations: list[Generation]
+
+    def current(self, now: datetime) -> Generation | None:
+        """The generation devices send with at ``now``: the newest active one."""
+        active = [g for g in self.generations if g.state_at(now) == "active"]
+        return active[-1] if active else None
+
+    def live(self, now: datetime) -> list[Generation]:
+        """Generations a device may use at ``now`` (pending ones are distributed ahead)."""
+        return [g for g in self.generations if g.state_at(now) != "retired"]
+
+
+class Entries(MutableMapping[str, Entry]):
+    """The store's associations, each parsed from its JSON only when first used.
+
+    An export touches a handful of a large store's entries; everything else stays raw.
+    """
+
+    def __init__(self, raw: dict[str, Any], *, source: str) -> None:
+        self._raw = raw
+        self._parsed: dict[str, Entry] = {}
+        self._source = source
+
+    def __getitem__(self, ca_id: str) -> Entry:
+        entry = self._parsed.get(ca_id)
+        if entry is None:
+            if ca_id not in self._raw:
+                raise KeyError(ca_id)
+            entry = self._parsed[ca_id] = _entry(ca_id, self._raw.pop(ca_id), source=self._source)
+        return entry
+
+    def __setitem__(self, ca_id: str, entry: Entry) -> None:
+        self._raw.pop(ca_id, None)
+        self._parsed[ca_id] = entry
+
+    def __delitem__(self, ca_id: str) -> None:
+        if self._raw.pop(ca_id, None) is None:
+            del self._parsed[ca_id]
+
+    def __iter__(self) -> Iterator[str]:
+        yield from list(self._parsed)
+        yield from list(self._raw)
+
+    def __len__(self) -> int:
+        return len(self._parsed) + len(self._raw)
+
+    def __contains__(self, ca_id: object) -> bool:
+        return ca_id in self._parsed or ca_id in self._raw
+
+
+def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
+    """Associated data binding a key to its place: NUL-separated (XML names cannot hold NUL)."""
+    return f"{FORMAT}\0{store_id}\0{ca_id}\0{generation}\0{ckn.hex()}".encode()
+
+
+class KeyStore:
+    """An opened key store: metadata in memory, the data key unwrapped, keys decrypted on demand."""
+
+    def __init__(self, path: Path, *, store_id: str, wrap: dict[str, Any], dek: bytes) -> None:
+        self.path = path
+        self.store_id = store_id
+        self.wrap = wrap
+        self._dek = dek
+        self._aead: Any = None
+        self.entries: MutableMapping[str, Entry] = {}
+        self.changed = False
+
+    # -- open / create ---------------------------------------------------------------------
+
+    @staticmethod
+    def file_in(folder: str | os.PathLike[str]) -> Path:
+        """The store file in ``folder``, named as the user gave the folder (messages show it so)."""
+        return Path(folder) / STORE_NAME
+
+    @classmethod
+    def exists(cls, folder: str | os.PathLike[str]) -> bool:
+        return os.path.lexists(cls.file_in(folder))
+
+    @classmethod
+    def create(cls, folder: str | os.PathLike[str], wrapper: Wrapper) -> KeyStore:
+        store_id = os.urandom(16).hex()
+        dek = os.urandom(32)
+        wrap = wrapper.wrap(dek, _wrap_aad(store_id))
+        store = cls(cls.file_in(folder), store_id=store_id, wrap=wrap, dek=dek)
+        store.changed = True
+        return store
+
+    @classmethod
+    def open(cls, folder: str | os.PathLike[str], wrapper: Wrapper) -> KeyStore:
+        """Read, unwrap and check a store.
+
+        Raises:
+            NotFoundError / InputError: no store, not a regular file, too large.
+            KeyStoreFormatError: not a key store of a known format version.
+            WrongCredentialError: the passphrase or token key does not open it.
+            KeyStoreIntegrityError: its metadata was changed outside this tool.
+        """
+        path = cls.file_in(folder)
+        source = str(path)
+        raw = read_input(path, limit=MAX_STORE_BYTES, what="key store")
+        try:
+            doc = json.loads(raw)
+        except (ValueError, RecursionError):
+            raise KeyStoreFormatError("the key store is not valid JSON", file=source) from None
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+            raise KeyStoreFormatError("not an hcdf-trust MACsec key store", file=source, expected=FORMAT)
+        if doc.get("version") != FORMAT_VERSION:
+            raise KeyStoreFormatError(
+                "unknown key store format version",
+                file=source,
+                expected=str(FORMAT_VERSION),
+                actual=repr(doc.get("version"))[:40],
+            )
+        store_id, wrap = doc.get("store_id"), doc.get("wrap")
+        if not isinstance(store_id, str) or not isinstance(wrap, dict):
+            raise KeyStoreFormatError("the key store has no store_id or wrap section", file=source)
+        if wrap.get("method") != wrapper.method:
+            raise KeyStoreFormatError(
+                "the key store is protected by another backend",
+                file=source,
+                expected=str(wrap.get("method"))[:40],
+                actual=wrapper.method,
+            )
+        dek = wrapper.unwrap(wrap, _wrap_aad(store_id), source=source)
+        mac = doc.get("mac")
+        if not isinstance(mac, str) or not hmac.compare_digest(mac, _mac(dek, doc)):
+            raise KeyStoreIntegrityError(
+                "the key store's metadata does not match its MAC: it was changed outside hcdf-trust", file=source
+            )
+        store = cls(path, store_id=store_id, wrap=wrap, dek=dek)
+        assocs = doc.get("associations")
+        if not isinstance(assocs, dict):
+            raise KeyStoreFormatError("the key store has no associations object", file=source)
+        store.entries = Entries(assocs, source=source)
+        return store
+
+    # -- keys --------------------------------------------------------------------------------
+
+    def _cipher(self) -> Any:
+        if self._aead is None:
+            from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+
+            self._aead = AESGCM(self._dek)
+        return self._aead
+
+    def known_ckns(self) -> set[bytes]:
+        return {g.ckn[:16] for e in self.entries.values() for g in e.generations}
+
+    def new_generation(
+        self,
+        entry: Entry,
+        *,
+        now: datetime,
+        activation: datetime,
+        ckns: set[bytes] | None = None,
+        secret: bytes | None = None,
+    ) -> Generation:
+        """Add generation N+1 to ``entry`` with a fresh key and a CKN unique in its first 16 octets."""
+        taken = ckns if ckns is not None else self.known_ckns()
+        ckn = os.urandom(CKN_BYTES)
+        while ckn[:16] in taken:
+            ckn = os.urandom(CKN_BYTES)
+        taken.add(ckn[:16])
+        number = (entry.generations[-1].generation + 1) if entry.generations else 1
+        nonce = os.urandom(12)
+        key = os.urandom(entry.key_bytes) if secret is None else secret
+        ciphertext = self._cipher().encrypt(nonce, key, _aad(self.store_id, entry.ca_id, number, ckn))
+        gen = Generation(number, ckn, now, activation, None, nonce, ciphertext)
+        entry.generations.append(gen)
+        self.changed = True
+        return gen
+
+    def key(self, entry: Entry, gen: Generation) -> bytes:
+        """Decrypt one generation's key.
+
+        Raises:
+            KeyStoreIntegrityError: the ciphertext was changed or moved.
+        """
+        from cryptography.exceptions import InvalidTag
+
+        try:
+            key: bytes = self._cipher().decrypt(
+                gen.nonce, gen.ciphertext, _aad(self.store_id, entry.ca_id, gen.generation, gen.ckn)
+            )
+        except InvalidTag:
+            raise KeyStoreIntegrityError(
+                f"{entry.ca_id} generation {gen.generation}: the key does not decrypt (changed or moved)",
+                file=str(self.path),
+            ) from None
+        if entry.kind in BLOB_KINDS:
+            return key
+        if len(key) not in (16, 32):  # a generation made before a cipher change keeps its own length
+            raise KeyStoreIntegrityError(
+                f"{entry.ca_id} generation {gen.generation}: the key has the wrong length",
+                file=str(self.path),
+                expected="16 or 32",
+                actual=str(len(key)),
+            )
+        return key
+
+    # -- write -----------------------------------------------------------------------------
+
+    def serialize(self, now: datetime) -> bytes:
+        doc: dict[str, Any] = {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "store_id": self.store_id,
+            "wrap": self.wrap,
+            "associations": {
+                e.ca_id: {
+                    "kind": e.kind,
+                    "cipher": e.cipher,
+                    "key_bytes": e.key_bytes,
+                    "source": {"file": e.source_file, "line": e.source_line},
+                    "generations": [g.to_json(now) for g in e.generations],
+                }
+                for e in sorted(self.entries.values(), key=lambda e: e.ca_id)
+            },
+        }
+        doc["mac"] = _mac(self._dek, doc)
+        # compact: json's C encoder (indent= falls back to the pure-Python one)
+        return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode() + b"\n"
+
+    def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
+        """Add the store file to ``plan`` (mode 0600); the caller commits."""
+        plan.add(self.path, self.serialize(now), flag="--store", mode=0o600)
+
+
+def _wrap_aad(store_id: str) -> bytes:
+    return json.dumps([FORMAT, FORMAT_VERSION, store_id]).encode()
+
+
+def _mac(dek: bytes, doc: dict[str, Any]) -> str:
+    body = {k: v for k, v in doc.items() if k != "mac"}
+    mac_key = hmac.new(dek, b"hcdf-trust macsec store mac", hashlib.sha256).digest()
+    return hmac.new(
+        mac_key, json.dumps(body, sort_keys=True, separators=(",", ":")).encode(), hashlib.sha256
+    ).hexdigest()
+
+
+def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:
+    where = f"association {ca_id!r}"
+    if not isinstance(raw, dict) or not isinstance(raw.get("generations"), list):
+        raise KeyStoreFormatError(f"{where} is malformed", file=source)
+    key_bytes = raw.get("key_bytes")
+    if key_bytes not in (16, 32) and not (raw.get("kind") in BLOB_KINDS and key_bytes == 0):
+        raise KeyStoreFormatError(f"{where}: key_bytes is not 16 or 32", file=source, actual=repr(key_bytes)[:40])
+    src_raw = raw.get("source")
+    src: dict[str, Any] = src_raw if isinstance(src_raw, dict) else {}
+    line = src.get("line")
+    gens = []
+    for g in raw["generations"]:
+        if not isinstance(g, dict) or type(g.get("generation")) is not int:
+            raise KeyStoreFormatError(f"{where}: a generation is malformed", file=source)
+        label = f"{where} generation {g['generation']}"
+        ckn_text = g.get("ckn")
+        try:
+            ckn = bytes.fromhex(ckn_text) if isinstance(ckn_text, str) else b""
+        except ValueError:
+            ckn = b""
+        if not 1 <= len(ckn) <= 32:
+            raise KeyStoreFormatError(f"{label}: ckn is not 1..32 octets of hex", file=source)
+        expiry = g.get("expiry")
+        gens.append(
+            Generation(
+                generation=g["generation"],
+                ckn=ckn,
+                created=parse_time(g.get("created"), what=f"{label} created", source=source),
+                activation=parse_time(g.get("activation"), what=f"{label} activation", source=source),
+                expiry=None if expiry is None else parse_time(expiry, what=f"{label} expiry", source=source),
+                nonce=unb64(g.get("nonce"), what=f"{label} nonce", source=source),
+                ciphertext=unb64(g.get("ciphertext"), what=f"{label} ciphertext", source=source),
+            )
+        )
+    return Entry(
+        ca_id=ca_id,
+        kind=str(raw.get("kind")),
+        cipher=raw.get("cipher") if isinstance(raw.get("cipher"), str) else None,
+        key_bytes=key_bytes,
+        source_file=str(src.get("file")),
+        source_line=line if type(line) is int else None,
+        generations=gens,
+    )

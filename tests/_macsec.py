@@ -1,0 +1,57 @@
+"""Helpers for the macsec tests: small locked HCDF trees written in a temporary folder."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from hcdf_trust.include.resolver import ResolveOptions, resolve
+
+from .conftest import HCDFORMAT
+
+HUMANOID = HCDFORMAT / "examples" / "humanoid-mobile-base.hcdf"
+
+
+def lock(doc: Path) -> Path:
+    """Resolve ``doc`` offline and write its lock under the default name; return ``doc``."""
+    res = resolve(doc, ResolveOptions(offline=True))
+    assert res.ok, [str(e) for e in res.errors]
+    res.write_lock()
+    return doc
+
+
+def tree(root: Path, files: dict[str, str], doc: str = "robot.hcdf") -> Path:
+    """Write ``files`` under ``root`` and lock ``doc``."""
+    for name, text in files.items():
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return lock(root / doc)
+
+
+def humanoid(tmp: Path) -> Path:
+    """The corpus humanoid example and its stream profile, copied and locked (the corpus is read-only)."""
+    shutil.copy(HUMANOID, tmp / HUMANOID.name)
+    shutil.copytree(HUMANOID.parent / "profiles", tmp / "profiles")
+    return lock(tmp / HUMANOID.name)
+
+
+def port(name: str, *ciphers: str, mbps: int = 1000, kind: str = "ethernet") -> str:
+    caps = "".join(f"<cipher>{c}</cipher>" for c in ciphers)
+    macsec = f"<macsec>{caps}</macsec>" if ciphers else ""
+    return (
+        f'<port name="{name}" type="{kind}"><capabilities><speed unit="Mbps">{mbps}</speed>'
+        f"{macsec}</capabilities></port>"
+    )
+
+
+def comp(name: str, *ports: str) -> str:
+    return f'<comp name="{name}">{"".join(ports)}</comp>'
+
+
+def link(name: str, a: str, b: str, macsec: str = "") -> str:
+    return f'<link name="{name}"><wired><port>{a}</port><port>{b}</port>{macsec}</wired></link>'
+
+
+def hcdf(*body: str) -> str:
+    return '<?xml version="1.0"?>\n<hcdf version="1.0" name="t">\n' + "\n".join(body) + "\n</hcdf>\n"

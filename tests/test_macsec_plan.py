@@ -1,0 +1,311 @@
+"""macsec plan: effective policy, connectivity associations, include scoping, conflicts, warnings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from hcdf_trust.errors import ErrorGroup
+from hcdf_trust.macsec.plan import plan
+
+from ._macsec import comp, hcdf, humanoid, link, port, tree
+
+PROJECT = Path(__file__).resolve().parents[1]
+ROBOT = PROJECT / "examples" / "robot" / "robot.hcdf"
+
+
+def _members(ca) -> dict[str, list[str]]:
+    return {m.device: sorted(m.ports) for m in ca.members.values()}
+
+
+# --- the humanoid example: expectation written by reading the file -----------------------
+
+SE = ("secure-element", "se051")
+HUMANOID_CAS = {
+    # backbone: network-wide must-secure gcm-aes-256, tpm key store, links without key-ref
+    "link:backbone/s32n79_to_thor_p0": ("gcm-aes-256", ("tpm", "tpm0"), {"s32n79": ["e810_p0"], "agx-thor": ["mgbe0"]}),
+    "link:backbone/s32n79_to_thor_p1": ("gcm-aes-256", ("tpm", "tpm0"), {"s32n79": ["e810_p1"], "agx-thor": ["mgbe1"]}),
+    # arm chains: per-chain key-ref; hops' ingress/egress, the spur's port and the hop's via port
+    "key-ref:arm-left-keys": (
+        "gcm-aes-128",
+        SE,
+        {
+            "s32n79": ["xfi_left"],
+            "mcn1-l": ["eth0", "eth1"],
+            "mcn2-l": ["eth0", "eth1"],
+            "mcn3-l": ["eth0", "eth1", "eth2"],
+            "cam-l": ["eth0"],
+            "mcn4-l": ["eth0"],
+        },
+    ),
+    "key-ref:arm-right-keys": (
+        "gcm-aes-128",
+        SE,
+        {
+            "s32n79": ["xfi_right"],
+            "mcn1-r": ["eth0", "eth1"],
+            "mcn2-r": ["eth0", "eth1"],
+            "mcn3-r": ["eth0", "eth1", "eth2"],
+            "cam-r": ["eth0"],
+            "mcn4-r": ["eth0"],
+        },
+    ),
+    **{
+        f"key-ref:link-n79-j100-{i}": ("gcm-aes-128", SE, {"s32n79": [f"qxgmii_p{i}"], "s32j100": [f"eth_up{i}"]})
+        for i in range(4)
+    },
+    # base: Ethernet links without key-ref take the network default
+    "link:base/j100_to_head": ("gcm-aes-128", SE, {"s32j100": ["eth_head"], "head": ["eth0"]}),
+    "link:base/j100_to_lidar_f": ("gcm-aes-128", SE, {"s32j100": ["eth_lidar_front"], "lidar-front": ["eth0"]}),
+    "link:base/j100_to_lidar_r": ("gcm-aes-128", SE, {"s32j100": ["eth_lidar_rear"], "lidar-rear": ["eth0"]}),
+    "link:base/j100_to_radar": ("gcm-aes-128", SE, {"s32j100": ["eth_radar"], "radar-4d": ["eth0"]}),
+}
+
+
+def test_humanoid_associations(tmp_path):
+    p = plan(humanoid(tmp_path))
+    assert set(p.associations) == set(HUMANOID_CAS)
+    for ca_id, (cipher, store, members) in HUMANOID_CAS.items():
+        ca = p.associations[ca_id]
+        assert ca.policy is not None
+        assert (ca.policy.policy, ca.policy.cipher, ca.policy.key_agreement) == ("must-secure", cipher, "psk")
+        assert (ca.policy.key_store_type, ca.policy.key_store_ref) == store
+        assert ca.policy.confidentiality_offset == 0 and ca.policy.rekey_interval_sec is None
+        assert _members(ca) == members, ca_id
+        assert ca.key_bytes == (32 if cipher == "gcm-aes-256" else 16)
+        assert not ca.shared
+    # SIGNAL links and buses carry no MACsec; the power network declares none and has only a bus
+    assert sorted(e.label for e, _ in p.skipped) == sorted(
+        [f"link:base/zlac_to_wheel_{s}_{k}" for s in ("left", "right") for k in ("sig", "phase")]
+        + ["bus:base/base_can", "bus:power/power_bus"]
+    )
+    assert p.unprotected == []
+
+
+def test_humanoid_warnings(tmp_path):
+    p = plan(humanoid(tmp_path))
+    capability = {
+        w.message.split(": ", 1)[1].split(" declares")[0] for w in p.warnings if w.code == "macsec-capability"
+    }
+    # ports without a <macsec> capability that the plan still puts in an association
+    assert capability == {
+        f"device {d} port {pt}"
+        for d, pt in [
+            ("agx-thor", "mgbe0"),
+            ("agx-thor", "mgbe1"),
+            ("cam-l", "eth0"),
+            ("mcn3-l", "eth2"),
+            ("cam-r", "eth0"),
+            ("mcn3-r", "eth2"),
+            ("s32j100", "eth_head"),
+            ("s32j100", "eth_lidar_front"),
+            ("s32j100", "eth_lidar_rear"),
+            ("s32j100", "eth_radar"),
+            ("head", "eth0"),
+            ("lidar-front", "eth0"),
+            ("lidar-rear", "eth0"),
+            ("radar-4d", "eth0"),
+        ]
+    }
+    agx = next(w for w in p.warnings if "agx-thor port mgbe0" in w.message)
+    assert agx.line == 28 and agx.file.endswith("humanoid-mobile-base.hcdf")
+    # 25G backbone and 10G arm uplinks with non-XPN ciphers
+    pn = {":".join(w.message.split(":")[:2]) for w in p.warnings if w.code == "macsec-pn-exhaustion"}
+    assert pn == {
+        "link:backbone/s32n79_to_thor_p0",
+        "link:backbone/s32n79_to_thor_p1",
+        "key-ref:arm-left-keys",
+        "key-ref:arm-right-keys",
+    }
+
+
+def test_humanoid_cli_json(tmp_path, cli):
+    doc = humanoid(tmp_path)
+    r = cli("macsec", "plan", doc, "--json")
+    assert r.exit_code == 0, r.stderr
+    out = r.json
+    assert out["ok"] is True
+    assert len(out["associations"]) == 12
+    assert all(isinstance(w, dict) and {"code", "message", "file", "line"} <= set(w) for w in out["warnings"])
+
+
+# --- the example robot: a key-ref shared by two links -------------------------------------
+
+
+def test_robot_shared_key_ref():
+    p = plan(ROBOT)
+    assert set(p.associations) == {"key-ref:head-link", "key-ref:arm-links"}
+    arms = p.associations["key-ref:arm-links"]
+    assert arms.shared and [e.name for e in arms.elements] == ["compute_to_left_arm", "compute_to_right_arm"]
+    assert _members(arms) == {
+        "compute": ["eth1", "eth2"],
+        "left_arm_shoulder": ["eth0"],
+        "right_arm_shoulder": ["eth0"],
+    }
+    assert arms.policy is not None and arms.policy.cipher == "gcm-aes-256" and arms.key_bytes == 32
+    head = p.associations["key-ref:head-link"]
+    assert _members(head) == {"compute": ["eth0"], "head_camera": ["eth0"]}
+    assert not head.shared
+    # every endpoint declares the cipher its association uses: no capability warning
+    assert not [w for w in p.warnings if w.code == "macsec-capability"]
+
+
+def test_robot_cli_shows_sharing(cli):
+    r = cli("macsec", "plan", ROBOT)
+    assert r.exit_code == 0, r.stderr
+    assert "shared: one CAK on 2 links" in r.stdout
+
+
+# --- include instances ---------------------------------------------------------------------
+
+ARM = hcdf(
+    comp("ctrl", port("eth0", "gcm-aes-128"), port("eth1", "gcm-aes-128")),
+    comp("hand", port("eth0", "gcm-aes-128")),
+    '<network name="arm-net">',
+    link("ctrl_to_hand", "ctrl/eth1", "hand/eth0", '<macsec policy="must-secure" key-ref="hand-key"/>'),
+    link("ctrl_to_body", "ctrl/eth0", "body/eth0"),
+    '<macsec policy="should-secure" cipher="gcm-aes-128"/>',
+    "</network>",
+)
+
+
+def _two_arms(tmp: Path, names: tuple[str, str] = ("left_arm", "right_arm")) -> Path:
+    includes = "".join(f'<include uri="arm.hcdf" name="{n}"/>' for n in names)
+    return tree(tmp, {"arm.hcdf": ARM, "robot.hcdf": hcdf(comp("body", port("eth0", "gcm-aes-128")), includes)})
+
+
+def test_included_twice_gets_two_caks(tmp_path):
+    p = plan(_two_arms(tmp_path))
+    assert set(p.associations) == {
+        "key-ref:left_arm_hand-key",
+        "key-ref:right_arm_hand-key",
+        "link:left_arm_arm-net/left_arm_ctrl_to_body",
+        "link:right_arm_arm-net/right_arm_ctrl_to_body",
+    }
+    left = p.associations["key-ref:left_arm_hand-key"]
+    assert _members(left) == {"left_arm_ctrl": ["eth1"], "left_arm_hand": ["eth0"]}
+    assert left.elements[0].scope == "left_arm" and left.elements[0].file.endswith("arm.hcdf")
+    # a device the included file does not define keeps its name (flatten's rule): the includer's body
+    body = p.associations["link:right_arm_arm-net/right_arm_ctrl_to_body"]
+    assert _members(body) == {"right_arm_ctrl": ["eth0"], "body": ["eth0"]}
+    assert body.policy is not None and body.policy.policy == "should-secure"
+    assert not [w for w in p.warnings if w.code == "macsec-port"]
+
+
+def test_unnamed_double_include_would_share_a_cak(tmp_path):
+    doc = tree(
+        tmp_path,
+        {
+            "arm.hcdf": ARM,
+            "robot.hcdf": hcdf(comp("body", port("eth0")), '<include uri="arm.hcdf"/><include uri="./arm.hcdf"/>'),
+        },
+    )
+    with pytest.raises(ErrorGroup) as info:
+        plan(doc)
+    assert any("two include instances" in e.message for e in info.value.errors)
+
+
+# --- effective policy, conflicts, warnings -------------------------------------------------
+
+
+def _net(*body: str, devices: str = "") -> str:
+    two = (port("p0", "gcm-aes-128"), port("p1", "gcm-aes-128"))
+    devs = devices or comp("a", *two) + comp("b", *two)
+    return hcdf(devs, '<network name="n">', *body, "</network>")
+
+
+def test_override_inherits_unstated_attributes(tmp_path):
+    doc = tree(
+        tmp_path,
+        {
+            "robot.hcdf": _net(
+                link("l0", "a/p0", "b/p0", '<macsec policy="integrity-only" key-ref="k" confidentiality-offset="30"/>'),
+                link("l1", "a/p1", "b/p1", '<macsec policy="disabled"/>'),
+                '<macsec policy="must-secure" cipher="gcm-aes-256" key-agreement="psk" rekey-interval-sec="3600">'
+                '<key-store type="hsm" ref="h1"/></macsec>',
+            )
+        },
+    )
+    p = plan(doc)
+    k = p.associations["key-ref:k"].policy
+    assert k is not None
+    assert (k.policy, k.cipher, k.confidentiality_offset, k.rekey_interval_sec, k.key_store_type) == (
+        "integrity-only",
+        "gcm-aes-256",
+        30,
+        3600,
+        "hsm",
+    )
+    disabled = p.associations["link:n/l1"]
+    assert not disabled.keyed and disabled not in p.keyed()
+    codes = [w.code for w in p.warnings]
+    assert "macsec-offset" in codes
+    # the 256-bit CA on ports that declare only gcm-aes-128
+    assert codes.count("macsec-capability") == 2
+
+
+def test_same_key_ref_two_ciphers_is_an_error(tmp_path, cli):
+    doc = tree(
+        tmp_path,
+        {
+            "robot.hcdf": _net(
+                link("l0", "a/p0", "b/p0", '<macsec policy="must-secure" cipher="gcm-aes-128" key-ref="k"/>'),
+                link("l1", "a/p1", "b/p1", '<macsec policy="must-secure" cipher="gcm-aes-256" key-ref="k"/>'),
+            )
+        },
+    )
+    r = cli("macsec", "plan", doc, "--json")
+    assert r.exit_code == 3
+    (err,) = r.json["errors"]
+    assert "two different cipher values" in err["message"]
+    assert (err["expected"], err["actual"], err["line"]) == ("gcm-aes-128", "gcm-aes-256", 6)
+
+
+def test_bad_attribute_values_are_errors(tmp_path, cli):
+    doc = tree(tmp_path, {"robot.hcdf": _net(link("l0", "a/p0", "b/p0", '<macsec policy="maybe" cipher="rot13"/>'))})
+    r = cli("macsec", "plan", doc, "--json")
+    assert r.exit_code == 3
+    assert {(e["actual"]) for e in r.json["errors"]} == {"maybe", "rot13"}
+
+
+def test_unprotected_and_mesh_key(tmp_path):
+    doc = tree(
+        tmp_path,
+        {
+            "robot.hcdf": _net(
+                link("l0", "a/p0", "b/p0"),
+                '<mesh name="skin" standard="802.15.4" network-key-ref="thread-key">'
+                '<node device="a" antenna="ant0"/><node device="b" antenna="ant0"/></mesh>',
+            )
+        },
+    )
+    p = plan(doc)
+    assert [e.label for e in p.unprotected] == ["link:n/l0"]
+    mesh = p.associations["mesh-key:thread-key"]
+    assert mesh.kind == "mesh-key" and mesh.key_bytes == 16 and set(mesh.members) == {"a", "b"}
+
+
+def test_unknown_port_is_a_warning(tmp_path):
+    doc = tree(tmp_path, {"robot.hcdf": _net(link("l0", "a/p0", "ghost/eth9", '<macsec policy="must-secure"/>'))})
+    p = plan(doc)
+    assert [w.code for w in p.warnings] == ["macsec-port"]
+
+
+# --- the tree is verified first ------------------------------------------------------------
+
+
+def test_refuses_a_tree_that_fails_its_pins(tmp_path, cli):
+    doc = _two_arms(tmp_path)
+    (tmp_path / "arm.hcdf").write_text(ARM.replace("hand-key", "evil-key"))
+    r = cli("macsec", "plan", doc, "--json")
+    assert r.exit_code == 1
+    assert "associations" not in r.json
+
+
+def test_refuses_without_a_lock(tmp_path, cli):
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(_net(link("l0", "a/p0", "b/p0", '<macsec policy="must-secure"/>')))
+    r = cli("macsec", "plan", doc)
+    assert r.exit_code == 3
+    assert "lock" in r.stderr
