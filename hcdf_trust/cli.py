@@ -406,5 +406,9 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
         click.echo(f"wrote {path}", err=True)
 
 
+from .cli_registry import registry  # noqa: E402  (imports this module's helpers, so it comes last)
+
+main.add_command(registry)
+
 if __name__ == "__main__":  # pragma: no cover
     main()
