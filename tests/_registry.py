@@ -80,15 +80,29 @@ class Registry:
 
     def verify(self, site: str | Path | None = None, *, cache: str = "client") -> Any:
         res = self.cli(
-            "registry", "verify", site or self.site, "--trusted-root", self.root_json,
-            "--cache-dir", self.base / cache,
+            "registry",
+            "verify",
+            site or self.site,
+            "--trusted-root",
+            self.root_json,
+            "--cache-dir",
+            self.base / cache,
         )
         return res
 
     def fetch(self, *what: str, out: Path, site: str | Path | None = None, cache: str = "client") -> Any:
         return self.cli(
-            "registry", "fetch", *what, "--from", site or self.site, "--trusted-root", self.root_json,
-            "--cache-dir", self.base / cache, "-o", out,
+            "registry",
+            "fetch",
+            *what,
+            "--from",
+            site or self.site,
+            "--trusted-root",
+            self.root_json,
+            "--cache-dir",
+            self.base / cache,
+            "-o",
+            out,
         )
 
     # -- playing the attacker -----------------------------------------------------------
@@ -111,7 +125,9 @@ class Registry:
         d = self.source().domains[domain]
         return self.ring().signer(next(iter(d.keys.values())))
 
-    def forge(self, role: str, mutate: Callable[[Any], None], *, signer: Any, expires: dt.datetime | None = None) -> None:
+    def forge(
+        self, role: str, mutate: Callable[[Any], None], *, signer: Any, expires: dt.datetime | None = None
+    ) -> None:
         """Re-sign ``role`` (after ``mutate``) with ``signer``, then snapshot and timestamp with
         the registry's own keys, as a publisher who skipped ``publish``'s checks would."""
         from tuf.api.metadata import Metadata, MetaFile

@@ -27,8 +27,11 @@ def test_clean_publish_verifies_and_fetches_corpus_bytes_over_loopback(reg, tmp_
         res = reg.verify(srv.base)
         assert res.exit_code == 0, res.stderr
         assert "2 domain role(s), 3 file(s)" in res.stderr
-        for what, corpus in [(("org.ros2",), ROS2_XSD), (("org.gazebosim@1.0",), GAZEBO_XSD),
-                             (("profile", "operational"), PROFILE)]:
+        for what, corpus in [
+            (("org.ros2",), ROS2_XSD),
+            (("org.gazebosim@1.0",), GAZEBO_XSD),
+            (("profile", "operational"), PROFILE),
+        ]:
             out = tmp_path / "out.bin"
             res = reg.fetch(*what, out=out, site=srv.base)
             assert res.exit_code == 0, res.stderr
@@ -57,7 +60,9 @@ def test_site_layout_is_consistent_snapshots_with_one_role_per_domain(reg):
     assert list(ros["signatures"][0]["keyid"] for _ in [0]) == roles["org.ros2"]["keyids"]
     digest = hashlib.sha256(ROS2_XSD.read_bytes()).hexdigest()
     assert ros["signed"]["targets"]["extensions/org.ros2/1.0.xsd"]["hashes"]["sha256"] == digest
-    assert (reg.site / "targets" / "extensions" / "org.ros2" / f"{digest}.1.0.xsd").read_bytes() == ROS2_XSD.read_bytes()
+    assert (
+        reg.site / "targets" / "extensions" / "org.ros2" / f"{digest}.1.0.xsd"
+    ).read_bytes() == ROS2_XSD.read_bytes()
 
 
 def test_init_keys_are_0600_encrypted_and_outside_the_source(reg, tmp_path):
@@ -75,8 +80,19 @@ def test_init_keys_are_0600_encrypted_and_outside_the_source(reg, tmp_path):
 def test_wrong_passphrase_is_an_input_error(reg, monkeypatch):
     monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", "wrong")
     res = reg.run(
-        "add", reg.src, "--domain", "org.ros2", "--version", "1.1", "--schema", IEEE_XSD,
-        "--content", reg.content, "--keys", reg.owner_keys("org.ros2"), ok=False,
+        "add",
+        reg.src,
+        "--domain",
+        "org.ros2",
+        "--version",
+        "1.1",
+        "--schema",
+        IEEE_XSD,
+        "--content",
+        reg.content,
+        "--keys",
+        reg.owner_keys("org.ros2"),
+        ok=False,
     )
     assert res.exit_code == 3
     assert "wrong passphrase" in res.stderr
@@ -105,8 +121,19 @@ def test_publisher_without_owner_key_cannot_add_a_version(reg):
 
 def test_existing_domain_gains_a_version_only_with_its_owner_key(reg):
     res = reg.run(
-        "add", reg.src, "--domain", "org.ros2", "--version", "1.1", "--schema", IEEE_XSD,
-        "--content", reg.content, "--keys", reg.owner_keys("org.gazebosim"), ok=False,
+        "add",
+        reg.src,
+        "--domain",
+        "org.ros2",
+        "--version",
+        "1.1",
+        "--schema",
+        IEEE_XSD,
+        "--content",
+        reg.content,
+        "--keys",
+        reg.owner_keys("org.gazebosim"),
+        ok=False,
     )
     assert res.exit_code == 1 and "only the owner can sign" in res.stderr
     assert "1.1" not in reg.source().domains["org.ros2"].versions
@@ -137,8 +164,13 @@ def test_cross_domain_path_is_refused_at_publish_time(reg):
     src = reg.source()
     gz = src.domains["org.gazebosim"]
     data = ROS2_XSD.read_bytes()
-    rel = Release("9.0", "extensions/org.ros2/9.0.xsd", "extensions/hcdf-ext-ros2.xsd",
-                  hashlib.sha256(data).hexdigest(), len(data))
+    rel = Release(
+        "9.0",
+        "extensions/org.ros2/9.0.xsd",
+        "extensions/hcdf-ext-ros2.xsd",
+        hashlib.sha256(data).hexdigest(),
+        len(data),
+    )
     sig = reg.owner_signer("org.gazebosim").sign(gz.statement(rel))
     gz = replace(gz, versions={**gz.versions, "9.0": replace(rel, signatures={sig.keyid: sig.signature})})
     plan = OutputPlan()
@@ -151,13 +183,36 @@ def test_cross_domain_path_is_refused_at_publish_time(reg):
 
 def test_replaced_published_version_is_refused_by_add_and_by_publish(reg):
     res = reg.run(
-        "add", reg.src, "--domain", "org.ros2", "--version", "1.0", "--schema", IEEE_XSD,
-        "--content", reg.content, "--keys", reg.owner_keys("org.ros2"), ok=False,
+        "add",
+        reg.src,
+        "--domain",
+        "org.ros2",
+        "--version",
+        "1.0",
+        "--schema",
+        IEEE_XSD,
+        "--content",
+        reg.content,
+        "--keys",
+        reg.owner_keys("org.ros2"),
+        ok=False,
     )
     assert res.exit_code == 1 and "replaced published version refused" in res.stderr
     # the same content again is a no-op
-    res = reg.run("add", reg.src, "--domain", "org.ros2", "--version", "1.0", "--schema", ROS2_XSD,
-                  "--content", reg.content, "--keys", reg.owner_keys("org.ros2"))
+    res = reg.run(
+        "add",
+        reg.src,
+        "--domain",
+        "org.ros2",
+        "--version",
+        "1.0",
+        "--schema",
+        ROS2_XSD,
+        "--content",
+        reg.content,
+        "--keys",
+        reg.owner_keys("org.ros2"),
+    )
     assert "already registered" in res.stderr
     # the owner edits the entry by hand and re-signs it: publish compares with the site
     from dataclasses import replace
@@ -168,8 +223,12 @@ def test_replaced_published_version_is_refused_by_add_and_by_publish(reg):
     src = reg.source()
     ros = src.domains["org.ros2"]
     data = IEEE_XSD.read_bytes()
-    rel = replace(ros.versions["1.0"], file="extensions/hcdf-ext-1722.xsd",
-                  sha256=hashlib.sha256(data).hexdigest(), length=len(data))
+    rel = replace(
+        ros.versions["1.0"],
+        file="extensions/hcdf-ext-1722.xsd",
+        sha256=hashlib.sha256(data).hexdigest(),
+        length=len(data),
+    )
     sig = reg.owner_signer("org.ros2").sign(ros.statement(rel))
     ros = replace(ros, versions={"1.0": replace(rel, signatures={sig.keyid: sig.signature})})
     plan = OutputPlan()
@@ -193,8 +252,18 @@ def test_content_that_differs_from_its_entry_is_refused(reg, tmp_path):
 
 
 def test_publish_refuses_an_output_inside_the_source_or_content(reg):
-    res = reg.run("publish", reg.src, "--keys", reg.keys, "--content", reg.content, "--out", reg.src / "site",
-                  *sum((["--keys", d] for d in reg.base.glob("keys-*")), []), ok=False)
+    res = reg.run(
+        "publish",
+        reg.src,
+        "--keys",
+        reg.keys,
+        "--content",
+        reg.content,
+        "--out",
+        reg.src / "site",
+        *sum((["--keys", d] for d in reg.base.glob("keys-*")), []),
+        ok=False,
+    )
     assert res.exit_code == 3 and "inside the registry source" in res.stderr
 
 

@@ -201,7 +201,7 @@ class RegistryClient:
         try:
             self.updater.refresh()
         except _tuf_errors() as exc:
-            raise _attack(exc, "top-level metadata (root, timestamp, snapshot, targets)") from None
+            raise _attack(exc, "top-level metadata") from None
         self._refreshed = True
         self._check_replaced("targets")
 
