@@ -233,7 +233,7 @@ class _Reader:
         return SourceError(
             f"key `{self.prefix}{key}`: {message}",
             file=self.file,
-            expected=expected,
+            expected=expected if expected is not None or actual is None else message,
             actual=None if actual is None else repr(actual),
         )
 
