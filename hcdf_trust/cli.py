@@ -245,15 +245,27 @@ def pin(doc: str, write: bool, as_json: bool, **kw: Any) -> None:
     "--schema", type=click.Path(dir_okay=False), help="XSD to validate against (the official schemas are not shipped)."
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@click.option("--registry", "registry_site", help="Registry (URL or folder): schemas, extensions, stream profiles.")
+@click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
+@click.option("--strict", is_flag=True, help="With --registry: unregistered extension domains/versions are errors.")
 @handle_errors
-def validate(doc: str, schema: str | None, as_json: bool) -> None:
+def validate(
+    doc: str, schema: str | None, as_json: bool, registry_site: str | None, trusted_root: str | None, strict: bool
+) -> None:
     """Validate DOC against an XSD and check the HCDF semantic rules the XSD cannot express.
 
     Exits 1 if any error was found; every finding is listed, not just the first.
     """
     from .validate import validate_document
 
-    report = validate_document(doc, schema=schema)
+    if registry_site:
+        from .cli_registry import validate_with_registry
+
+        report = validate_with_registry(
+            doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict
+        )
+    else:
+        report = validate_document(doc, schema=schema)
     if as_json:
         emit_json(
             {

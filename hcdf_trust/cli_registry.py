@@ -411,3 +411,29 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
     plan.add(out, data, flag="-o")
     plan.commit()
     click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
+
+
+def validate_with_registry(
+    doc: str, *, schema: str | None, site: str, trusted_root: str | None, strict: bool, cache_dir: str | None = None
+) -> Any:
+    """``validate --registry``: the registry supplies the schema (unless ``--schema``) and
+    checks extension domains, versions, content and registered stream-profile digests."""
+    import os
+
+    from .include.locate import display_path
+    from .registry.validation import RegistrySchemaSource, check_document
+    from .validate import validate_document
+    from .validate.includes import read_local
+    from .xml import parse_bytes
+
+    if trusted_root is None:
+        raise click.UsageError("--registry needs --trusted-root")
+    schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
+    report = validate_document(doc, schema=schema or schemas)
+    path = Path(os.path.abspath(doc))
+    source = display_path(path)
+    tree = parse_bytes(read_local(path, path.parent, source=source), source=source)
+    if tree.getroot().tag == "hcdf":
+        report.findings.extend(check_document(tree, source=source, path=path, schemas=schemas, strict=strict))
+        report.checked.append("registry")
+    return report

@@ -49,20 +49,52 @@ def test_directory_site_verifies_through_the_directory_fetcher(reg, tmp_path):
 
 def test_site_layout_is_consistent_snapshots_with_one_role_per_domain(reg):
     meta = reg.site / "metadata"
+    assert site_json(meta / "1.root.json")["signed"]["consistent_snapshot"] is True
     targets = site_json(meta / "1.targets.json")["signed"]
-    roles = {r["name"]: r for r in targets["delegations"]["roles"]}
+    (shard,) = targets["delegations"]["roles"]  # two domains: one shard, signed by the targets key
+    assert shard["name"] == "extensions-000" and shard["terminating"] is True
+    assert sorted(shard["paths"]) == ["extensions/org.gazebosim/*", "extensions/org.ros2/*"]
+    assert shard["keyids"] == site_json(meta / "1.root.json")["signed"]["roles"]["targets"]["keyids"]
+    roles = {r["name"]: r for r in site_json(meta / "1.extensions-000.json")["signed"]["delegations"]["roles"]}
     assert set(roles) == {"org.ros2", "org.gazebosim"}
     assert roles["org.ros2"]["paths"] == ["extensions/org.ros2/*"]
     assert roles["org.ros2"]["terminating"] is True
-    assert site_json(meta / "1.root.json")["signed"]["consistent_snapshot"] is True
     ros = site_json(meta / "1.org.ros2.json")
     # signed by the owner's key only, which the delegation lists
-    assert list(ros["signatures"][0]["keyid"] for _ in [0]) == roles["org.ros2"]["keyids"]
+    assert [s["keyid"] for s in ros["signatures"]] == roles["org.ros2"]["keyids"]
+    assert set(roles["org.ros2"]["keyids"]) == set(reg.source().domains["org.ros2"].keys)
     digest = hashlib.sha256(ROS2_XSD.read_bytes()).hexdigest()
     assert ros["signed"]["targets"]["extensions/org.ros2/1.0.xsd"]["hashes"]["sha256"] == digest
-    assert (
-        reg.site / "targets" / "extensions" / "org.ros2" / f"{digest}.1.0.xsd"
-    ).read_bytes() == ROS2_XSD.read_bytes()
+    published = reg.site / "targets" / "extensions" / "org.ros2" / f"{digest}.1.0.xsd"
+    assert published.read_bytes() == ROS2_XSD.read_bytes()
+    snapshot = site_json(meta / "1.snapshot.json")["signed"]["meta"]
+    assert set(snapshot) == {"targets.json", "extensions-000.json", "org.ros2.json", "org.gazebosim.json"}
+
+
+def test_shards_keep_top_level_targets_small_and_lookups_to_one_shard(tmp_path, cli):
+    """70 domains: two shard roles; a lookup loads top-level targets, one shard, one domain role."""
+    from hcdf_trust.registry.publish import shard_count, shard_of
+
+    assert shard_count(4) == 1 and shard_count(64) == 1 and shard_count(65) == 2 and shard_count(1000) == 16
+    names = [f"org.example{i}" for i in range(70)]
+    assert {shard_of(n, 2) for n in names} == {"extensions-000", "extensions-001"}
+    reg = Registry(tmp_path, cli)
+    reg.run("init", reg.src, "--keys", reg.keys)
+    for name in names[:3]:
+        reg.add_domain(name, "1.0", ROS2_XSD)
+    for name in names[3:]:  # registered, no version yet
+        reg.run("keygen", "--keys", reg.owner_keys(name), "-o", tmp_path / f"{name}.pub")
+        reg.run("add", reg.src, "--domain", name, "--owner", "x", "--owner-key", tmp_path / f"{name}.pub")
+    reg.publish()
+    top = site_json(reg.site / "metadata" / "1.targets.json")["signed"]["delegations"]["roles"]
+    assert sorted(r["name"] for r in top) == ["extensions-000", "extensions-001"]
+    with LoopbackServer(root=reg.site) as srv:
+        out = tmp_path / "x.xsd"
+        assert reg.fetch(f"{names[0]}@1.0", out=out, site=srv.base).exit_code == 0
+        shard_hits = {p: n for p, n in srv.hits.items() if "extensions-" in p}
+        assert shard_hits == {f"/metadata/1.{shard_of(names[0], 2)}.json": 1}
+        res = reg.verify(srv.base)
+        assert res.exit_code == 0 and "70 domain role(s), 3 file(s)" in res.stderr, res.stderr
 
 
 def test_init_keys_are_0600_encrypted_and_outside_the_source(reg, tmp_path):

@@ -14,6 +14,7 @@ repository); a folder goes through :class:`DirectoryFetcher`, which reads throug
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import tempfile
@@ -21,7 +22,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-from urllib.parse import unquote, urlsplit
+from urllib.parse import quote, unquote, urlsplit
 
 from ..errors import HcdfTrustError, InputError, NotFoundError
 from ..localfile import open_checked, read_chunks, read_input
@@ -215,10 +216,17 @@ class RegistryClient:
         return int(self.updater._trusted_set.root.version)
 
     def domains(self) -> list[str]:
-        """The registered extension domains (the delegated roles of top-level targets)."""
+        """The registered extension domains: the ``extensions/<domain>/*`` patterns that
+        top-level targets delegates (to shard roles, which delegate to the domains)."""
         self.refresh()
         delegations = self._trusted("targets").delegations
-        return sorted(delegations.roles or {}) if delegations else []
+        out = set()
+        for role in (delegations.roles or {}).values() if delegations else []:
+            for pattern in role.paths or []:
+                parts = pattern.split("/")
+                if len(parts) == 3 and parts[0] == "extensions" and parts[2] == "*":
+                    out.add(parts[1])
+        return sorted(out)
 
     def role(self, domain: str) -> Targets:
         """A domain's verified role, loaded through the delegation."""
@@ -289,6 +297,9 @@ class RegistryClient:
         before = self._previous.get(role)
         if before is None:
             return
+        with contextlib.suppress(OSError):
+            if (self.metadata_dir / f"{quote(role, '')}.json").read_bytes() == before:
+                return  # the same signed file as last time (the usual warm refresh)
         try:
             old = Metadata.from_bytes(before).signed.targets  # type: ignore[attr-defined]
         except Exception:  # a cache file we cannot parse proves nothing
@@ -297,7 +308,7 @@ class RegistryClient:
         for path, was in old.items():
             now = new.get(path)
             if now is not None and (now.length, now.hashes) != (was.length, was.hashes):
-                cached = self.metadata_dir / f"{role}.json"
+                cached = self.metadata_dir / f"{quote(role, '')}.json"
                 cached.write_bytes(before)
                 raise AttackError(
                     f"replaced published version: {path} ({role}) changed content since this client last saw it",

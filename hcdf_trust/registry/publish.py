@@ -37,6 +37,7 @@ from .source import TOP_ROLES, Artifact, Domain, PublicKey, Release, Source, dom
 if TYPE_CHECKING:
     from tuf.api.metadata import Metadata, Root, Snapshot, Targets
 
+SHARD_SIZE = 64  # domains per shard role
 LONG_LIFETIME = dt.timedelta(days=365)  # root, targets and domain roles (re-signed when the timestamp outlives them)
 DEFAULT_TIMESTAMP_LIFETIME = dt.timedelta(days=7)
 METADATA_LIMIT = 8 << 20
@@ -106,6 +107,19 @@ def check_path(domain: str, path: str, *, source: str | None = None) -> None:
             expected=domain_pattern(domain),
             actual=path,
         )
+
+
+def shard_count(n_domains: int) -> int:
+    """How many shard roles hold ``n_domains`` delegations (about :data:`SHARD_SIZE` each)."""
+    return max(1, -(-n_domains // SHARD_SIZE))
+
+
+def shard_of(domain: str, n_shards: int) -> str:
+    """The shard role delegating ``domain``: stable while the shard count stays the same.
+
+    Shard names have no dot, so they never collide with a (reverse-DNS) domain role.
+    """
+    return f"extensions-{int(hashlib.sha256(domain.encode()).hexdigest()[:8], 16) % n_shards:03d}"
 
 
 # -- the previous site ------------------------------------------------------------------------
@@ -291,46 +305,73 @@ def publish(
         result.signed.append("root")
     result.versions["root"] = root_md.signed.version
 
-    # (3) One delegated role per domain, signed by its owner's keys.
-    roles: dict[str, DelegatedRole] = {}
-    delegations = Delegations(keys={}, roles=roles)
+    # (3) Shards: top-level targets delegates each domain's pattern to one shard role
+    # (signed by the targets keys), which delegates it to the domain's role (signed by
+    # the owner's keys). Refresh then reads a small targets.json; a lookup loads one shard.
+    targets_keys = _role_keys(root_md.signed, "targets")
+    n_shards = shard_count(len(source.domains))
+    shards: dict[str, list[str]] = {}
     for name in sorted(source.domains):
-        domain = source.domains[name]
-        roles[name] = DelegatedRole(
-            name, sorted(domain.keys), domain.threshold, True, paths=[domain_pattern(name)]
+        shards.setdefault(shard_of(name, n_shards), []).append(name)
+    top_roles = {
+        shard: DelegatedRole(
+            shard,
+            sorted(targets_keys),
+            root_md.signed.roles["targets"].threshold,
+            True,
+            paths=[domain_pattern(d) for d in names],
         )
-        for key in domain.keys.values():
-            delegations.keys[key.keyid] = _sslib(key)
-    top = Targets(expires=long_expires, targets={}, delegations=delegations)
+        for shard, names in sorted(shards.items())
+    }
+    top = Targets(
+        expires=long_expires,
+        targets={},
+        delegations=Delegations(keys={k: _sslib(v) for k, v in targets_keys.items()}, roles=top_roles),
+    )
     for art in [*source.profiles.values(), *source.schemas.values()]:
         top.targets.update(_targets_for(list(art.versions.values())))
-    domain_mds: dict[str, Metadata[Targets]] = {}
-    for name in sorted(source.domains):
-        domain = source.domains[name]
-        signed = Targets(expires=long_expires, targets=_targets_for(list(domain.versions.values())))
-        old = prev.roles.get(name)
-        _check_immutable(name, old, signed, source=domain.source)
-        if old is not None and reusable(old, signed) and _signed_by(top, name, old):
-            domain_mds[name] = old
-            continue
-        signed.version = old.signed.version + 1 if old is not None else 1
-        md = Metadata(signed)
-        for sig in ring.sign_threshold(
-            domain.keys, domain.threshold, md.signed_bytes, what=f"domain {name} (owner: {domain.owner})"
-        ):
-            md.signatures[sig.keyid] = sig
-        domain_mds[name] = md
-        files[f"{signed.version}.{name}.json"] = md.to_bytes()
-        result.signed.append(name)
 
-    # (4) Top-level targets: stream profiles, core schemas and the delegations.
+    # (4) Top-level targets: stream profiles, core schemas and the shards.
     old_top = prev.roles.get("targets")
     _check_immutable("targets", old_top, top, source=source.root.source)
     top_md = _resign(top, old_top, "targets", reusable, ring, root_md.signed, files, result)
+    role_mds: dict[str, Metadata[Targets]] = {}
+    for shard, names in sorted(shards.items()):
+        roles: dict[str, DelegatedRole] = {}
+        keys: dict[str, Any] = {}
+        for name in names:
+            domain = source.domains[name]
+            roles[name] = DelegatedRole(name, sorted(domain.keys), domain.threshold, True, paths=[domain_pattern(name)])
+            keys.update({k: _sslib(v) for k, v in domain.keys.items()})
+        signed_shard = Targets(expires=long_expires, targets={}, delegations=Delegations(keys=keys, roles=roles))
+        shard_md = _resign(
+            signed_shard, prev.roles.get(shard), shard, reusable, ring, root_md.signed, files, result,
+            delegator=top, key_role="targets",
+        )  # fmt: skip
+        role_mds[shard] = shard_md
 
-    # (5) Snapshot: every targets role's version; (6) timestamp: the snapshot's hash and length.
+        # (5) One delegated role per domain, signed by its owner's keys.
+        for name in names:
+            domain = source.domains[name]
+            signed = Targets(expires=long_expires, targets=_targets_for(list(domain.versions.values())))
+            old = prev.roles.get(name)
+            _check_immutable(name, old, signed, source=domain.source)
+            if old is not None and reusable(old, signed) and _signed_by(signed_shard, name, old):
+                role_mds[name] = old
+                continue
+            signed.version = old.signed.version + 1 if old is not None else 1
+            md = Metadata(signed)
+            for sig in ring.sign_threshold(
+                domain.keys, domain.threshold, md.signed_bytes, what=f"domain {name} (owner: {domain.owner})"
+            ):
+                md.signatures[sig.keyid] = sig
+            role_mds[name] = md
+            files[f"{signed.version}.{name}.json"] = md.to_bytes()
+            result.signed.append(name)
+
+    # (6) Snapshot: every targets role's version; (7) timestamp: the snapshot's hash and length.
     snap = Snapshot(expires=ts_expires, meta={"targets.json": MetaFile(top_md.signed.version)})
-    for name, md in domain_mds.items():
+    for name, md in role_mds.items():
         snap.meta[f"{name}.json"] = MetaFile(md.signed.version)
     snap_md = _resign(snap, prev.snapshot, "snapshot", reusable, ring, root_md.signed, files, result)
     snap_bytes = files.get(f"{snap_md.signed.version}.snapshot.json", prev.snapshot_bytes)
@@ -345,7 +386,7 @@ def publish(
     result.signed.append("timestamp")
     result.versions.update(targets=top_md.signed.version, snapshot=snap_md.signed.version, timestamp=ts.version)
 
-    # (7) Plan the writes: new metadata, and content files not yet on the site.
+    # (8) Plan the writes: new metadata, and content files not yet on the site.
     for fname, data in files.items():
         path = site / "metadata" / fname
         if fname not in ("root.json", "timestamp.json") and path.exists():
@@ -388,15 +429,19 @@ def _resign(
     root: Root,
     files: dict[str, bytes],
     result: Published,
+    *,
+    delegator: Any = None,
+    key_role: str | None = None,
 ) -> Metadata[Any]:
-    """Keep ``old`` when unchanged and still signed under ``root``, else sign the next version."""
+    """Keep ``old`` when unchanged and still signed under its delegator (default: ``root``),
+    else sign the next version with the keys of ``key_role`` (default: ``role``)."""
     from tuf.api.metadata import Metadata
 
-    if old is not None and reusable(old, signed) and _signed_by(root, role, old):
+    if old is not None and reusable(old, signed) and _signed_by(delegator or root, role, old):
         return old
     signed.version = old.signed.version + 1 if old is not None else 1
     md = Metadata(signed)
-    _sign_top(md, role, ring, root)
+    _sign_top(md, key_role or role, ring, root)
     files[f"{signed.version}.{role}.json"] = md.to_bytes()
     result.signed.append(role)
     return md
