@@ -99,10 +99,10 @@ def main() -> None:
         )
         meta = base / "site" / "metadata"
         for f in sorted(meta.iterdir()):
-            if not f.name.startswith("1.org.bench") or f.name.startswith("1.org.bench0000"):
+            if f.name.split(".")[1] not in ("org", "extensions-001") or f.name.startswith("1.org.bench0000"):
                 print(f"  {f.name}: {f.stat().st_size / 1024:.1f} KB")
         root = (meta / "1.root.json").read_bytes()
-        cold, warm, warm_hits = [], [], []
+        cold, warm, warm_hits, lookup = [], [], [], []
         with LoopbackServer(base / "site") as srv:
             for run in range(args.runs):
                 cache = base / f"cache{run}"
@@ -114,6 +114,10 @@ def main() -> None:
                 RegistryClient(srv.url, trusted_root=root, cache_dir=cache).refresh()
                 warm.append(time.perf_counter() - t)
                 warm_hits.append(srv.hits - before)
+                t = time.perf_counter()
+                client = RegistryClient(srv.url, trusted_root=root, cache_dir=base / f"lookup{run}")
+                client.download(client.versions(f"org.bench{run:04d}.ext")["1.0"])
+                lookup.append(time.perf_counter() - t)
         print(
             f"cold refresh: median {statistics.median(cold) * 1000:.0f} ms (runs: "
             + ", ".join(f"{c * 1000:.0f}" for c in cold)
