@@ -37,22 +37,22 @@ passphrase_option = click.option(
 
 
 def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
+    """The private keys in the ``--keys`` folders; the passphrase is read when a key is first needed."""
     from .registry.keys import KeyRing, read_passphrase
 
-    return KeyRing(keys, read_passphrase(passphrase_file) if keys else b"-")
+    return KeyRing(keys, lambda: read_passphrase(passphrase_file))
 
 
-def _commit(plan: OutputPlan, keydir: Path | None = None) -> None:
-    created = False
-    if keydir is not None:
-        from .registry.keys import prepare_keydir
+def _commit(plan: OutputPlan, keydir: Path) -> None:
+    """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
+    from .registry.keys import prepare_keydir
 
-        created = prepare_keydir(keydir)
+    created = prepare_keydir(keydir)
     try:
         plan.commit()
     except BaseException:
-        if created:
-            keydir.rmdir() if keydir and not any(keydir.iterdir()) else None
+        if created and not any(keydir.iterdir()):
+            keydir.rmdir()
         raise
 
 
@@ -315,13 +315,27 @@ def publish(
         click.echo(f"published {site}: {versions}; {len(result.written)} file(s) written", err=True)
 
 
-def _client(site: str, trusted_root: str, cache_dir: str | None) -> Any:
+def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
     from .registry.client import RegistryClient
 
-    return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None)
+    return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
+
+
+def _timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
+    if not 0 < value <= 3600:
+        raise click.BadParameter(f"{value} is not a number of seconds in (0, 3600]")
+    return value
 
 
 client_options = [
+    click.option(
+        "--timeout",
+        type=float,
+        default=30.0,
+        show_default=True,
+        callback=_timeout,
+        help="Seconds to wait for a connection or between bytes (http(s) sites).",
+    ),
     click.option(
         "--trusted-root",
         required=True,
@@ -347,13 +361,13 @@ def _with_client_options(func: Any) -> Any:
 @_with_client_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
 @handle_errors
-def verify(site: str, trusted_root: str, cache_dir: str | None, as_json: bool) -> None:
+def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, as_json: bool) -> None:
     """Refresh from SITE and check every role and every file it publishes."""
     from .cli import fail
     from .registry.client import verify as do_verify
     from .registry.errors import AttackError
 
-    report = do_verify(_client(site, trusted_root, cache_dir))
+    report = do_verify(_client(site, trusted_root, cache_dir, timeout))
     errors = [
         AttackError(f"cross-domain signing: {s.role} lists {s.path}, outside its delegation (ignored by clients)")
         for s in report.stray
@@ -378,7 +392,7 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, as_json: bool) -
 @_with_client_options
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
 @handle_errors
-def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, out: str) -> None:
+def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str) -> None:
     """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
     from .errors import NotFoundError
     from .registry.client import latest
@@ -390,7 +404,7 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
     else:
         raise click.UsageError("give DOMAIN[@VERSION], profile NAME[@VERSION] or schema NAME[@VERSION]")
     name, _, version = spec.partition("@")
-    client = _client(site, trusted_root, cache_dir)
+    client = _client(site, trusted_root, cache_dir, timeout)
     if kind == "domain":
         versions = client.versions(name)
     else:

@@ -192,3 +192,45 @@ def test_unreachable_registry_is_an_input_error(reg, srv, tmp_path):
     srv.close()
     res = reg.verify(srv.base)
     assert res.exit_code == 3 and "download failed" in res.stderr
+
+
+def test_stalled_server_is_a_transport_error_within_the_timeout(reg, srv):
+    import time
+
+    srv.stall("/metadata/timestamp.json")
+    t = time.monotonic()
+    res = reg.cli("registry", "verify", srv.base, "--trusted-root", reg.root_json, "--cache-dir", reg.base / "c",
+                  "--timeout", "0.5")  # fmt: skip
+    assert res.exit_code == 3 and "download failed" in res.stderr, res.stderr
+    assert time.monotonic() - t < 10
+    res = reg.cli("registry", "verify", srv.base, "--trusted-root", reg.root_json, "--timeout", "0")
+    assert res.exit_code == 2
+
+
+def test_directory_site_refuses_symlinks_out_and_fifos(reg, tmp_path):
+    import os
+
+    meta = reg.site / "metadata"
+    outside = tmp_path / "elsewhere.json"
+    outside.write_bytes((meta / "timestamp.json").read_bytes())
+    (meta / "timestamp.json").unlink()
+    (meta / "timestamp.json").symlink_to(outside)
+    res = reg.verify()
+    assert res.exit_code == 3 and "outside the root" in res.stderr and "Traceback" not in res.stderr
+    (meta / "timestamp.json").unlink()
+    os.mkfifo(meta / "timestamp.json")
+    res = reg.verify()
+    assert res.exit_code == 3 and "FIFO" in res.stderr
+
+
+def test_directory_site_endless_data(reg, tmp_path):
+    target = reg.target_file("extensions/org.ros2/1.0.xsd")
+    with target.open("ab") as f:
+        f.write(b"\0" * (8 << 20))
+    _refused(reg.fetch("org.ros2", out=tmp_path / "x"), "endless data")
+
+
+def test_publish_onto_a_site_with_malformed_metadata_is_an_input_error(reg):
+    (reg.site / "metadata" / "timestamp.json").write_text('{"signed": 1e999}')
+    res = reg.publish(ok=False)
+    assert res.exit_code == 3 and "not TUF metadata" in res.stderr and "Traceback" not in res.stderr

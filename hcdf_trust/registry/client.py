@@ -134,8 +134,8 @@ class RegistryClient:
         InputError: the trusted root is unreadable or not TUF root metadata.
     """
 
-    def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None) -> None:
-        from tuf.ngclient import Updater
+    def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
+        from tuf.ngclient import Updater, Urllib3Fetcher
 
         self.site = site
         local = "://" not in site
@@ -154,7 +154,7 @@ class RegistryClient:
             scheme = urlsplit(site).scheme
             if scheme not in ("http", "https"):
                 raise InputError(f"{site}: a registry is an http(s) URL or a folder", file=site)
-            base, fetcher = site.rstrip("/"), None
+            base, fetcher = site.rstrip("/"), Urllib3Fetcher(socket_timeout=timeout)  # type: ignore[arg-type]
         try:
             self.updater: Updater = Updater(
                 str(self.metadata_dir),
@@ -169,11 +169,12 @@ class RegistryClient:
         self._refreshed = False
 
     @classmethod
-    def open(cls, site: str, trusted_root: str, *, cache_dir: Path | None = None) -> RegistryClient:
+    def open(
+        cls, site: str, trusted_root: str, *, cache_dir: Path | None = None, timeout: float = 30.0
+    ) -> RegistryClient:
         """A client whose trust anchor is the root metadata file ``trusted_root``."""
-        return cls(
-            site, trusted_root=read_input(trusted_root, limit=ROOT_LIMIT, what="trusted root"), cache_dir=cache_dir
-        )
+        root = read_input(trusted_root, limit=ROOT_LIMIT, what="trusted root")
+        return cls(site, trusted_root=root, cache_dir=cache_dir, timeout=timeout)
 
     # -- loading ------------------------------------------------------------------------
 

@@ -9,7 +9,7 @@ The passphrase comes from ``--passphrase-file`` or ``HCDF_TRUST_PASSPHRASE``.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -83,10 +83,16 @@ def prepare_keydir(keydir: Path) -> bool:
 class KeyRing:
     """Private keys found in one or more keys folders, decrypted on first use."""
 
-    def __init__(self, folders: Iterable[str | os.PathLike[str]], passphrase: bytes) -> None:
+    def __init__(self, folders: Iterable[str | os.PathLike[str]], passphrase: bytes | Callable[[], bytes]) -> None:
+        """``passphrase`` may be a function: it is then called once, when a key is first decrypted."""
         self.folders = [Path(f) for f in folders]
         self._passphrase = passphrase
         self._cache: dict[str, CryptoSigner | None] = {}
+
+    def _secret(self) -> bytes:
+        if callable(self._passphrase):
+            self._passphrase = self._passphrase()
+        return self._passphrase
 
     def has(self, keyid: str) -> bool:
         return any((f / f"{keyid}.key").is_file() for f in self.folders)
@@ -111,7 +117,7 @@ class KeyRing:
                 continue
             pem = read_input(path, limit=KEY_LIMIT, what="private key")
             try:
-                private = load_pem_private_key(pem, self._passphrase)
+                private = load_pem_private_key(pem, self._secret())
             except (ValueError, TypeError) as exc:
                 wrong = "password" in str(exc).lower() or "decrypt" in str(exc).lower()
                 why = "wrong passphrase" if wrong else "not an encrypted PEM private key"
