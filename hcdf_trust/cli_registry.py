@@ -369,7 +369,11 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 
     report = do_verify(_client(site, trusted_root, cache_dir, timeout))
     errors = [
-        AttackError(f"cross-domain signing: {s.role} lists {s.path}, outside its delegation (ignored by clients)")
+        AttackError(
+            f"cross-domain signing: {s.role} lists {s.path}, outside its delegation (ignored by clients)"
+            if s.domain
+            else f"{s.role} lists {s.path}: only a domain's own role may list its files (it would shadow them)"
+        )
         for s in report.stray
     ]
     payload = {"root_version": report.root_version, "roles": report.roles, "targets": report.targets}

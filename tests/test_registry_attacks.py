@@ -234,3 +234,14 @@ def test_publish_onto_a_site_with_malformed_metadata_is_an_input_error(reg):
     (reg.site / "metadata" / "timestamp.json").write_text('{"signed": 1e999}')
     res = reg.publish(ok=False)
     assert res.exit_code == 3 and "not TUF metadata" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_shard_listing_a_domain_file_is_reported(reg, srv):
+    """A shard (targets key) listing extensions/org.ros2/... would shadow the owner's role."""
+
+    def shadow(signed):
+        signed.targets["extensions/org.ros2/1.0.xsd"] = reg.put_target("extensions/org.ros2/1.0.xsd", b"<x/>")
+
+    reg.forge("extensions-000", shadow, signer=reg.top_signer("targets"))
+    res = reg.verify(srv.base)
+    _refused(res, "extensions-000 lists extensions/org.ros2/1.0.xsd: only a domain's own role may list its files")

@@ -113,6 +113,7 @@ class Finding:
 
     role: str
     path: str
+    domain: bool = True  # False: the role is top-level targets or a shard, which should list no domain file
 
 
 @dataclass
@@ -345,6 +346,12 @@ def verify(client: RegistryClient) -> Report:
     for kind in ("profile", "schema"):
         for versions in client.artifacts(kind).values():
             infos += versions.values()
+    # Targets listed above the domain roles would shadow them (a client takes the first match).
+    top = client._trusted("targets").targets
+    report.stray += [Finding("targets", p, domain=False) for p in top if p.startswith("extensions/")]
+    delegations = client._trusted("targets").delegations
+    for shard in sorted(delegations.roles or {}) if delegations else []:
+        report.stray += [Finding(shard, p, domain=False) for p in client._trusted(shard).targets]
     for info in infos:
         client.download(info)
         report.targets += 1
