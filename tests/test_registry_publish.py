@@ -334,3 +334,21 @@ def test_trusted_root_that_is_not_a_root_is_an_input_error(reg, tmp_path):
     os.mkfifo(fifo)
     res = reg.cli("registry", "verify", reg.site, "--trusted-root", fifo)
     assert res.exit_code == 3 and "FIFO" in res.stderr
+
+
+def test_hostile_key_files_are_input_errors(reg, tmp_path):
+    root = reg.source().root
+    key = reg.keys / f"{root.roles['timestamp'].keyids[0]}.key"  # needed by every publish
+    key.unlink()
+    os.mkfifo(key)
+    reg.add_domain("org.ros2", "1.1", IEEE_XSD)
+    res = reg.publish(ok=False)
+    assert res.exit_code == 3 and "FIFO" in res.stderr
+    key.unlink()
+    key.write_bytes(b"-----BEGIN ENCRYPTED PRIVATE KEY-----\nnot a key\n-----END ENCRYPTED PRIVATE KEY-----\n")
+    res = reg.publish(ok=False)
+    assert res.exit_code == 3 and "not an encrypted PEM private key" in res.stderr
+    other = sorted(reg.owner_keys("org.ros2").iterdir())[0]
+    key.write_bytes(other.read_bytes())  # a real key, but not the one its name promises
+    res = reg.publish(ok=False)
+    assert res.exit_code == 3 and "does not match the public key" in res.stderr
