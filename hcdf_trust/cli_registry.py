@@ -56,6 +56,20 @@ def _commit(plan: OutputPlan, keydir: Path) -> None:
         raise
 
 
+sigstore_root_option = click.option(
+    "--sigstore-trusted-root",
+    "sigstore_root",
+    type=click.Path(dir_okay=False),
+    help="Sigstore trusted_root.json that bundles are verified against, offline (needs hcdf-trust[sigstore]).",
+)
+
+
+def _identity(identity: str | None, issuer: str | None) -> tuple[str, str] | None:
+    if (identity is None) != (issuer is None):
+        raise click.UsageError("--sigstore-identity and --sigstore-issuer go together")
+    return (identity, issuer) if identity is not None and issuer is not None else None
+
+
 @click.group()
 def registry() -> None:
     """A signed registry (TUF) of extension domains, stream profiles and core schemas."""
@@ -139,6 +153,14 @@ def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
     type=click.Path(exists=True, file_okay=False),
     help="Folder holding the owner's private keys (repeatable).",
 )
+@click.option("--sigstore-identity", help="Owner's sigstore identity (a new domain), e.g. an e-mail or workflow URI.")
+@click.option("--sigstore-issuer", help="OIDC issuer of --sigstore-identity (a new domain).")
+@click.option(
+    "--sigstore-bundle",
+    type=click.Path(exists=True, dir_okay=False),
+    help="Approve the version with this sigstore bundle over `registry statement` instead of an owner key.",
+)
+@sigstore_root_option
 @passphrase_option
 @handle_errors
 def add(
@@ -154,6 +176,10 @@ def add(
     description: str,
     content_dir: str,
     keydirs: tuple[str, ...],
+    sigstore_identity: str | None,
+    sigstore_issuer: str | None,
+    sigstore_bundle: str | None,
+    sigstore_root: str | None,
     passphrase_file: str | None,
 ) -> None:
     """Record a domain version (signed by its owner), a stream profile or a core schema."""
@@ -195,6 +221,9 @@ def add(
                 owner_keys=[edit.read_public_key(k) for k in owner_keys],
                 threshold=threshold,
                 description=description,
+                sigstore=_identity(sigstore_identity, sigstore_issuer),
+                bundle=sigstore_bundle,
+                sigstore_root=sigstore_root,
             )
             what = f"{domain} {version}" if version else f"domain {domain}"
     if done is None:
@@ -202,6 +231,31 @@ def add(
         return
     plan.commit()
     click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+
+
+@registry.command()
+@click.option("--domain", required=True, help="Extension domain (reverse-DNS).")
+@click.option("--version", "version", required=True, help="Version of the domain's schema.")
+@click.option("--schema", required=True, type=click.Path(exists=True, dir_okay=False), help="The schema file.")
+@click.option(
+    "--content",
+    "content_dir",
+    type=click.Path(exists=True, file_okay=False),
+    default=".",
+    show_default=True,
+    help="Content folder the schema lies in.",
+)
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@handle_errors
+def statement(domain: str, version: str, schema: str, content_dir: str, out: str) -> None:
+    """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
+    from .registry import edit
+
+    plan = OutputPlan()
+    plan.protect(schema, what="the schema")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
+    plan.commit()
+    click.echo(f"statement for {domain} {version} written to {out}", err=True)
 
 
 @registry.command()
@@ -275,6 +329,7 @@ def rotate(
     callback=_duration,
     help="Timestamp lifetime (30m, 12h, 7d, 2w): clients stop trusting a site not re-published within it.",
 )
+@sigstore_root_option
 @passphrase_option
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
 @handle_errors
@@ -284,6 +339,7 @@ def publish(
     content_dir: str,
     site: str,
     lifetime: dt.timedelta,
+    sigstore_root: str | None,
     passphrase_file: str | None,
     as_json: bool,
 ) -> None:
@@ -298,7 +354,13 @@ def publish(
     for k in keydirs:
         plan.protect_tree(k, what="a keys folder")
     result = do_publish(
-        source, _ring(keydirs, passphrase_file), Path(content_dir), Path(site), plan=plan, timestamp_lifetime=lifetime
+        source,
+        _ring(keydirs, passphrase_file),
+        Path(content_dir),
+        Path(site),
+        plan=plan,
+        timestamp_lifetime=lifetime,
+        sigstore_root=sigstore_root,
     )
     plan.commit()
     if as_json:

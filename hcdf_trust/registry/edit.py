@@ -104,6 +104,14 @@ def _release(content_dir: Path, file: str | os.PathLike[str], version: str, path
     return Release(version, path, rel, hashlib.sha256(data).hexdigest(), len(data))
 
 
+def statement(domain: str, version: str, schema: str | os.PathLike[str], *, content_dir: Path) -> bytes:
+    """The bytes an owner signs to approve ``version`` of ``domain`` (e.g. with ``sigstore sign``)."""
+    if not is_reverse_dns(domain) or not is_version(version):
+        raise SourceError(f"{domain!r} {version!r}: not a reverse-DNS domain and a version")
+    release = _release(content_dir, schema, version, domain_path(domain, version))
+    return Domain(domain, "", "", 1, {}, {}).statement(release)
+
+
 def _merge(versions: dict[str, Release], new: Release, *, what: str, file: str) -> dict[str, Release] | None:
     """``versions`` plus ``new``; None when it is already there with the same content.
 
@@ -136,12 +144,18 @@ def add_domain(
     owner_keys: list[PublicKey] | None = None,
     threshold: int = 1,
     description: str = "",
+    sigstore: tuple[str, str] | None = None,
+    bundle: str | None = None,
+    sigstore_root: str | None = None,
 ) -> Domain | None:
     """Record ``version`` of ``domain`` (its schema file, SHA-256, length), signed by its owner.
 
     A new domain needs ``owner`` and ``owner_keys``; an existing one refuses them (key
     changes go through :func:`rotate_owner`). Without ``version`` and ``schema`` a new
-    domain is registered with no version yet. Returns None when already recorded.
+    domain is registered with no version yet. With ``bundle`` (a sigstore bundle over the
+    version's statement, see :mod:`.sigstore_bundle`) the owner's sigstore identity approves
+    the version instead of its keys; it is verified offline against ``sigstore_root``.
+    Returns None when already recorded.
 
     Raises:
         SourceError: not reverse-DNS, not a version, missing or unexpected owner data.
@@ -161,8 +175,8 @@ def add_domain(
         keys = {k.keyid: k for k in owner_keys}
         if not 1 <= threshold <= len(keys):
             raise SourceError(f"--threshold {threshold} must be between 1 and {len(keys)}")
-        current = Domain(domain, description, owner, threshold, keys, {}, str(entry_file))
-    elif owner_keys:
+        current = Domain(domain, description, owner, threshold, keys, {}, str(entry_file), sigstore)
+    elif owner_keys or sigstore:
         raise RefusedError(
             f"{domain} exists: its owner keys change only through `registry rotate --domain {domain}`",
             file=str(entry_file),
@@ -176,8 +190,30 @@ def add_domain(
     versions = _merge(current.versions, release, what=domain, file=str(entry_file))
     if versions is None:
         return None
-    sigs = ring.sign_threshold(current.keys, current.threshold, current.statement(release), what=f"{domain} {version}")
-    release = replace(release, signatures={s.keyid: s.signature for s in sigs})
+    if bundle is not None:
+        from .sigstore_bundle import bundle_path, read_bundle, verify_bundle
+
+        if current.sigstore is None:
+            raise SourceError(f"{domain} has no sigstore identity: a new domain takes --sigstore-identity/-issuer")
+        if sigstore_root is None:
+            raise SourceError("--sigstore-bundle needs --sigstore-trusted-root")
+        data = read_bundle(Path(bundle))
+        verify_bundle(
+            data,
+            current.statement(release),
+            identity=current.sigstore[0],
+            issuer=current.sigstore[1],
+            trusted_root=sigstore_root,
+            what=f"{domain} {version}",
+            source=bundle,
+        )
+        plan.add(bundle_path(source.dir, domain, version), data, flag="DIR")
+        release = replace(release, sigstore=True)
+    else:
+        sigs = ring.sign_threshold(
+            current.keys, current.threshold, current.statement(release), what=f"{domain} {version}"
+        )
+        release = replace(release, signatures={s.keyid: s.signature for s in sigs})
     updated = replace(current, versions={**versions, version: release})
     plan.add(entry_file, dump(updated), flag="DIR")
     return updated

@@ -105,9 +105,12 @@ class Release:
     sha256: str
     length: int
     signatures: dict[str, str] = field(default_factory=dict)  # keyid -> hex (domains only)
+    sigstore: bool = False  # approved by a sigstore bundle in bundles/<domain>/<version>.sigstore.json
 
     def to_toml(self) -> dict[str, Any]:
         out: dict[str, Any] = {"path": self.path, "file": self.file, "sha256": self.sha256, "length": self.length}
+        if self.sigstore:
+            out["sigstore"] = True
         if self.signatures:
             out["signatures"] = dict(sorted(self.signatures.items()))
         return out
@@ -124,6 +127,7 @@ class Domain:
     keys: dict[str, PublicKey]
     versions: dict[str, Release]
     source: str = ""
+    sigstore: tuple[str, str] | None = None  # (identity, OIDC issuer) whose bundles approve versions
 
     def statement(self, release: Release) -> bytes:
         """The canonical bytes an owner signs for ``release`` (see :mod:`.keys`)."""
@@ -146,6 +150,7 @@ class Domain:
                 "name": self.owner,
                 "threshold": self.threshold,
                 "keys": {k: v.to_toml() for k, v in sorted(self.keys.items())},
+                **({"sigstore": {"identity": self.sigstore[0], "issuer": self.sigstore[1]}} if self.sigstore else {}),
             },
             "versions": {v: r.to_toml() for v, r in sorted(self.versions.items(), key=lambda i: _vkey(i[0]))},
         }
@@ -315,6 +320,7 @@ def _release(r: _Reader, version: str, *, signed: bool) -> Release:
     sha = r.get("sha256", str)
     length = r.get("length", int)
     sigs: dict[str, str] = {}
+    by_sigstore: bool = r.get("sigstore", bool, default=False) if signed else False
     if signed:
         sr = r.table("signatures", default={})
         for keyid in list(sr.data):
@@ -331,7 +337,7 @@ def _release(r: _Reader, version: str, *, signed: bool) -> Release:
         raise r.fail("sha256", "must be 64 lower-case hex digits", actual=sha)
     if length < 0:
         raise r.fail("length", "must be >= 0", actual=length)
-    return Release(version, path, file, sha, length, sigs)
+    return Release(version, path, file, sha, length, sigs, by_sigstore)
 
 
 def load_root(path: Path, shown: str) -> RootOfTrust:
@@ -368,10 +374,15 @@ def load_domain(path: Path, shown: str) -> Domain:
     if not keys:
         raise owner.fail("keys", "an owner needs at least one public key")
     threshold = _threshold(owner, "threshold", len(keys))
+    sigstore = None
+    if "sigstore" in owner.data:
+        sr = owner.table("sigstore")
+        sigstore = (sr.get("identity", str), sr.get("issuer", str))
+        sr.done()
     owner.done()
     versions = {v: _release(vr, v, signed=True) for v, vr in r.table("versions", default={}).items()}
     r.done()
-    return Domain(domain, description, name, threshold, keys, versions, shown)
+    return Domain(domain, description, name, threshold, keys, versions, shown, sigstore)
 
 
 def load_artifact(kind: str, path: Path, shown: str) -> Artifact:
