@@ -1,369 +1,495 @@
-"""The signed release manifest: a SUIT envelope over every image of one release.
+"""``registry publish``: the source, its content and its keys become a static TUF repository.
 
-Format: the CBOR serialisation of **draft-ietf-suit-manifest-34** (:data:`SUIT_DRAFT`;
-the RFC 9124 information model; label numbers moved between drafts, these are -34's):
+Site layout (consistent snapshots, ready for any static web server)::
 
-```
-107({                                          / SUIT_Envelope_Tagged /
-  2: << [ << [-16, h'sha256'] >>,              / authentication-wrapper: SUIT_Digest of the /
-          << 18([<<{1: alg, 4: kid}>>, {}, nil, sig]) >> ] >>,   / bstr-wrapped manifest; COSE_Sign1, detached /
-  3: << {                                      / manifest /
-    1: 1, 2: sequence-number,
-    3: << { 2: [ [h'board', h'app'], ... ],    / common: components /
-            4: << [ 12, i, 20, {1: vendor-id, 2: class-id, 3: << [-16, file-sha256] >>, 14: size,
-                                 -257: << [-16, mcuboot-image-hash] >>, -258: security-counter,
-                                 -259: "version", -260: "mcuboot"|"raw", -261: ["comp", ...]},
-                    1, 15, 2, 15, ... ] >> } >>,
-    7: << [12, i, 3, 15, ...] >>,              / validate: image-match /
-    20: << [12, i, 20, {21: "uri"}, 21, 2, 3, 15, ...] >>,   / install: fetch, image-match /
-    -257: << [-16, lock-sha256] >>,            / hcdf-trust: the resolved lock file /
-    -258: "root document", -259: << [-16, root-document-sha256] >>
-  } >>
-})
-```
-The COSE_Sign1 payload is detached: it is the encoded SUIT_Digest, so the signature
-covers ``["Signature1", protected, h'', SUIT_Digest]``; the digest is over the manifest
-*bstr-wrapped* (its CBOR encoding as a byte string, header included).
+    metadata/N.root.json, root.json     root, every version kept (clients walk the chain)
+    metadata/timestamp.json             the only unversioned role, re-signed by every publish
+    metadata/N.snapshot.json            lists every targets role's version
+    metadata/N.targets.json             stream profiles and core schemas; one delegated role
+                                        per domain, restricted to ``extensions/<domain>/*``
+    metadata/N.<domain>.json            a domain's schemas, signed by its owner's keys
+    targets/<dir>/<sha256>.<name>       the content files, named by their digest
 
-Two digests per image, on purpose: **image-digest (3)** is the SHA-256 of the file a
-device downloads (what a SUIT processor's image-match and an MCUmgr upload's ``sha``
-check); **mcuboot-image-hash (-257)** is MCUboot's hash over header + payload +
-protected TLVs, what MCUmgr's image list reports from a device afterwards. Labels below
--256 are hcdf-trust's own (negative labels are the draft's custom space).
+Publishing is incremental: the previous site in ``--out`` is read back, a role whose
+content and keys are unchanged keeps its signed file (so a publisher needs an owner's
+key only when that owner's domain changes), a changed role gets the next version, and a
+published version whose content differs is refused. Before anything is signed, every
+domain version must carry its owner's signatures (:func:`check_source`) and every path
+must lie inside its role's delegation (TUF clients silently ignore one that does not).
 """
 
 from __future__ import annotations
 
+import datetime as dt
 import hashlib
-import uuid
-from dataclasses import dataclass
-from typing import Any
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from .errors import MalformedReleaseError
+from ..errors import DigestMismatchError, InputError
+from ..localfile import open_checked, read_bounded, read_input
+from ..outputs import OutputPlan
+from . import keys as keymod
+from .errors import RefusedError
+from .source import TOP_ROLES, Artifact, Domain, PublicKey, Release, Source, domain_pattern
 
-SUIT_DRAFT = "draft-ietf-suit-manifest-34"
-ENVELOPE_TAG = 107
-COSE_SIGN1_TAG = 18
-SHA256 = -16
+if TYPE_CHECKING:
+    from tuf.api.metadata import Metadata, Root, Snapshot, Targets
 
-# envelope / manifest / common keys (draft -34)
-AUTHENTICATION, MANIFEST = 2, 3
-VERSION, SEQUENCE_NUMBER, COMMON, VALIDATE, INSTALL = 1, 2, 3, 7, 20
-COMPONENTS, SHARED_SEQUENCE = 2, 4
-# commands
-COND_VENDOR, COND_CLASS, COND_IMAGE_MATCH = 1, 2, 3
-SET_COMPONENT_INDEX, OVERRIDE_PARAMETERS, FETCH = 12, 20, 21
-# parameters
-P_VENDOR, P_CLASS, P_DIGEST, P_SIZE, P_URI = 1, 2, 3, 14, 21
-# hcdf-trust extensions (custom labels)
-P_MCUBOOT_HASH, P_SECURITY_COUNTER, P_VERSION, P_TYPE, P_COMPS = -257, -258, -259, -260, -261
-M_LOCK_DIGEST, M_ROOT, M_ROOT_DIGEST = -257, -258, -259
-
-VENDOR_ID = uuid.uuid5(uuid.NAMESPACE_DNS, "hcdf-trust.invalid")
-MAX_MANIFEST_BYTES = 4 << 20
+SHARD_SIZE = 64  # domains per shard role
+LONG_LIFETIME = dt.timedelta(days=365)  # root, targets and domain roles (re-signed when the timestamp outlives them)
+DEFAULT_TIMESTAMP_LIFETIME = dt.timedelta(days=7)
+METADATA_LIMIT = 8 << 20
 
 
-def class_id(board: str) -> uuid.UUID:
-    """One class per board: a device of another board refuses the component (mix-and-match)."""
-    return uuid.uuid5(VENDOR_ID, board)
+@dataclass
+class Published:
+    """What a publish run did: role versions, which roles were re-signed, files written."""
+
+    site: Path
+    versions: dict[str, int] = field(default_factory=dict)
+    signed: list[str] = field(default_factory=list)
+    written: list[Path] = field(default_factory=list)
 
 
-@dataclass(frozen=True)
-class Component:
-    board: str
-    app: str
-    type: str  # "mcuboot" | "raw"
-    version: str
-    uri: str
-    size: int
-    sha256: str  # the file a device downloads
-    mcuboot_hash: str | None  # MCUboot image hash (what MCUmgr reports); None for raw
-    security_counter: int | None
-    comps: tuple[str, ...]
-
-    @property
-    def name(self) -> str:
-        return f"{self.board}/{self.app}"
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "component_id": [self.board, self.app],
-            "comps": list(self.comps),
-            "type": self.type,
-            "version": self.version,
-            "uri": self.uri,
-            "size": self.size,
-            "file_sha256": self.sha256,
-            "mcuboot_hash": self.mcuboot_hash,
-            "security_counter": self.security_counter,
-            "class_id": str(class_id(self.board)),
-        }
+# -- checks on the source (pure) ------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Release:
-    sequence_number: int
-    lock_sha256: str
-    root: str
-    root_sha256: str
-    components: tuple[Component, ...]
-
-    def component(self, board: str, app: str) -> Component | None:
-        return next((c for c in self.components if (c.board, c.app) == (board, app)), None)
-
-
-# -- encoding ------------------------------------------------------------------------
-
-
-def manifest_bytes(release: Release) -> bytes:
-    """The manifest's deterministic CBOR encoding (canonical map order)."""
-    import cbor2
-
-    def enc(value: Any) -> bytes:
-        return cbor2.dumps(value, canonical=True)
-
-    shared: list[Any] = []
-    validate: list[Any] = []
-    install: list[Any] = []
-    for i, c in enumerate(release.components):
-        params: dict[int, Any] = {
-            P_VENDOR: VENDOR_ID.bytes,
-            P_CLASS: class_id(c.board).bytes,
-            P_DIGEST: enc([SHA256, bytes.fromhex(c.sha256)]),
-            P_SIZE: c.size,
-            P_VERSION: c.version,
-            P_TYPE: c.type,
-            P_COMPS: list(c.comps),
-        }
-        if c.mcuboot_hash is not None:
-            params[P_MCUBOOT_HASH] = enc([SHA256, bytes.fromhex(c.mcuboot_hash)])
-        if c.security_counter is not None:
-            params[P_SECURITY_COUNTER] = c.security_counter
-        shared += [SET_COMPONENT_INDEX, i, OVERRIDE_PARAMETERS, params, COND_VENDOR, 15, COND_CLASS, 15]
-        validate += [SET_COMPONENT_INDEX, i, COND_IMAGE_MATCH, 15]
-        install += [SET_COMPONENT_INDEX, i, OVERRIDE_PARAMETERS, {P_URI: c.uri}, FETCH, 2, COND_IMAGE_MATCH, 15]
-    common = {
-        COMPONENTS: [[c.board.encode(), c.app.encode()] for c in release.components],
-        SHARED_SEQUENCE: enc(shared),
-    }
-    manifest = {
-        VERSION: 1,
-        SEQUENCE_NUMBER: release.sequence_number,
-        COMMON: enc(common),
-        VALIDATE: enc(validate),
-        INSTALL: enc(install),
-        M_LOCK_DIGEST: enc([SHA256, bytes.fromhex(release.lock_sha256)]),
-        M_ROOT: release.root,
-        M_ROOT_DIGEST: enc([SHA256, bytes.fromhex(release.root_sha256)]),
-    }
-    return enc(manifest)
-
-
-def manifest_digest(manifest: bytes) -> bytes:
-    """The encoded SUIT_Digest over the bstr-wrapped manifest (the COSE detached payload)."""
-    import cbor2
-
-    return cbor2.dumps([SHA256, hashlib.sha256(cbor2.dumps(manifest)).digest()])
-
-
-def sig_structure(protected: bytes, payload: bytes) -> bytes:
-    """COSE Sig_structure for COSE_Sign1 (RFC 9052 §4.4), no external AAD."""
-    import cbor2
-
-    return cbor2.dumps(["Signature1", protected, b"", payload])
-
-
-def envelope(manifest: bytes, cose_sign1: bytes) -> bytes:
-    """The tagged envelope around a manifest and its detached COSE_Sign1."""
-    import cbor2
-
-    auth = cbor2.dumps([manifest_digest(manifest), cose_sign1])
-    return cbor2.dumps(cbor2.CBORTag(ENVELOPE_TAG, {AUTHENTICATION: auth, MANIFEST: manifest}), canonical=True)
-
-
-def to_json(release: Release, *, alg: str, kid: str) -> dict[str, Any]:
-    """The human rendering written beside the envelope (not signed: the envelope is)."""
-    return {
-        "format": f"SUIT envelope (CBOR), {SUIT_DRAFT}, COSE_Sign1 {alg} (detached)",
-        "file": "release.suit",
-        "sequence_number": release.sequence_number,
-        "hcdf": {"root": release.root, "root_sha256": release.root_sha256, "lock_sha256": release.lock_sha256},
-        "signature": {"alg": alg, "kid": kid},
-        "digests": {
-            "file_sha256": "SHA-256 of the file a device downloads (SUIT image-digest; MCUmgr upload 'sha')",
-            "mcuboot_hash": "MCUboot image hash over header + payload + protected TLVs "
-            "(what MCUmgr 'image list' reports from a device)",
-        },
-        "components": [c.to_json() for c in release.components],
-    }
-
-
-# -- decoding ------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Envelope:
-    """An envelope taken apart, nothing verified yet."""
-
-    manifest: bytes  # the manifest's CBOR (inside its bstr)
-    digest: bytes  # the authentication wrapper's encoded SUIT_Digest
-    cose_sign1: bytes
-    protected: bytes
-    protected_map: dict[Any, Any]
-    signature: bytes
-
-
-def parse_envelope(data: bytes, *, source: str) -> Envelope:
-    """Take an envelope apart (no verification).
+def check_source(source: Source, *, sigstore_root: str | None = None) -> None:
+    """Every domain version is approved by its owner (a threshold of its keys, or a sigstore
+    bundle by its sigstore identity, checked offline against ``sigstore_root``) and lies
+    inside the domain's delegation; profiles and schemas stay out of every domain's paths.
 
     Raises:
-        MalformedReleaseError: truncated or malformed CBOR, or not the pinned draft's shape.
+        RefusedError: the first rule broken, naming the entry.
     """
-    import cbor2
+    for domain in source.domains.values():
+        for release in domain.versions.values():
+            check_path(domain.domain, release.path, source=domain.source)
+            if release.sigstore:
+                _check_bundle(source, domain, release, sigstore_root)
+                continue
+            good = [
+                k
+                for k, sig in release.signatures.items()
+                if k in domain.keys and keymod.verify(domain.keys[k], sig, domain.statement(release))
+            ]
+            if len(good) < domain.threshold:
+                raise RefusedError(
+                    f"{domain.domain} {release.version} is not signed by the domain's owner "
+                    f"({len(good)} of {domain.threshold} required owner signature(s) verify)",
+                    file=domain.source,
+                    expected=f"{domain.threshold} signature(s) by {domain.owner}",
+                    actual=f"{len(good)}",
+                )
+    for art in [*source.profiles.values(), *source.schemas.values()]:
+        top = "profiles/" if art.kind == "profile" else "schemas/"
+        for release in art.versions.values():
+            if not release.path.startswith(top):
+                raise RefusedError(
+                    f"{art.kind} {art.name} {release.version}: path {release.path} is not under {top}",
+                    file=art.source,
+                    expected=f"{top}...",
+                    actual=release.path,
+                )
 
-    top = _loads(data, source, "envelope")
-    if not isinstance(top, cbor2.CBORTag) or top.tag != ENVELOPE_TAG or not isinstance(top.value, dict):
-        raise MalformedReleaseError(f"not a SUIT envelope (tag {ENVELOPE_TAG} map)", file=source)
-    auth, manifest = top.value.get(AUTHENTICATION), top.value.get(MANIFEST)
-    if not isinstance(auth, bytes) or not isinstance(manifest, bytes):
-        raise MalformedReleaseError("envelope lacks a bstr authentication wrapper (2) or manifest (3)", file=source)
-    wrapper = _loads(auth, source, "authentication wrapper")
-    if not isinstance(wrapper, list) or len(wrapper) < 2 or not all(isinstance(w, bytes) for w in wrapper):
-        raise MalformedReleaseError("authentication wrapper is not [bstr digest, bstr signature...]", file=source)
-    if len(wrapper) != 2:
-        raise MalformedReleaseError("authentication wrapper must hold exactly one signature", file=source)
-    sign1 = _loads(wrapper[1], source, "COSE_Sign1")
-    if (
-        not isinstance(sign1, cbor2.CBORTag)
-        or sign1.tag != COSE_SIGN1_TAG
-        or not isinstance(sign1.value, list)
-        or len(sign1.value) != 4
-    ):
-        raise MalformedReleaseError("signature is not a tagged COSE_Sign1", file=source)
-    protected, _unprotected, payload, signature = sign1.value
-    if not isinstance(protected, bytes) or not isinstance(signature, bytes) or payload is not None:
-        raise MalformedReleaseError(
-            "COSE_Sign1 must have a bstr protected header, nil payload, bstr signature", file=source
+
+def _check_bundle(source: Source, domain: Domain, release: Release, sigstore_root: str | None) -> None:
+    from .sigstore_bundle import bundle_path, read_bundle, verify_bundle
+
+    what = f"{domain.domain} {release.version}"
+    if domain.sigstore is None:
+        raise RefusedError(
+            f"{what} says it is approved by a sigstore bundle, but the owner has no [owner.sigstore] identity",
+            file=domain.source,
         )
-    protected_map = _loads(protected, source, "COSE protected header") if protected else {}
-    if not isinstance(protected_map, dict):
-        raise MalformedReleaseError("COSE protected header is not a map", file=source)
-    return Envelope(manifest, wrapper[0], wrapper[1], protected, protected_map, signature)
-
-
-def parse_manifest(manifest: bytes, *, source: str) -> Release:
-    """The release a (verified) manifest describes.
-
-    Raises:
-        MalformedReleaseError: not the shape :func:`manifest_bytes` writes.
-    """
-    m = _loads(manifest, source, "manifest")
-    if not isinstance(m, dict) or m.get(VERSION) != 1:
-        raise MalformedReleaseError("manifest is not a version-1 SUIT manifest map", file=source)
-    seq = m.get(SEQUENCE_NUMBER)
-    if type(seq) is not int or seq < 0:
-        raise MalformedReleaseError("manifest sequence-number is not an unsigned integer", file=source)
-    common = _loads(_bstr(m, COMMON, source, "common"), source, "common")
-    if not isinstance(common, dict):
-        raise MalformedReleaseError("manifest common is not a map", file=source)
-    ids = common.get(COMPONENTS)
-    if not isinstance(ids, list) or not ids:
-        raise MalformedReleaseError("manifest has no components", file=source)
-    shared = _loads(_bstr(common, SHARED_SEQUENCE, source, "shared-sequence"), source, "shared-sequence")
-    install = _loads(_bstr(m, INSTALL, source, "install"), source, "install")
-    params = _by_index(shared, len(ids), source, "shared-sequence")
-    uris = _by_index(install, len(ids), source, "install")
-    components = []
-    for i, cid in enumerate(ids):
-        if not isinstance(cid, list) or len(cid) != 2 or not all(isinstance(p, bytes) for p in cid):
-            raise MalformedReleaseError(f"component {i} id is not [bstr board, bstr app]", file=source)
-        board, app = (p.decode("utf-8", "replace") for p in cid)
-        p = params[i]
-        where = f"component {board}/{app}"
-        mcuboot = p.get(P_MCUBOOT_HASH)
-        counter = p.get(P_SECURITY_COUNTER)
-        comps = p.get(P_COMPS, [])
-        if counter is not None and type(counter) is not int:
-            raise MalformedReleaseError(f"{where}: security-counter is not an integer", file=source)
-        if not isinstance(comps, list) or not all(isinstance(x, str) for x in comps):
-            raise MalformedReleaseError(f"{where}: comps is not a list of text", file=source)
-        if p.get(P_VENDOR) != VENDOR_ID.bytes or p.get(P_CLASS) != class_id(board).bytes:
-            raise MalformedReleaseError(f"{where}: vendor-id/class-id do not match the component's board", file=source)
-        components.append(
-            Component(
-                board=board,
-                app=app,
-                type=_typed(p, P_TYPE, str, source, where, "type"),
-                version=_typed(p, P_VERSION, str, source, where, "version"),
-                uri=_typed(uris[i], P_URI, str, source, where, "uri"),
-                size=_typed(p, P_SIZE, int, source, where, "image-size"),
-                sha256=_digest(p.get(P_DIGEST), source, where, "image-digest"),
-                mcuboot_hash=None if mcuboot is None else _digest(mcuboot, source, where, "mcuboot-image-hash"),
-                security_counter=counter,
-                comps=tuple(comps),
-            )
+    if sigstore_root is None:
+        raise RefusedError(
+            f"{what} is approved by a sigstore bundle: give --sigstore-trusted-root to verify it", file=domain.source
         )
-    root = m.get(M_ROOT)
-    if not isinstance(root, str):
-        raise MalformedReleaseError("manifest has no hcdf root (-258)", file=source)
-    return Release(
-        sequence_number=seq,
-        lock_sha256=_digest(m.get(M_LOCK_DIGEST), source, "manifest", "hcdf lock digest"),
-        root=root,
-        root_sha256=_digest(m.get(M_ROOT_DIGEST), source, "manifest", "hcdf root digest"),
-        components=tuple(components),
+    verify_bundle(
+        read_bundle(bundle_path(source.dir, domain.domain, release.version)),
+        domain.statement(release),
+        identity=domain.sigstore[0],
+        issuer=domain.sigstore[1],
+        trusted_root=sigstore_root,
+        what=what,
+        source=domain.source,
     )
 
 
-def _loads(data: bytes, source: str, what: str) -> Any:
-    import cbor2
+def check_path(domain: str, path: str, *, source: str | None = None) -> None:
+    """Refuse a path outside ``domain``'s delegation (a cross-domain hijack attempt).
 
+    Raises:
+        RefusedError: ``path`` does not match ``extensions/<domain>/*``.
+    """
+    from tuf.api.metadata import DelegatedRole
+
+    role = DelegatedRole(domain, [], 1, True, paths=[domain_pattern(domain)])
+    if not role.is_delegated_path(path):
+        raise RefusedError(
+            f"cross-domain signing refused: {domain} lists {path}, outside its delegation {domain_pattern(domain)}",
+            file=source,
+            expected=domain_pattern(domain),
+            actual=path,
+        )
+
+
+def shard_count(n_domains: int) -> int:
+    """How many shard roles hold ``n_domains`` delegations (about :data:`SHARD_SIZE` each)."""
+    return max(1, -(-n_domains // SHARD_SIZE))
+
+
+def shard_of(domain: str, n_shards: int) -> str:
+    """The shard role delegating ``domain``: stable while the shard count stays the same.
+
+    Shard names have no dot, so they never collide with a (reverse-DNS) domain role.
+    """
+    return f"extensions-{int(hashlib.sha256(domain.encode()).hexdigest()[:8], 16) % n_shards:03d}"
+
+
+# -- the previous site ------------------------------------------------------------------------
+
+
+@dataclass
+class _Previous:
+    root: Metadata[Root] | None = None
+    timestamp_version: int = 0
+    snapshot: Metadata[Snapshot] | None = None
+    snapshot_bytes: bytes = b""
+    roles: dict[str, Metadata[Targets]] = field(default_factory=dict)  # "targets" and every domain
+
+
+def _load_md(path: Path) -> Any:
+    from tuf.api.metadata import Metadata
+
+    data = read_input(path, limit=METADATA_LIMIT, what="site metadata")
     try:
-        return cbor2.loads(data)
-    except (cbor2.CBORDecodeError, ValueError, RecursionError, OverflowError, MemoryError) as exc:
-        raise MalformedReleaseError(f"{what}: truncated or malformed CBOR ({exc})", file=source) from None
+        return Metadata.from_bytes(data)
+    except Exception as exc:  # tuf raises DeserializationError, ValueError, KeyError, TypeError
+        raise InputError(f"{path}: not TUF metadata: {exc}", file=str(path)) from None
 
 
-def _bstr(m: dict[Any, Any], key: int, source: str, what: str) -> bytes:
-    value = m.get(key)
-    if not isinstance(value, bytes):
-        raise MalformedReleaseError(f"manifest {what} ({key}) is not a bstr", file=source)
-    return value
+def load_previous(site: Path) -> _Previous:
+    """The metadata of the last publication in ``site`` (nothing when it is a new site)."""
+    meta = site / "metadata"
+    prev = _Previous()
+    roots = sorted(int(p.name.split(".", 1)[0]) for p in meta.glob("*.root.json") if p.name.split(".")[0].isdigit())
+    if roots:
+        prev.root = _load_md(meta / f"{roots[-1]}.root.json")
+    if not (meta / "timestamp.json").exists():
+        return prev
+    ts = _load_md(meta / "timestamp.json")
+    prev.timestamp_version = ts.signed.version
+    snap_path = meta / f"{ts.signed.snapshot_meta.version}.snapshot.json"
+    prev.snapshot_bytes = read_input(snap_path, limit=METADATA_LIMIT, what="site metadata")
+    prev.snapshot = _load_md(snap_path)
+    for name, mf in prev.snapshot.signed.meta.items():
+        role = name.removesuffix(".json")
+        prev.roles[role] = _load_md(meta / f"{mf.version}.{name}")
+    return prev
 
 
-def _by_index(seq: Any, n: int, source: str, what: str) -> list[dict[Any, Any]]:
-    """Override-parameters of each component index in a flat command sequence."""
-    if not isinstance(seq, list) or len(seq) % 2:
-        raise MalformedReleaseError(f"{what} is not a command sequence", file=source)
-    out: list[dict[Any, Any]] = [{} for _ in range(n)]
-    index = None
-    for op, arg in zip(seq[::2], seq[1::2], strict=True):
-        if op == SET_COMPONENT_INDEX:
-            if type(arg) is not int or not 0 <= arg < n:
-                raise MalformedReleaseError(f"{what}: component index {arg!r} out of range", file=source)
-            index = arg
-        elif op == OVERRIDE_PARAMETERS:
-            if index is None or not isinstance(arg, dict):
-                raise MalformedReleaseError(f"{what}: parameters without a component index", file=source)
-            out[index].update(arg)
+# -- building -----------------------------------------------------------------------------------
+
+
+def _sslib(key: PublicKey) -> Any:
+    from securesystemslib.signer import SSlibKey
+
+    return SSlibKey.from_dict(key.keyid, key.to_dict())
+
+
+def _public(key: Any) -> PublicKey:
+    return PublicKey(key.keyid, key.keytype, key.scheme, key.keyval["public"])
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC).replace(microsecond=0)
+
+
+def _comparable(obj: Any) -> dict[str, Any]:
+    """``obj.to_dict()`` without version and expiry: what a re-publication must keep equal to reuse it."""
+    d: dict[str, Any] = obj.to_dict()
+    for k in ("version", "expires"):
+        d.pop(k, None)
+    return d
+
+
+def _targets_for(releases: list[Release]) -> dict[str, Any]:
+    from tuf.api.metadata import TargetFile
+
+    return {r.path: TargetFile(r.length, {"sha256": r.sha256}, r.path) for r in releases}
+
+
+def read_content(source: Source, content_dir: Path) -> dict[str, bytes]:
+    """Every release's content file, checked against its entry's length and SHA-256.
+
+    Raises:
+        DigestMismatchError: a file differs from its registry entry.
+        NotFoundError, InputError: a file is missing, not regular, or outside ``content_dir``.
+    """
+    out: dict[str, bytes] = {}
+    owners: list[Domain | Artifact] = [*source.domains.values(), *source.profiles.values(), *source.schemas.values()]
+    entries = [(e, r) for e in owners for r in e.versions.values()]
+    for entry, release in entries:
+        path = content_dir / release.file
+        fd, _ = open_checked(path, content_dir, file=entry.source)
+        try:
+            data = read_bounded(fd, max(release.length, 0), source=str(path), what="content file")
+        except InputError:
+            raise DigestMismatchError(
+                f"{path} is larger than the {release.length} bytes its registry entry records",
+                file=entry.source,
+                expected=f"{release.length} bytes",
+                actual="more",
+            ) from None
+        finally:
+            os.close(fd)
+        digest = hashlib.sha256(data).hexdigest()
+        if digest != release.sha256 or len(data) != release.length:
+            raise DigestMismatchError(
+                f"{path} does not match its registry entry ({release.version})",
+                file=entry.source,
+                expected=f"sha256:{release.sha256} ({release.length} bytes)",
+                actual=f"sha256:{digest} ({len(data)} bytes)",
+            )
+        out[release.path] = data
     return out
 
 
-def _typed(p: dict[Any, Any], key: int, kind: type, source: str, where: str, name: str) -> Any:
-    value = p.get(key)
-    if type(value) is not kind:
-        raise MalformedReleaseError(f"{where}: {name} is missing or not {kind.__name__}", file=source)
-    return value
+def publish(
+    source: Source,
+    ring: keymod.KeyRing,
+    content_dir: Path,
+    site: Path,
+    *,
+    plan: OutputPlan,
+    timestamp_lifetime: dt.timedelta = DEFAULT_TIMESTAMP_LIFETIME,
+    now: dt.datetime | None = None,
+    sigstore_root: str | None = None,
+) -> Published:
+    """Plan the files of a new publication of ``source`` into ``site`` (the caller commits ``plan``).
+
+    Raises:
+        RefusedError: an unsigned version, a hijacked path, a replaced published version,
+            or a role that must be re-signed whose keys ``ring`` does not hold.
+        DigestMismatchError: a content file differs from its entry.
+        KeyFileError: a key file is unreadable or its passphrase is wrong.
+    """
+    from tuf.api.metadata import (
+        DelegatedRole,
+        Delegations,
+        Metadata,
+        MetaFile,
+        Root,
+        Snapshot,
+        Targets,
+        Timestamp,
+    )
+
+    # (1) The source obeys the registry's rules, and the content is what it records.
+    check_source(source, sigstore_root=sigstore_root)
+    content = read_content(source, content_dir)
+    prev = load_previous(site)
+    now = now or _now()
+    ts_expires = now + timestamp_lifetime
+    long_expires = now + max(LONG_LIFETIME, timestamp_lifetime + dt.timedelta(days=1))
+    result = Published(site)
+    files: dict[str, bytes] = {}  # name in metadata/ -> bytes
+
+    def reusable(old: Metadata[Any] | None, new_signed: Any) -> bool:
+        return (
+            old is not None and _comparable(old.signed) == _comparable(new_signed) and old.signed.expires >= ts_expires
+        )
+
+    # (2) Root: from root.toml; a change is signed by the old root's keys and the new ones.
+    root = Root(expires=long_expires, consistent_snapshot=True)
+    for role in TOP_ROLES:
+        want = source.root.roles[role]
+        for keyid in want.keyids:
+            root.add_key(_sslib(source.root.keys[keyid]), role)
+        root.roles[role].threshold = want.threshold
+    if prev.root is not None and reusable(prev.root, root):
+        root_md = prev.root
+    else:
+        root.version = prev.root.signed.version + 1 if prev.root else 1
+        root_md = Metadata(root)
+        payload = root_md.signed_bytes
+        signers = _role_keys(root, "root")
+        sigs = ring.sign_threshold(signers, root.roles["root"].threshold, payload, what="root (new keys)")
+        if prev.root is not None and _comparable(prev.root.signed.roles["root"]) != _comparable(root.roles["root"]):
+            old_root = prev.root.signed
+            sigs += ring.sign_threshold(
+                _role_keys(old_root, "root"),
+                old_root.roles["root"].threshold,
+                payload,
+                what="root rotation (the previous root's keys)",
+            )
+        for sig in sigs:
+            root_md.signatures[sig.keyid] = sig
+        files[f"{root.version}.root.json"] = root_md.to_bytes()
+        files["root.json"] = files[f"{root.version}.root.json"]
+        result.signed.append("root")
+    result.versions["root"] = root_md.signed.version
+
+    # (3) Shards: top-level targets delegates each domain's pattern to one shard role
+    # (signed by the targets keys), which delegates it to the domain's role (signed by
+    # the owner's keys). Refresh then reads a small targets.json; a lookup loads one shard.
+    targets_keys = _role_keys(root_md.signed, "targets")
+    n_shards = shard_count(len(source.domains))
+    shards: dict[str, list[str]] = {}
+    for name in sorted(source.domains):
+        shards.setdefault(shard_of(name, n_shards), []).append(name)
+    top_roles = {
+        shard: DelegatedRole(
+            shard,
+            sorted(targets_keys),
+            root_md.signed.roles["targets"].threshold,
+            True,
+            paths=[domain_pattern(d) for d in names],
+        )
+        for shard, names in sorted(shards.items())
+    }
+    top = Targets(
+        expires=long_expires,
+        targets={},
+        delegations=Delegations(keys={k: _sslib(v) for k, v in targets_keys.items()}, roles=top_roles),
+    )
+    for art in [*source.profiles.values(), *source.schemas.values()]:
+        top.targets.update(_targets_for(list(art.versions.values())))
+
+    # (4) Top-level targets: stream profiles, core schemas and the shards.
+    old_top = prev.roles.get("targets")
+    _check_immutable("targets", old_top, top, source=source.root.source)
+    top_md = _resign(top, old_top, "targets", reusable, ring, root_md.signed, files, result)
+    role_mds: dict[str, Metadata[Targets]] = {}
+    for shard, names in sorted(shards.items()):
+        roles: dict[str, DelegatedRole] = {}
+        keys: dict[str, Any] = {}
+        for name in names:
+            domain = source.domains[name]
+            roles[name] = DelegatedRole(name, sorted(domain.keys), domain.threshold, True, paths=[domain_pattern(name)])
+            keys.update({k: _sslib(v) for k, v in domain.keys.items()})
+        signed_shard = Targets(expires=long_expires, targets={}, delegations=Delegations(keys=keys, roles=roles))
+        shard_md = _resign(
+            signed_shard, prev.roles.get(shard), shard, reusable, ring, root_md.signed, files, result,
+            delegator=top, key_role="targets",
+        )  # fmt: skip
+        role_mds[shard] = shard_md
+
+        # (5) One delegated role per domain, signed by its owner's keys.
+        for name in names:
+            domain = source.domains[name]
+            signed = Targets(expires=long_expires, targets=_targets_for(list(domain.versions.values())))
+            old = prev.roles.get(name)
+            _check_immutable(name, old, signed, source=domain.source)
+            if old is not None and reusable(old, signed) and _signed_by(signed_shard, name, old):
+                role_mds[name] = old
+                continue
+            signed.version = old.signed.version + 1 if old is not None else 1
+            md = Metadata(signed)
+            for sig in ring.sign_threshold(
+                domain.keys, domain.threshold, md.signed_bytes, what=f"domain {name} (owner: {domain.owner})"
+            ):
+                md.signatures[sig.keyid] = sig
+            role_mds[name] = md
+            files[f"{signed.version}.{name}.json"] = md.to_bytes()
+            result.signed.append(name)
+
+    # (6) Snapshot: every targets role's version; (7) timestamp: the snapshot's hash and length.
+    snap = Snapshot(expires=ts_expires, meta={"targets.json": MetaFile(top_md.signed.version)})
+    for name, md in role_mds.items():
+        snap.meta[f"{name}.json"] = MetaFile(md.signed.version)
+    snap_md = _resign(snap, prev.snapshot, "snapshot", reusable, ring, root_md.signed, files, result)
+    snap_bytes = files.get(f"{snap_md.signed.version}.snapshot.json", prev.snapshot_bytes)
+    ts = Timestamp(
+        version=prev.timestamp_version + 1,
+        expires=ts_expires,
+        snapshot_meta=MetaFile.from_data(snap_md.signed.version, snap_bytes, ["sha256"]),
+    )
+    ts_md = Metadata(ts)
+    _sign_top(ts_md, "timestamp", ring, root_md.signed)
+    files["timestamp.json"] = ts_md.to_bytes()
+    result.signed.append("timestamp")
+    result.versions.update(targets=top_md.signed.version, snapshot=snap_md.signed.version, timestamp=ts.version)
+
+    # (8) Plan the writes: new metadata, and content files not yet on the site.
+    for fname, data in files.items():
+        path = site / "metadata" / fname
+        if fname not in ("root.json", "timestamp.json") and path.exists():
+            raise RefusedError(f"{path} already exists: the site was changed outside publish", file=str(path))
+        plan.add(path, data, flag="--out")
+    for tpath, data in content.items():
+        folder, _, base = tpath.rpartition("/")
+        dest = site / "targets" / folder / f"{hashlib.sha256(data).hexdigest()}.{base}"
+        if not dest.exists():
+            plan.add(dest, data, flag="--out")
+    result.written = plan.paths
+    return result
 
 
-def _digest(raw: Any, source: str, where: str, name: str) -> str:
-    value = _loads(raw, source, f"{where} {name}") if isinstance(raw, bytes) else raw
-    if (
-        not isinstance(value, list)
-        or len(value) != 2
-        or value[0] != SHA256
-        or not isinstance(value[1], bytes)
-        or len(value[1]) != 32
-    ):
-        raise MalformedReleaseError(f"{where}: {name} is not a SHA-256 SUIT_Digest", file=source)
-    return value[1].hex()
+def _role_keys(signed: Root, role: str) -> dict[str, PublicKey]:
+    return {k: _public(signed.keys[k]) for k in signed.roles[role].keyids}
+
+
+def _sign_top(md: Metadata[Any], role: str, ring: keymod.KeyRing, root: Root) -> None:
+    for sig in ring.sign_threshold(_role_keys(root, role), root.roles[role].threshold, md.signed_bytes, what=role):
+        md.signatures[sig.keyid] = sig
+
+
+def _signed_by(delegator: Any, role: str, md: Metadata[Any]) -> bool:
+    from tuf.api.exceptions import UnsignedMetadataError
+
+    try:
+        delegator.verify_delegate(role, md.signed_bytes, md.signatures)
+    except UnsignedMetadataError:
+        return False
+    return True
+
+
+def _resign(
+    signed: Any,
+    old: Metadata[Any] | None,
+    role: str,
+    reusable: Any,
+    ring: keymod.KeyRing,
+    root: Root,
+    files: dict[str, bytes],
+    result: Published,
+    *,
+    delegator: Any = None,
+    key_role: str | None = None,
+) -> Metadata[Any]:
+    """Keep ``old`` when unchanged and still signed under its delegator (default: ``root``),
+    else sign the next version with the keys of ``key_role`` (default: ``role``)."""
+    from tuf.api.metadata import Metadata
+
+    if old is not None and reusable(old, signed) and _signed_by(delegator or root, role, old):
+        return old
+    signed.version = old.signed.version + 1 if old is not None else 1
+    md = Metadata(signed)
+    _sign_top(md, key_role or role, ring, root)
+    files[f"{signed.version}.{role}.json"] = md.to_bytes()
+    result.signed.append(role)
+    return md
+
+
+def _check_immutable(role: str, old: Metadata[Any] | None, new: Targets, *, source: str) -> None:
+    """A path published before keeps its length and hashes forever.
+
+    Raises:
+        RefusedError: a published version would be replaced by different content.
+    """
+    if old is None:
+        return
+    for path, was in old.signed.targets.items():
+        now = new.targets.get(path)
+        if now is not None and (now.length != was.length or now.hashes != was.hashes):
+            raise RefusedError(
+                f"replaced published version refused: {path} ({role}) was published with other content",
+                file=source,
+                expected=f"sha256:{was.hashes.get('sha256')} ({was.length} bytes)",
+                actual=f"sha256:{now.hashes.get('sha256')} ({now.length} bytes)",
+            )
