@@ -128,6 +128,10 @@ def main() -> None:
             + ", ".join(f"{w * 1000:.0f}" for w in warm)
             + f"); requests per warm refresh: {warm_hits}"
         )
+        print(
+            f"cold lookup (refresh + one shard + one domain role + one schema): median "
+            f"{statistics.median(lookup) * 1000:.0f} ms"
+        )
 
 
 if __name__ == "__main__":
