@@ -373,15 +373,27 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     "--schema", type=click.Path(dir_okay=False), help="XSD to validate against (the official schemas are not shipped)."
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@click.option("--registry", "registry_site", help="Registry (URL or folder): schemas, extensions, stream profiles.")
+@click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
+@click.option("--strict", is_flag=True, help="With --registry: unregistered extension domains/versions are errors.")
 @handle_errors
-def validate(doc: str, schema: str | None, as_json: bool) -> None:
+def validate(
+    doc: str, schema: str | None, as_json: bool, registry_site: str | None, trusted_root: str | None, strict: bool
+) -> None:
     """Validate DOC against an XSD and check the HCDF semantic rules the XSD cannot express.
 
     Exits 1 if any error was found; every finding is listed, not just the first.
     """
     from .validate import validate_document
 
-    report = validate_document(doc, schema=schema)
+    if registry_site:
+        from .cli_registry import validate_with_registry
+
+        report = validate_with_registry(
+            doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict
+        )
+    else:
+        report = validate_document(doc, schema=schema)
     if as_json:
         emit_json(
             {
@@ -536,9 +548,12 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
         click.echo(f"wrote {path}", err=True)
 
 
-from .cli_macsec import macsec as _macsec  # noqa: E402
+# The verb groups import this module's helpers, so they come last.
+from .cli_macsec import macsec  # noqa: E402
+from .cli_registry import registry  # noqa: E402
 
-main.add_command(_macsec)
+main.add_command(macsec)
+main.add_command(registry)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

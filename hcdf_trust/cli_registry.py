@@ -1,0 +1,519 @@
+"""``hcdf-trust registry …``: parse, call :mod:`hcdf_trust.registry`, render. No logic here.
+
+tuf and securesystemslib are imported inside the commands, so ``hcdf-trust --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+from pathlib import Path
+from typing import Any
+
+import click
+
+from .cli import emit_json, handle_errors
+from .outputs import OutputPlan
+
+_DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
+_UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
+
+
+def _duration(ctx: click.Context, param: click.Parameter, value: str) -> dt.timedelta:
+    m = _DURATION.fullmatch(value.strip())
+    if not m:
+        raise click.BadParameter(f"{value!r} is not a duration like 30m, 12h, 7d or 2w")
+    delta = dt.timedelta(**{_UNITS[m.group(2)]: int(m.group(1))})
+    if delta > dt.timedelta(days=3650):
+        raise click.BadParameter(f"{value!r} is longer than 10 years")
+    return delta
+
+
+passphrase_option = click.option(
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="File whose first line is the keys' passphrase [default: $HCDF_TRUST_PASSPHRASE].",
+)
+
+
+def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
+    """The private keys in the ``--keys`` folders; the passphrase is read when a key is first needed."""
+    from .registry.keys import KeyRing, read_passphrase
+
+    return KeyRing(keys, lambda: read_passphrase(passphrase_file))
+
+
+def _commit(plan: OutputPlan, keydir: Path) -> None:
+    """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
+    from .registry.keys import prepare_keydir
+
+    created = prepare_keydir(keydir)
+    try:
+        plan.commit()
+    except BaseException:
+        if created and not any(keydir.iterdir()):
+            keydir.rmdir()
+        raise
+
+
+sigstore_root_option = click.option(
+    "--sigstore-trusted-root",
+    "sigstore_root",
+    type=click.Path(dir_okay=False),
+    help="Sigstore trusted_root.json that bundles are verified against, offline (needs hcdf-trust[sigstore]).",
+)
+
+
+def _identity(identity: str | None, issuer: str | None) -> tuple[str, str] | None:
+    if (identity is None) != (issuer is None):
+        raise click.UsageError("--sigstore-identity and --sigstore-issuer go together")
+    return (identity, issuer) if identity is not None and issuer is not None else None
+
+
+@click.group()
+def registry() -> None:
+    """A signed registry (TUF) of extension domains, stream profiles and core schemas."""
+
+
+@registry.command()
+@click.argument("source_dir", metavar="DIR", type=click.Path(file_okay=False))
+@click.option(
+    "--keys",
+    "keydir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Folder for the private keys (kept outside DIR).",
+)
+@passphrase_option
+@handle_errors
+def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
+    """Start a registry source in DIR: fresh root, targets, snapshot and timestamp keys."""
+    from .registry import edit
+    from .registry.keys import read_passphrase
+
+    plan = OutputPlan()
+    root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
+    _commit(plan, Path(keydir))
+    for role, t in root.roles.items():
+        click.echo(f"{role}: key {t.keyids[0]}", err=True)
+    click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
+
+
+@registry.command()
+@click.option("--keys", "keydir", required=True, type=click.Path(file_okay=False), help="Folder for the private key.")
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Public key file to write.")
+@passphrase_option
+@handle_errors
+def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
+    """Make an owner key: the private half in --keys, the public half in --out."""
+    from .registry import edit
+    from .registry.keys import read_passphrase
+
+    plan = OutputPlan()
+    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
+    _commit(plan, Path(keydir))
+    click.echo(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key", err=True)
+
+
+@registry.command()
+@click.argument("source_dir", metavar="DIR", type=click.Path(exists=True, file_okay=False))
+@click.option("--domain", help="Extension domain (reverse-DNS, e.g. org.ros2).")
+@click.option("--version", "version", help="Version of the domain's schema, or of a --core schema.")
+@click.option("--schema", type=click.Path(exists=True, dir_okay=False), help="The schema file (inside --content).")
+@click.option("--profile", type=click.Path(exists=True, dir_okay=False), help="A stream profile file (.streams.xml).")
+@click.option("--core", help="Register --schema as core schema NAME (hcdf, hcdf-stream-profile).")
+@click.option("--owner", help="Owner's name (a new domain).")
+@click.option(
+    "--owner-key",
+    "owner_keys",
+    multiple=True,
+    type=click.Path(exists=True, dir_okay=False),
+    help="Owner's public key file (a new domain; repeatable).",
+)
+@click.option(
+    "--threshold",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Owner signatures a version needs (a new domain).",
+)
+@click.option("--description", default="", help="One line about the entry (a new entry).")
+@click.option(
+    "--content",
+    "content_dir",
+    type=click.Path(exists=True, file_okay=False),
+    default=".",
+    show_default=True,
+    help="Content folder the file lies in (its recorded path is relative to it).",
+)
+@click.option(
+    "--keys",
+    "keydirs",
+    multiple=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Folder holding the owner's private keys (repeatable).",
+)
+@click.option("--sigstore-identity", help="Owner's sigstore identity (a new domain), e.g. an e-mail or workflow URI.")
+@click.option("--sigstore-issuer", help="OIDC issuer of --sigstore-identity (a new domain).")
+@click.option(
+    "--sigstore-bundle",
+    type=click.Path(exists=True, dir_okay=False),
+    help="Approve the version with this sigstore bundle over `registry statement` instead of an owner key.",
+)
+@sigstore_root_option
+@passphrase_option
+@handle_errors
+def add(
+    source_dir: str,
+    domain: str | None,
+    version: str | None,
+    schema: str | None,
+    profile: str | None,
+    core: str | None,
+    owner: str | None,
+    owner_keys: tuple[str, ...],
+    threshold: int,
+    description: str,
+    content_dir: str,
+    keydirs: tuple[str, ...],
+    sigstore_identity: str | None,
+    sigstore_issuer: str | None,
+    sigstore_bundle: str | None,
+    sigstore_root: str | None,
+    passphrase_file: str | None,
+) -> None:
+    """Record a domain version (signed by its owner), a stream profile or a core schema."""
+    from .registry import edit
+    from .registry.source import load_source
+
+    chosen = [x for x in (domain, profile, core) if x]
+    if len(chosen) != 1:
+        raise click.UsageError("give exactly one of --domain, --profile or --core")
+    source = load_source(source_dir)
+    plan = OutputPlan()
+    content = Path(content_dir)
+    if profile:
+        name, ver = edit.profile_identity(profile)
+        done: Any = edit.add_artifact(
+            source, "profile", name, ver, profile, content_dir=content, plan=plan, description=description
+        )
+        what = f"stream profile {name} {ver}"
+    else:
+        if core and (not version or not schema):
+            raise click.UsageError("--core needs --version and --schema")
+        if core:
+            assert version is not None and schema is not None
+            done = edit.add_artifact(
+                source, "schema", core, version, schema, content_dir=content, plan=plan, description=description
+            )
+            what = f"core schema {core} {version}"
+        else:
+            assert domain is not None
+            done = edit.add_domain(
+                source,
+                domain,
+                version,
+                schema,
+                content_dir=content,
+                plan=plan,
+                ring=_ring(keydirs, passphrase_file),
+                owner=owner,
+                owner_keys=[edit.read_public_key(k) for k in owner_keys],
+                threshold=threshold,
+                description=description,
+                sigstore=_identity(sigstore_identity, sigstore_issuer),
+                bundle=sigstore_bundle,
+                sigstore_root=sigstore_root,
+            )
+            what = f"{domain} {version}" if version else f"domain {domain}"
+    if done is None:
+        click.echo(f"{what}: already registered with the same content", err=True)
+        return
+    plan.commit()
+    click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+
+
+@registry.command()
+@click.option("--domain", required=True, help="Extension domain (reverse-DNS).")
+@click.option("--version", "version", required=True, help="Version of the domain's schema.")
+@click.option("--schema", required=True, type=click.Path(exists=True, dir_okay=False), help="The schema file.")
+@click.option(
+    "--content",
+    "content_dir",
+    type=click.Path(exists=True, file_okay=False),
+    default=".",
+    show_default=True,
+    help="Content folder the schema lies in.",
+)
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@handle_errors
+def statement(domain: str, version: str, schema: str, content_dir: str, out: str) -> None:
+    """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
+    from .registry import edit
+
+    plan = OutputPlan()
+    plan.protect(schema, what="the schema")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
+    plan.commit()
+    click.echo(f"statement for {domain} {version} written to {out}", err=True)
+
+
+@registry.command()
+@click.argument("source_dir", metavar="DIR", type=click.Path(exists=True, file_okay=False))
+@click.option(
+    "--role", type=click.Choice(["root", "targets", "snapshot", "timestamp"]), help="Top-level role to give a new key."
+)
+@click.option("--domain", help="Domain whose owner key to replace (needs its current key in --keys).")
+@click.option(
+    "--keys",
+    "keydirs",
+    multiple=True,
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Keys folder; the new private key goes into the first (repeatable).",
+)
+@passphrase_option
+@handle_errors
+def rotate(
+    source_dir: str, role: str | None, domain: str | None, keydirs: tuple[str, ...], passphrase_file: str | None
+) -> None:
+    """Replace a top-level role's key or a domain owner's key; `publish` then signs the change."""
+    from .registry import edit
+    from .registry.keys import read_passphrase
+    from .registry.source import load_source
+
+    if (role is None) == (domain is None):
+        raise click.UsageError("give exactly one of --role or --domain")
+    source = load_source(source_dir)
+    plan = OutputPlan()
+    keydir = Path(keydirs[0])
+    passphrase = read_passphrase(passphrase_file)
+    if role:
+        key = edit.rotate_role(source, role, keydir, passphrase, plan=plan)
+    else:
+        assert domain is not None
+        key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
+    _commit(plan, keydir)
+    click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
+
+
+@registry.command()
+@click.argument("source_dir", metavar="DIR", type=click.Path(exists=True, file_okay=False))
+@click.option(
+    "--keys",
+    "keydirs",
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Folder of private keys (repeatable: registry keys, owner keys).",
+)
+@click.option(
+    "--content",
+    "content_dir",
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Folder holding the files the entries name.",
+)
+@click.option(
+    "--out",
+    "site",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Site folder (a previous publication there is continued).",
+)
+@click.option(
+    "--expires",
+    "lifetime",
+    default="7d",
+    show_default=True,
+    callback=_duration,
+    help="Timestamp lifetime (30m, 12h, 7d, 2w): clients stop trusting a site not re-published within it.",
+)
+@sigstore_root_option
+@passphrase_option
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
+@handle_errors
+def publish(
+    source_dir: str,
+    keydirs: tuple[str, ...],
+    content_dir: str,
+    site: str,
+    lifetime: dt.timedelta,
+    sigstore_root: str | None,
+    passphrase_file: str | None,
+    as_json: bool,
+) -> None:
+    """Write a static TUF repository (consistent snapshots) for DIR into --out."""
+    from .registry.publish import publish as do_publish
+    from .registry.source import load_source
+
+    source = load_source(source_dir)
+    plan = OutputPlan()
+    plan.protect_tree(source_dir, what="the registry source")
+    plan.protect_tree(content_dir, what="the content folder")
+    for k in keydirs:
+        plan.protect_tree(k, what="a keys folder")
+    result = do_publish(
+        source,
+        _ring(keydirs, passphrase_file),
+        Path(content_dir),
+        Path(site),
+        plan=plan,
+        timestamp_lifetime=lifetime,
+        sigstore_root=sigstore_root,
+    )
+    plan.commit()
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "versions": result.versions,
+                "signed": result.signed,
+                "written": [str(p) for p in result.written],
+            }
+        )
+    else:
+        versions = ", ".join(f"{k} v{v}" for k, v in result.versions.items())
+        click.echo(f"published {site}: {versions}; {len(result.written)} file(s) written", err=True)
+
+
+def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
+    from .registry.client import RegistryClient
+
+    return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
+
+
+def _timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
+    if not 0 < value <= 3600:
+        raise click.BadParameter(f"{value} is not a number of seconds in (0, 3600]")
+    return value
+
+
+client_options = [
+    click.option(
+        "--timeout",
+        type=float,
+        default=30.0,
+        show_default=True,
+        callback=_timeout,
+        help="Seconds to wait for a connection or between bytes (http(s) sites).",
+    ),
+    click.option(
+        "--trusted-root",
+        required=True,
+        type=click.Path(dir_okay=False),
+        help="The root.json you trust (its bytes bootstrap the client).",
+    ),
+    click.option(
+        "--cache-dir",
+        type=click.Path(file_okay=False),
+        help="Client metadata cache [default: ~/.cache/hcdf-trust/registry/…].",
+    ),
+]
+
+
+def _with_client_options(func: Any) -> Any:
+    for option in reversed(client_options):
+        func = option(func)
+    return func
+
+
+@registry.command()
+@click.argument("site", metavar="SITE_URL|DIR")
+@_with_client_options
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
+@handle_errors
+def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, as_json: bool) -> None:
+    """Refresh from SITE and check every role and every file it publishes."""
+    from .cli import fail
+    from .registry.client import verify as do_verify
+    from .registry.errors import AttackError
+
+    report = do_verify(_client(site, trusted_root, cache_dir, timeout))
+    errors = [
+        AttackError(
+            f"cross-domain signing: {s.role} lists {s.path}, outside its delegation (ignored by clients)"
+            if s.domain
+            else f"{s.role} lists {s.path}: only a domain's own role may list its files (it would shadow them)"
+        )
+        for s in report.stray
+    ]
+    payload = {"root_version": report.root_version, "roles": report.roles, "targets": report.targets}
+    if errors:
+        fail(list(errors), as_json=as_json, payload=payload)
+    if as_json:
+        emit_json({"ok": True, **payload, "errors": []})
+    else:
+        click.echo(
+            f"{site}: verified (root v{report.root_version}, {report.roles} domain role(s), {report.targets} file(s))",
+            err=True,
+        )
+
+
+@registry.command()
+@click.argument(
+    "what", nargs=-1, required=True, metavar="DOMAIN[@VERSION] | profile NAME[@VERSION] | schema NAME[@VERSION]"
+)
+@click.option("--from", "site", required=True, help="Registry site: an http(s) URL or a folder.")
+@_with_client_options
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
+@handle_errors
+def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str) -> None:
+    """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
+    from .errors import NotFoundError
+    from .registry.client import latest
+
+    if len(what) == 1:
+        kind, spec = "domain", what[0]
+    elif len(what) == 2 and what[0] in ("profile", "schema"):
+        kind, spec = what
+    else:
+        raise click.UsageError("give DOMAIN[@VERSION], profile NAME[@VERSION] or schema NAME[@VERSION]")
+    name, _, version = spec.partition("@")
+    client = _client(site, trusted_root, cache_dir, timeout)
+    if kind == "domain":
+        versions = client.versions(name)
+    else:
+        versions = client.artifacts(kind).get(name, {})
+        if not versions:
+            raise NotFoundError(f"no {kind} {name} in the registry", url=site)
+    if not versions:
+        raise NotFoundError(f"{name} has no published version", url=site)
+    version = version or latest(versions)
+    if version not in versions:
+        raise NotFoundError(f"{kind} {name} has no version {version} (has {', '.join(sorted(versions))})", url=site)
+    data = client.download(versions[version])
+    plan = OutputPlan()
+    plan.protect(trusted_root, what="the trusted root")
+    plan.protect_tree(client.cache_dir, what="the registry cache")
+    if "://" not in site:
+        plan.protect_tree(site, what="the registry site")
+    plan.add(out, data, flag="-o")
+    plan.commit()
+    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
+
+
+def validate_with_registry(
+    doc: str, *, schema: str | None, site: str, trusted_root: str | None, strict: bool, cache_dir: str | None = None
+) -> Any:
+    """``validate --registry``: the registry supplies the schema (unless ``--schema``) and
+    checks extension domains, versions, content and registered stream-profile digests."""
+    import os
+
+    from .include.locate import display_path
+    from .registry.validation import RegistrySchemaSource, check_document
+    from .validate import validate_document
+    from .validate.includes import read_local
+    from .xml import parse_bytes
+
+    if trusted_root is None:
+        raise click.UsageError("--registry needs --trusted-root")
+    schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
+    report = validate_document(doc, schema=schema or schemas)
+    path = Path(os.path.abspath(doc))
+    source = display_path(path)
+    tree = parse_bytes(read_local(path, path.parent, source=source), source=source)
+    if tree.getroot().tag == "hcdf":
+        report.findings.extend(check_document(tree, source=source, path=path, schemas=schemas, strict=strict))
+        report.checked.append("registry")
+    return report

@@ -1,0 +1,359 @@
+"""The registry client: ``tuf.ngclient`` over a published site, a URL or a local folder.
+
+Trust starts from the root metadata bytes the user pins (``--trusted-root``); the client
+walks newer root versions from there (key rotation), then timestamp, snapshot, targets
+and, on demand, one domain's role. Every failure is matched on python-tuf's exception
+classes (never on their wording) and named after the attack it reveals.
+
+Fetchers: ``http(s)://`` goes through ngclient's default urllib3 fetcher (the one
+python-tuf tests and ships; every download is capped at the signed length by
+``FetcherInterface`` itself, so no second HTTP stack is needed for a signed
+repository); a folder goes through :class:`DirectoryFetcher`, which reads through
+:mod:`hcdf_trust.localfile` (confined to the site, regular files, never blocking).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+from urllib.parse import quote, unquote, urlsplit
+
+from ..errors import HcdfTrustError, InputError, NotFoundError
+from ..localfile import open_checked, read_chunks, read_input
+from .errors import AttackError, TransportError
+from .source import domain_pattern, is_version
+
+if TYPE_CHECKING:
+    from tuf.api.metadata import TargetFile, Targets
+    from tuf.ngclient import Updater
+
+ROOT_LIMIT = 512_000
+
+
+def _fetcher_base() -> type:
+    from tuf.ngclient import FetcherInterface
+
+    return FetcherInterface
+
+
+def make_directory_fetcher(root: Path) -> Any:
+    """A ``FetcherInterface`` serving ``file://`` URLs from the folder ``root``."""
+    from tuf.api.exceptions import DownloadError, DownloadHTTPError
+
+    class DirectoryFetcher(_fetcher_base()):  # type: ignore[misc]
+        """Reads a site from a folder; a missing file is a 404, so root probing stops."""
+
+        def _fetch(self, url: str) -> Iterator[bytes]:
+            path = Path(unquote(urlsplit(url).path))
+            try:
+                fd, _ = open_checked(path, root)
+            except NotFoundError:
+                raise DownloadHTTPError(f"{path}: not found", 404) from None
+            except InputError as exc:
+                raise DownloadError(str(exc)) from None
+            return _chunks(fd)
+
+    return DirectoryFetcher()
+
+
+def _chunks(fd: int) -> Iterator[bytes]:
+    try:
+        yield from read_chunks(fd)
+    finally:
+        os.close(fd)
+
+
+def _attack(exc: Exception, what: str) -> HcdfTrustError:
+    """The error (and attack name) for a python-tuf exception raised while loading ``what``."""
+    from tuf.api import exceptions as tx
+
+    target = what.startswith("target ")
+    if isinstance(exc, tx.ExpiredMetadataError):
+        return AttackError(f"freeze attack or stale mirror: {what}: expired metadata ({exc})")
+    if isinstance(exc, tx.BadVersionNumberError):
+        return AttackError(f"rollback attack: {what}: older than the version this client already trusts ({exc})")
+    if isinstance(exc, tx.LengthOrHashMismatchError):
+        if target:
+            return AttackError(f"arbitrary content: {what} does not match its signed length and hash ({exc})")
+        return AttackError(f"mix-and-match attack: {what} does not match the hash its parent metadata signed ({exc})")
+    if isinstance(exc, tx.DownloadLengthMismatchError):
+        if target:
+            return AttackError(f"endless data: {what} is longer than its signed length ({exc})")
+        return AttackError(f"endless data or mix-and-match attack: {what} is longer than its signed length ({exc})")
+    if isinstance(exc, tx.UnsignedMetadataError):
+        return AttackError(
+            f"bad signature: {what} is not signed by a threshold of its keys, "
+            f"e.g. a publisher without the owner's key ({exc})"
+        )
+    if isinstance(exc, tx.RepositoryError):
+        return AttackError(f"the registry's metadata does not verify: {what}: {exc}")
+    if isinstance(exc, tx.DownloadHTTPError):
+        return TransportError(f"{what}: HTTP {exc.status_code} ({exc})")
+    if isinstance(exc, tx.DownloadError):
+        cause = exc.__cause__ or exc
+        return TransportError(f"{what}: download failed: {cause}")
+    return InputError(f"{what}: {exc}")
+
+
+def _tuf_errors() -> tuple[type[Exception], ...]:
+    from tuf.api import exceptions as tx
+
+    return (tx.RepositoryError, tx.DownloadError)
+
+
+@dataclass
+class Finding:
+    """A problem ``verify`` found that python-tuf's client silently ignores."""
+
+    role: str
+    path: str
+    domain: bool = True  # False: the role is top-level targets or a shard, which should list no domain file
+
+
+@dataclass
+class Report:
+    """What ``verify`` checked."""
+
+    root_version: int = 0
+    roles: int = 0
+    targets: int = 0
+    stray: list[Finding] = field(default_factory=list)
+
+
+class RegistryClient:
+    """A TUF client for one published registry (``site``: an http(s) URL or a folder).
+
+    Construction loads the trusted root; nothing is fetched until :meth:`refresh`.
+
+    Raises:
+        InputError: the trusted root is unreadable or not TUF root metadata.
+    """
+
+    def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
+        from tuf.ngclient import Updater, Urllib3Fetcher
+
+        self.site = site
+        local = "://" not in site
+        key = hashlib.sha256(f"{os.path.realpath(site) if local else site}\0".encode() + trusted_root).hexdigest()
+        self.cache_dir = Path(cache_dir) if cache_dir else _default_cache() / key[:24]
+        self.metadata_dir = self.cache_dir / "metadata"
+        self.metadata_dir.mkdir(parents=True, exist_ok=True)
+        (self.cache_dir / "targets").mkdir(exist_ok=True)
+        self._previous = self._cached_roles()
+        if local:
+            folder = Path(site).resolve()
+            if not folder.is_dir():
+                raise NotFoundError(f"{site}: no such registry site folder", file=site)
+            base, fetcher = folder.as_uri(), make_directory_fetcher(folder)
+        else:
+            scheme = urlsplit(site).scheme
+            if scheme not in ("http", "https"):
+                raise InputError(f"{site}: a registry is an http(s) URL or a folder", file=site)
+            base, fetcher = site.rstrip("/"), Urllib3Fetcher(socket_timeout=timeout)  # type: ignore[arg-type]
+        try:
+            self.updater: Updater = Updater(
+                str(self.metadata_dir),
+                f"{base}/metadata/",
+                str(self.cache_dir / "targets"),
+                f"{base}/targets/",
+                fetcher,
+                bootstrap=trusted_root,
+            )
+        except (ValueError, TypeError, KeyError, *_tuf_errors()) as exc:  # type: ignore[misc]
+            raise InputError(f"the trusted root is not valid TUF root metadata: {exc}") from None
+        self._refreshed = False
+
+    @classmethod
+    def open(
+        cls, site: str, trusted_root: str, *, cache_dir: Path | None = None, timeout: float = 30.0
+    ) -> RegistryClient:
+        """A client whose trust anchor is the root metadata file ``trusted_root``."""
+        root = read_input(trusted_root, limit=ROOT_LIMIT, what="trusted root")
+        return cls(site, trusted_root=root, cache_dir=cache_dir, timeout=timeout)
+
+    # -- loading ------------------------------------------------------------------------
+
+    def _cached_roles(self) -> dict[str, bytes]:
+        """The role files this client trusted before this run (to notice a replaced version)."""
+        out = {}
+        for path in self.metadata_dir.glob("*.json"):
+            role = unquote(path.stem)
+            if role in ("root", "timestamp", "snapshot") or not path.is_file():
+                continue
+            try:
+                out[role] = read_input(path, limit=8 << 20, what="cached metadata")
+            except InputError:
+                continue
+        return out
+
+    def refresh(self) -> None:
+        """Root (walking every newer version), timestamp, snapshot and top-level targets.
+
+        Raises:
+            AttackError: the repository is lying or stale (exit 1).
+            TransportError: it could not be reached (exit 3).
+        """
+        if self._refreshed:
+            return
+        try:
+            self.updater.refresh()
+        except _tuf_errors() as exc:
+            raise _attack(exc, "top-level metadata") from None
+        self._refreshed = True
+        self._check_replaced("targets")
+
+    def _trusted(self, role: str) -> Targets:
+        # python-tuf keeps verified metadata in its trusted set; it has no public accessor.
+        md: Targets = self.updater._trusted_set[role]  # type: ignore[assignment]
+        return md
+
+    @property
+    def root_version(self) -> int:
+        return int(self.updater._trusted_set.root.version)
+
+    def domains(self) -> list[str]:
+        """The registered extension domains: the ``extensions/<domain>/*`` patterns that
+        top-level targets delegates (to shard roles, which delegate to the domains)."""
+        self.refresh()
+        delegations = self._trusted("targets").delegations
+        out = set()
+        for role in (delegations.roles or {}).values() if delegations else []:
+            for pattern in role.paths or []:
+                parts = pattern.split("/")
+                if len(parts) == 3 and parts[0] == "extensions" and parts[2] == "*":
+                    out.add(parts[1])
+        return sorted(out)
+
+    def role(self, domain: str) -> Targets:
+        """A domain's verified role, loaded through the delegation."""
+        self.refresh()
+        if domain not in self.domains():
+            raise NotFoundError(f"{domain} is not a registered domain", url=self.site)
+        try:
+            self.updater.get_targetinfo(f"extensions/{domain}/")
+        except _tuf_errors() as exc:
+            raise _attack(exc, f"{domain}.json") from None
+        self._check_replaced(domain)
+        return self._trusted(domain)
+
+    def versions(self, domain: str) -> dict[str, TargetFile]:
+        """A domain's schema versions; paths outside its delegation are ignored, as TUF clients do."""
+        role = self.role(domain)
+        prefix = f"extensions/{domain}/"
+        out = {}
+        for path, info in role.targets.items():
+            version = path.removeprefix(prefix).removesuffix(".xsd")
+            if path.startswith(prefix) and path.count("/") == 2 and is_version(version):
+                out[version] = info
+        return out
+
+    def stray(self, domain: str) -> list[Finding]:
+        """Paths a domain's role lists outside its delegation (clients ignore them)."""
+        from tuf.api.metadata import DelegatedRole
+
+        pattern = DelegatedRole(domain, [], 1, True, paths=[domain_pattern(domain)])
+        return [Finding(domain, p) for p in self.role(domain).targets if not pattern.is_delegated_path(p)]
+
+    def artifacts(self, kind: str) -> dict[str, dict[str, TargetFile]]:
+        """Stream profiles (``kind="profile"``) or core schemas: name -> version -> target."""
+        self.refresh()
+        top, suffix = ("profiles/", ".streams.xml") if kind == "profile" else ("schemas/", ".xsd")
+        out: dict[str, dict[str, TargetFile]] = {}
+        for path, info in self._trusted("targets").targets.items():
+            parts = path.split("/")
+            if path.startswith(top) and len(parts) == 3 and parts[2].endswith(suffix):
+                out.setdefault(parts[1], {})[parts[2].removesuffix(suffix)] = info
+        return out
+
+    def download(self, info: TargetFile) -> bytes:
+        """A target's bytes, verified against its signed length and hash.
+
+        Raises:
+            AttackError: arbitrary content or endless data (exit 1).
+            TransportError: the file could not be fetched (exit 3).
+        """
+        fd, tmp = tempfile.mkstemp(dir=self.cache_dir / "targets", prefix=".dl-")
+        os.close(fd)
+        try:
+            self.updater.download_target(info, filepath=tmp)
+            return read_input(tmp, limit=info.length, what="downloaded target")
+        except _tuf_errors() as exc:
+            raise _attack(exc, f"target {info.path}") from None
+        finally:
+            os.unlink(tmp)
+
+    def _check_replaced(self, role: str) -> None:
+        """A version this client saw before must keep its content.
+
+        Raises:
+            AttackError: a replaced published version; the previously trusted role is restored.
+        """
+        from tuf.api.metadata import Metadata
+
+        before = self._previous.get(role)
+        if before is None:
+            return
+        with contextlib.suppress(OSError):
+            if (self.metadata_dir / f"{quote(role, '')}.json").read_bytes() == before:
+                return  # the same signed file as last time (the usual warm refresh)
+        try:
+            old = Metadata.from_bytes(before).signed.targets  # type: ignore[attr-defined]
+        except Exception:  # a cache file we cannot parse proves nothing
+            return
+        new = self._trusted(role).targets
+        for path, was in old.items():
+            now = new.get(path)
+            if now is not None and (now.length, now.hashes) != (was.length, was.hashes):
+                cached = self.metadata_dir / f"{quote(role, '')}.json"
+                cached.write_bytes(before)
+                raise AttackError(
+                    f"replaced published version: {path} ({role}) changed content since this client last saw it",
+                    expected=f"sha256:{was.hashes.get('sha256')} ({was.length} bytes)",
+                    actual=f"sha256:{now.hashes.get('sha256')} ({now.length} bytes)",
+                    url=self.site,
+                )
+
+
+def _default_cache() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hcdf-trust" / "registry"
+
+
+def latest(versions: dict[str, Any]) -> str:
+    """The highest version (numeric order)."""
+    return max(versions, key=lambda v: tuple(int(p) for p in v.split(".")))
+
+
+def verify(client: RegistryClient) -> Report:
+    """Refresh, load every domain's role and download every target, checking each one.
+
+    Raises:
+        AttackError, TransportError: the first check that fails.
+    """
+    client.refresh()
+    report = Report(root_version=client.root_version)
+    infos: list[TargetFile] = []
+    for domain in client.domains():
+        infos += client.versions(domain).values()
+        report.stray += client.stray(domain)
+        report.roles += 1
+    for kind in ("profile", "schema"):
+        for versions in client.artifacts(kind).values():
+            infos += versions.values()
+    # Targets listed above the domain roles would shadow them (a client takes the first match).
+    top = client._trusted("targets").targets
+    report.stray += [Finding("targets", p, domain=False) for p in top if p.startswith("extensions/")]
+    delegations = client._trusted("targets").delegations
+    for shard in sorted(delegations.roles or {}) if delegations else []:
+        if client.updater._trusted_set.contains(shard, "targets"):  # loaded by the lookups above
+            report.stray += [Finding(shard, p, domain=False) for p in client._trusted(shard).targets]
+    for info in infos:
+        client.download(info)
+        report.targets += 1
+    return report
