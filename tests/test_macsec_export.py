@@ -378,7 +378,7 @@ def test_mesh_network_keys_go_to_mesh_nodes_only(tmp_path, cli):
 
 
 def test_cli_formats_are_the_exporters():
-    from hcdf_trust.cli_macsec import export as command
+    from hcdf_trust.cli.macsec import export as command
     from hcdf_trust.macsec.export import FORMATS
 
     option = next(p for p in command.params if p.name == "fmt")

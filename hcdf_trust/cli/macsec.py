@@ -7,31 +7,12 @@ times and key check values only.
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable
 from typing import Any
 
 import click
 
-from .errors import HcdfTrustError
-
-
-def handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
-    """:func:`hcdf_trust.cli.handle_errors`, looked up at call time (``cli`` imports this module)."""
-
-    @functools.wraps(func)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from .cli import handle_errors as handle
-
-        return handle(func)(*args, **kwargs)
-
-    return wrapper
-
-
-def emit_json(payload: dict[str, Any]) -> None:
-    from .cli import emit_json as emit
-
-    emit(payload)
+from ..errors import HcdfTrustError
+from . import emit_json, handle_errors
 
 
 @click.group()
@@ -81,7 +62,7 @@ def plan_cmd(doc: str, as_json: bool) -> None:
     The include tree is resolved and verified first (offline, against its lock file);
     any resolve error refuses the plan.
     """
-    from .macsec.plan import plan
+    from ..macsec.plan import plan
 
     p = plan(doc)
     if as_json:
@@ -127,7 +108,7 @@ def store_options(func: Any) -> Any:
 
 
 def _now(text: str | None) -> Any:
-    from .macsec.store import now_utc, parse_time
+    from ..macsec.store import now_utc, parse_time
 
     if text is None:
         return now_utc()
@@ -140,7 +121,7 @@ def _now(text: str | None) -> Any:
 
 def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     """The wrapping-key backend the store options name: a passphrase, or a PKCS#11 token."""
-    from .macsec.backends import PassphraseWrapper, Pkcs11Wrapper, TpmWrapper, passphrase_from, pin_from
+    from ..macsec.backends import PassphraseWrapper, Pkcs11Wrapper, TpmWrapper, passphrase_from, pin_from
 
     module, label, pin_file = backend.get("pkcs11_module"), backend.get("token_label"), backend.get("pin_file")
     tcti = backend.get("tpm_tcti")
@@ -163,7 +144,7 @@ def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | Non
     """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
     import os
 
-    from .outputs import OutputPlan
+    from ..outputs import OutputPlan
 
     out = OutputPlan()
     for path in inputs:
@@ -186,9 +167,9 @@ def generate(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
-    from .macsec.plan import plan
-    from .macsec.rotation import generate as run
-    from .macsec.store import KeyStore, locked
+    from ..macsec.plan import plan
+    from ..macsec.rotation import generate as run
+    from ..macsec.store import KeyStore, locked
 
     now = _now(now_text)
     p = plan(doc)
@@ -221,9 +202,9 @@ def status(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
-    from .macsec.plan import plan
-    from .macsec.rotation import status as run
-    from .macsec.store import KeyStore
+    from ..macsec.plan import plan
+    from ..macsec.rotation import status as run
+    from ..macsec.store import KeyStore
 
     now = _now(now_text)
     p = plan(doc)
@@ -269,10 +250,10 @@ def rotate(
     **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
-    from .macsec.plan import plan
-    from .macsec.rotation import rotate as run
-    from .macsec.rotation import select
-    from .macsec.store import KeyStore, fmt_time, locked
+    from ..macsec.plan import plan
+    from ..macsec.rotation import rotate as run
+    from ..macsec.rotation import select
+    from ..macsec.store import KeyStore, fmt_time, locked
 
     now = _now(now_text)
     p = plan(doc)
@@ -298,8 +279,8 @@ def rotate(
 @handle_errors
 def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any) -> None:
     """Remove generations past their overlap (and only those)."""
-    from .macsec.rotation import retire as run
-    from .macsec.store import KeyStore, locked
+    from ..macsec.rotation import retire as run
+    from ..macsec.store import KeyStore, locked
 
     now = _now(now_text)
     wrapper = _wrapper(passphrase_file, backend)
@@ -318,7 +299,7 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
 
 
 def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
-    from .macsec.export.wpa_supplicant import parse_version
+    from ..macsec.export.wpa_supplicant import parse_version
 
     try:
         version = parse_version(value)
@@ -373,12 +354,12 @@ def export(
     """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
     import os
 
-    from .macsec.export import collect, mesh_keys, render
-    from .macsec.store import KeyStore
-    from .outputs import OutputPlan
+    from ..macsec.export import collect, mesh_keys, render
+    from ..macsec.store import KeyStore
+    from ..outputs import OutputPlan
 
     now = _now(now_text)
-    from .macsec.plan import plan
+    from ..macsec.plan import plan
 
     p = plan(doc)
     store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))

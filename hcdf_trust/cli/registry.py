@@ -12,8 +12,8 @@ from typing import Any
 
 import click
 
-from .cli import emit_json, handle_errors
-from .outputs import OutputPlan
+from ..outputs import OutputPlan
+from . import emit_json, handle_errors
 
 _DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
 _UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
@@ -38,14 +38,14 @@ passphrase_option = click.option(
 
 def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
     """The private keys in the ``--keys`` folders; the passphrase is read when a key is first needed."""
-    from .registry.keys import KeyRing, read_passphrase
+    from ..registry.keys import KeyRing, read_passphrase
 
     return KeyRing(keys, lambda: read_passphrase(passphrase_file))
 
 
 def _commit(plan: OutputPlan, keydir: Path) -> None:
     """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
-    from .registry.keys import prepare_keydir
+    from ..registry.keys import prepare_keydir
 
     created = prepare_keydir(keydir)
     try:
@@ -88,8 +88,8 @@ def registry() -> None:
 @handle_errors
 def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
     """Start a registry source in DIR: fresh root, targets, snapshot and timestamp keys."""
-    from .registry import edit
-    from .registry.keys import read_passphrase
+    from ..registry import edit
+    from ..registry.keys import read_passphrase
 
     plan = OutputPlan()
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
@@ -106,8 +106,8 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
 @handle_errors
 def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
     """Make an owner key: the private half in --keys, the public half in --out."""
-    from .registry import edit
-    from .registry.keys import read_passphrase
+    from ..registry import edit
+    from ..registry.keys import read_passphrase
 
     plan = OutputPlan()
     key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
@@ -183,8 +183,8 @@ def add(
     passphrase_file: str | None,
 ) -> None:
     """Record a domain version (signed by its owner), a stream profile or a core schema."""
-    from .registry import edit
-    from .registry.source import load_source
+    from ..registry import edit
+    from ..registry.source import load_source
 
     chosen = [x for x in (domain, profile, core) if x]
     if len(chosen) != 1:
@@ -249,7 +249,7 @@ def add(
 @handle_errors
 def statement(domain: str, version: str, schema: str, content_dir: str, out: str) -> None:
     """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
-    from .registry import edit
+    from ..registry import edit
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
@@ -278,9 +278,9 @@ def rotate(
     source_dir: str, role: str | None, domain: str | None, keydirs: tuple[str, ...], passphrase_file: str | None
 ) -> None:
     """Replace a top-level role's key or a domain owner's key; `publish` then signs the change."""
-    from .registry import edit
-    from .registry.keys import read_passphrase
-    from .registry.source import load_source
+    from ..registry import edit
+    from ..registry.keys import read_passphrase
+    from ..registry.source import load_source
 
     if (role is None) == (domain is None):
         raise click.UsageError("give exactly one of --role or --domain")
@@ -344,8 +344,8 @@ def publish(
     as_json: bool,
 ) -> None:
     """Write a static TUF repository (consistent snapshots) for DIR into --out."""
-    from .registry.publish import publish as do_publish
-    from .registry.source import load_source
+    from ..registry.publish import publish as do_publish
+    from ..registry.source import load_source
 
     source = load_source(source_dir)
     plan = OutputPlan()
@@ -378,7 +378,7 @@ def publish(
 
 
 def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
-    from .registry.client import RegistryClient
+    from ..registry.client import RegistryClient
 
     return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
 
@@ -425,9 +425,9 @@ def _with_client_options(func: Any) -> Any:
 @handle_errors
 def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, as_json: bool) -> None:
     """Refresh from SITE and check every role and every file it publishes."""
-    from .cli import fail
-    from .registry.client import verify as do_verify
-    from .registry.errors import AttackError
+    from ..registry.client import verify as do_verify
+    from ..registry.errors import AttackError
+    from . import fail
 
     report = do_verify(_client(site, trusted_root, cache_dir, timeout))
     errors = [
@@ -460,8 +460,8 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 @handle_errors
 def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str) -> None:
     """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
-    from .errors import NotFoundError
-    from .registry.client import latest
+    from ..errors import NotFoundError
+    from ..registry.client import latest
 
     if len(what) == 1:
         kind, spec = "domain", what[0]
@@ -500,11 +500,11 @@ def validate_with_registry(
     checks extension domains, versions, content and registered stream-profile digests."""
     import os
 
-    from .include.locate import display_path
-    from .registry.validation import RegistrySchemaSource, check_document
-    from .validate import validate_document
-    from .validate.includes import read_local
-    from .xml import parse_bytes
+    from ..include.locate import display_path
+    from ..registry.validation import RegistrySchemaSource, check_document
+    from ..validate import validate_document
+    from ..validate.includes import read_local
+    from ..xml import parse_bytes
 
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")

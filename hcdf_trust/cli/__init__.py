@@ -16,8 +16,8 @@ from typing import Any
 
 import click
 
-from . import __version__
-from .errors import ErrorGroup, HcdfTrustError
+from .. import __version__
+from ..errors import ErrorGroup, HcdfTrustError
 
 
 def emit_json(payload: dict[str, Any]) -> None:
@@ -59,7 +59,7 @@ def _is_url(text: str) -> bool:
 def _check_url(value: str, ctx: click.Context, *, what: str) -> None:
     """A flag's URL must be https (or http under --allow-http). Credentials are left to
     the library, which refuses them with exit 3; messages show URLs redacted."""
-    from .include.locate import redact
+    from ..include.locate import redact
 
     scheme = value.partition("://")[0].lower()
     if scheme == "https" or (scheme == "http" and ctx.params.get("allow_http")):
@@ -76,7 +76,7 @@ def _check_folder(value: str, *, what: str) -> None:
 
 
 def _mirror(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
-    from .include.locate import redact
+    from ..include.locate import redact
 
     out = []
     for value in values:
@@ -252,9 +252,9 @@ def resolve(
     changed since it was locked fails (exit 1) until accepted with --update.
     With --locked the lock is checked, never written.
     """
-    from .include.locate import display_path
-    from .include.resolver import ResolveOptions
-    from .outputs import OutputPlan, protect_inputs
+    from ..include.locate import display_path
+    from ..include.resolver import ResolveOptions
+    from ..outputs import OutputPlan, protect_inputs
 
     if update and kw["locked"]:
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
@@ -269,7 +269,7 @@ def resolve(
     else:
         plan.add(res.lock_path, res.render_lock(), flag="--lock")
     if out:
-        from .include.flatten import flatten
+        from ..include.flatten import flatten
 
         plan.add(
             out,
@@ -290,7 +290,7 @@ def verify(doc: str, as_json: bool, **kw: Any) -> None:
     Every file must be present locally, in a mirror or in the cache, and match
     both its pin and the lock.
     """
-    from .include.resolver import ResolveOptions
+    from ..include.resolver import ResolveOptions
 
     options = ResolveOptions(locked=True, offline=True, write_cache=False, **kw)
     res = _run_resolve(doc, options, as_json=as_json)
@@ -327,8 +327,8 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     following resolve writes) all together, or nothing. Without --write, nothing is
     written.
     """
-    from .include.pin import pin_tree
-    from .include.resolver import ResolveOptions
+    from ..include.pin import pin_tree
+    from ..include.resolver import ResolveOptions
 
     report = pin_tree(doc, ResolveOptions(**kw), write=write, update=update, update_all=update_all)
     payload = {
@@ -384,10 +384,10 @@ def validate(
 
     Exits 1 if any error was found; every finding is listed, not just the first.
     """
-    from .validate import validate_document
+    from ..validate import validate_document
 
     if registry_site:
-        from .cli_registry import validate_with_registry
+        from .registry import validate_with_registry
 
         report = validate_with_registry(
             doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict
@@ -418,7 +418,7 @@ def validate(
 
 
 def _run_resolve(doc: str, options: Any, *, as_json: bool) -> Any:
-    from .include.resolver import resolve as do_resolve
+    from ..include.resolver import resolve as do_resolve
 
     with _progress(enabled=not as_json) as (on_start, on_progress):
         res = do_resolve(doc, options, on_start=on_start, on_progress=on_progress)
@@ -471,8 +471,8 @@ class _progress:
 
 
 def _payload(res: Any) -> dict[str, Any]:
-    from .document import Kind
-    from .include.resolver import display_url
+    from ..document import Kind
+    from ..include.resolver import display_url
 
     artifacts = []
     for art in sorted(res.artifacts.values(), key=lambda a: a.url):
@@ -549,11 +549,8 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
 
 
 # The verb groups import this module's helpers, so they come last.
-from .cli_macsec import macsec  # noqa: E402
-from .cli_registry import registry  # noqa: E402
+from .macsec import macsec  # noqa: E402
+from .registry import registry  # noqa: E402
 
 main.add_command(macsec)
 main.add_command(registry)
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
