@@ -406,5 +406,9 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
         click.echo(f"wrote {path}", err=True)
 
 
+from .cli_ota import ota  # noqa: E402  (the ota verb group; imports nothing heavy)
+
+main.add_command(ota)
+
 if __name__ == "__main__":  # pragma: no cover
     main()
