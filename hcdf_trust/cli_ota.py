@@ -60,3 +60,133 @@ def _exists(path: Any) -> bool:
     import os
 
     return os.path.lexists(path)
+
+
+@ota.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@click.option("--firmware-dir", required=True, type=click.Path(file_okay=False), help="Where the binaries are.")
+@click.option("--key", "key", required=True, help="Signing key: a PEM file.")
+@click.option("--passphrase-file", type=click.Path(dir_okay=False), help="Passphrase of an encrypted key file.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write.")
+@click.option("--base-url", help="URL prefix of the release folder, for latest.json and the manifest.")
+@click.option("--previous", help="The previous release folder: history, sequence number, security counters.")
+@click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
+@click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
+@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: beside DOC].")
+@click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def build(
+    doc: str,
+    firmware_dir: str,
+    key: str,
+    passphrase_file: str | None,
+    out_dir: str,
+    base_url: str | None,
+    previous: str | None,
+    config: str | None,
+    changelog: str | None,
+    lock_path: str | None,
+    jobs: int,
+    as_json: bool,
+) -> None:
+    """Build a signed release from DOC's verified tree: one MCUboot image per <comp> with
+    <software>, latest.json per device, and one signed SUIT manifest over all of them.
+
+    Nothing is written unless every step succeeds.
+    """
+    from .ota.release import BuildOptions, build_release
+
+    signer, inputs = _signer(key, passphrase_file)
+    options = BuildOptions(
+        firmware_dir=firmware_dir,
+        out_dir=out_dir,
+        signer=signer,
+        inputs=inputs,
+        base_url=base_url,
+        previous=previous,
+        config=config,
+        changelog=changelog,
+        lock_path=lock_path,
+        jobs=jobs,
+    )
+    report = build_release(doc, options)
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "sequence_number": report.release.sequence_number,
+                "lock_sha256": report.release.lock_sha256,
+                "images": [c.to_json() for c in report.release.components],
+                "excluded": report.excluded,
+                "warnings": [n.to_dict() for n in report.notices],
+                "wrote": report.wrote,
+                "errors": [],
+            }
+        )
+        return
+    for n in report.notices:
+        click.echo(f"warning: {n}", err=True)
+    for c in report.release.components:
+        click.echo(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}", err=True)
+    click.echo(
+        f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
+        f"{len(report.wrote)} file(s) written to {out_dir}",
+        err=True,
+    )
+
+
+@ota.command(name="verify")
+@click.argument("release_dir", type=click.Path(file_okay=False))
+@click.option("--key", "key", required=True, type=click.Path(dir_okay=False), help="Public key (PEM).")
+@click.option("--previous", help="The previous release folder: sequence number and counters must not go back.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def verify_cmd(release_dir: str, key: str, previous: str | None, as_json: bool) -> None:
+    """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
+    from .cli import fail
+    from .ota.keys import load_public
+    from .ota.release import MANIFEST_NAME, read_release
+    from .ota.verify import check_release, verify_envelope
+
+    public = load_public(key)
+    release, files = read_release(release_dir, public)
+    before = None
+    if previous is not None:
+        import os
+
+        from .localfile import read_input
+        from .ota.suit import MAX_MANIFEST_BYTES
+
+        path = os.path.join(previous, MANIFEST_NAME)
+        before = verify_envelope(
+            read_input(path, limit=MAX_MANIFEST_BYTES, what="release manifest"), public, source=path
+        )
+    errors = check_release(release, files, public, previous=before)
+    payload = {
+        "sequence_number": release.sequence_number,
+        "lock_sha256": release.lock_sha256,
+        "components": [c.to_json() for c in release.components],
+    }
+    if errors:
+        fail(errors, as_json=as_json, payload=payload)
+    if as_json:
+        emit_json({"ok": True, **payload, "errors": []})
+    else:
+        click.echo(
+            f"release {release.sequence_number}: {len(release.components)} component(s) verified "
+            f"(signatures, digests, latest.json{', rollback' if before else ''})",
+            err=True,
+        )
+
+
+def _signer(key: str, passphrase_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
+    from .ota.keys import load_private, read_passphrase
+    from .ota.signer import FileSigner
+
+    inputs = [(key, "the signing key")]
+    passphrase = None
+    if passphrase_file:
+        inputs.append((passphrase_file, "the passphrase file"))
+        passphrase = read_passphrase(passphrase_file)
+    return FileSigner(load_private(key, passphrase)), tuple(inputs)

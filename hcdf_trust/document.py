@@ -176,3 +176,9 @@ def _reference(el: etree._Element, tag: str) -> Reference | None:
     if tag == "extension":
         return Reference(Kind.EXTENSION, line, domain=el.get("domain"), version=el.get("version"), element=el)
     return None
+
+
+def software_elements(doc: Document) -> list[etree._Element]:
+    """Every ``<software>`` entry outside extension content, in document order (the ota
+    verbs read them whole: name, version, hash, and the enclosing ``<comp>``'s board)."""
+    return [el for el in doc.root.iter("software") if not any(True for _ in el.iterancestors("extension"))]

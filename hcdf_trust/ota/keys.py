@@ -88,9 +88,7 @@ def load_private(path: str | os.PathLike[str], passphrase: bytes | None = None) 
         pk = serialization.load_pem_private_key(data, password=passphrase)
     except TypeError as exc:
         if passphrase is None:
-            raise KeyFileError(
-                "the private key is passphrase-protected: give --passphrase-file", file=shown
-            ) from None
+            raise KeyFileError("the private key is passphrase-protected: give --passphrase-file", file=shown) from None
         raise KeyFileError(f"cannot load the private key: {exc}", file=shown) from None
     except ValueError:
         if b"PUBLIC KEY" in data:
