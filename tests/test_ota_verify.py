@@ -217,3 +217,57 @@ def test_missing_image_is_refused(built, cli):
     (out / "compute" / "scout-os" / "2026.11.bin").unlink()
     r = verify(cli, robot, out)
     assert r.exit_code == 1 and "compute/scout-os: image compute/scout-os/2026.11.bin is missing" in r.stderr
+
+
+def _resign_release(out, robot, change) -> None:
+    """Re-sign the release's manifest with the trusted key after ``change(component)``."""
+    from dataclasses import replace
+
+    from hcdf_trust.ota.keys import load_private
+    from hcdf_trust.ota.release import sign_release
+    from hcdf_trust.ota.signer import FileSigner
+
+    release = verify_envelope((out / "release.suit").read_bytes(), load_public(robot.pub), source="x")
+    comps = tuple(change(c) if c.app == "flex-io" else c for c in release.components)
+    env, _alg, _kid = sign_release(replace(release, components=comps), FileSigner(load_private(robot.key)))
+    (out / "release.suit").write_bytes(env)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        (lambda c: {"size": c.size + 1}, "size differs"),
+        (lambda c: {"uri": "https://fw.example.com/r/other.bin"}, "uri does not name"),
+        (lambda c: {"security_counter": c.security_counter + 1}, "image security_counter differs"),
+        (lambda c: {"mcuboot_hash": "ab" * 32}, "mcuboot_hash differs"),
+    ],
+)
+def test_a_signed_manifest_that_contradicts_its_image_is_refused(built, cli, change, field):
+    from dataclasses import replace
+
+    robot, out = built
+    _resign_release(out, robot, lambda c: replace(c, **change(c)))
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and f"mr_mcxn_t1/flex-io: {field}" in r.stderr
+
+
+def test_an_image_signed_by_another_key_is_refused_under_a_good_manifest(tmp_path, cli):
+    from dataclasses import replace
+
+    robot = make_robot(tmp_path, cli)
+    trusted = robot.key
+    evil = tmp_path / "evil.pem"
+    cli("ota", "keygen", "-o", evil)
+    robot.key = evil
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    # the attacker's manifest is replaced by one the trusted key signed, listing the attacker's image
+    from hcdf_trust.ota.keys import load_private
+    from hcdf_trust.ota.release import sign_release
+    from hcdf_trust.ota.signer import FileSigner
+
+    release = verify_envelope((out / "release.suit").read_bytes(), load_public(tmp_path / "evil.pub.pem"), source="x")
+    env, _a, _k = sign_release(replace(release), FileSigner(load_private(trusted)))
+    (out / "release.suit").write_bytes(env)
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "mr_mcxn_t1/flex-io: MCUboot image does not verify with the key" in r.stderr
