@@ -65,8 +65,15 @@ def _exists(path: Any) -> bool:
 @ota.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @click.option("--firmware-dir", required=True, type=click.Path(file_okay=False), help="Where the binaries are.")
-@click.option("--key", "key", required=True, help="Signing key: a PEM file.")
+@click.option(
+    "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
+)
 @click.option("--passphrase-file", type=click.Path(dir_okay=False), help="Passphrase of an encrypted key file.")
+@click.option(
+    "--pin-file",
+    type=click.Path(dir_okay=False),
+    help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
+)
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write.")
 @click.option("--base-url", help="URL prefix of the release folder, for latest.json and the manifest.")
 @click.option("--previous", help="The previous release folder: history, sequence number, security counters.")
@@ -81,6 +88,7 @@ def build(
     firmware_dir: str,
     key: str,
     passphrase_file: str | None,
+    pin_file: str | None,
     out_dir: str,
     base_url: str | None,
     previous: str | None,
@@ -97,20 +105,26 @@ def build(
     """
     from .ota.release import BuildOptions, build_release
 
-    signer, inputs = _signer(key, passphrase_file)
-    options = BuildOptions(
-        firmware_dir=firmware_dir,
-        out_dir=out_dir,
-        signer=signer,
-        inputs=inputs,
-        base_url=base_url,
-        previous=previous,
-        config=config,
-        changelog=changelog,
-        lock_path=lock_path,
-        jobs=jobs,
-    )
-    report = build_release(doc, options)
+    signer, inputs = _signer(key, passphrase_file, pin_file)
+    try:
+        report = build_release(
+            doc,
+            BuildOptions(
+                firmware_dir=firmware_dir,
+                out_dir=out_dir,
+                signer=signer,
+                inputs=inputs,
+                base_url=base_url,
+                previous=previous,
+                config=config,
+                changelog=changelog,
+                lock_path=lock_path,
+                jobs=jobs,
+            ),
+        )
+    finally:
+        if hasattr(signer, "close"):
+            signer.close()
     if as_json:
         emit_json(
             {
@@ -180,10 +194,16 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, as_json: bool) 
         )
 
 
-def _signer(key: str, passphrase_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
+def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
     from .ota.keys import load_private, read_passphrase
     from .ota.signer import FileSigner
 
+    if key.startswith("pkcs11:"):
+        from .ota.hsm import HsmSigner, parse_uri, read_pin
+
+        uri = parse_uri(key)
+        pin_inputs = ((pin_file, "the PIN file"),) if pin_file else ()
+        return HsmSigner(uri, read_pin(uri, pin_file)), pin_inputs
     inputs = [(key, "the signing key")]
     passphrase = None
     if passphrase_file:
