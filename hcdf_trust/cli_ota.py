@@ -76,7 +76,15 @@ def _exists(path: Any) -> bool:
 )
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write.")
 @click.option("--base-url", help="URL prefix of the release folder, for latest.json and the manifest.")
-@click.option("--previous", help="The previous release folder: history, sequence number, security counters.")
+@click.option(
+    "--previous", help="The previous release (folder or https URL): history, sequence number, security counters."
+)
+@click.option(
+    "--ca-bundle",
+    type=click.Path(dir_okay=False, exists=True),
+    envvar="HCDF_TRUST_CA_BUNDLE",
+    help="PEM CA certificates for an https --previous [env: HCDF_TRUST_CA_BUNDLE].",
+)
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
 @click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: beside DOC].")
@@ -92,6 +100,7 @@ def build(
     out_dir: str,
     base_url: str | None,
     previous: str | None,
+    ca_bundle: str | None,
     config: str | None,
     changelog: str | None,
     lock_path: str | None,
@@ -120,6 +129,7 @@ def build(
                 changelog=changelog,
                 lock_path=lock_path,
                 jobs=jobs,
+                ca_bundle=ca_bundle,
             ),
         )
     finally:
@@ -153,10 +163,18 @@ def build(
 @ota.command(name="verify")
 @click.argument("release_dir", type=click.Path(file_okay=False))
 @click.option("--key", "key", required=True, type=click.Path(dir_okay=False), help="Public key (PEM).")
-@click.option("--previous", help="The previous release folder: sequence number and counters must not go back.")
+@click.option(
+    "--previous", help="The previous release (folder or https URL): sequence number and counters must not go back."
+)
+@click.option(
+    "--ca-bundle",
+    type=click.Path(dir_okay=False, exists=True),
+    envvar="HCDF_TRUST_CA_BUNDLE",
+    help="PEM CA certificates for an https --previous [env: HCDF_TRUST_CA_BUNDLE].",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
-def verify_cmd(release_dir: str, key: str, previous: str | None, as_json: bool) -> None:
+def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str | None, as_json: bool) -> None:
     """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
     from .cli import fail
     from .ota.keys import load_public
@@ -167,15 +185,18 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, as_json: bool) 
     release, files = read_release(release_dir, public)
     before = None
     if previous is not None:
-        import os
-
-        from .localfile import read_input
+        from .ota.errors import MalformedReleaseError
+        from .ota.release import PreviousReader
         from .ota.suit import MAX_MANIFEST_BYTES
 
-        path = os.path.join(previous, MANIFEST_NAME)
-        before = verify_envelope(
-            read_input(path, limit=MAX_MANIFEST_BYTES, what="release manifest"), public, source=path
-        )
+        reader = PreviousReader(previous, ca_bundle=ca_bundle)
+        try:
+            data = reader.read(MANIFEST_NAME, limit=MAX_MANIFEST_BYTES, what="release manifest")
+        finally:
+            reader.close()
+        if data is None:
+            raise MalformedReleaseError("the previous release has no signed manifest", file=reader.name(MANIFEST_NAME))
+        before = verify_envelope(data, public, source=reader.name(MANIFEST_NAME))
     errors = check_release(release, files, public, previous=before)
     payload = {
         "sequence_number": release.sequence_number,

@@ -281,3 +281,29 @@ def test_intel_hex_input(robot, cli, tmp_path):
     _m, _l, hdr, _p, size = struct.unpack_from("<IIHHI", data)
     assert data[hdr : hdr + size] == payload
     shutil.rmtree(out)
+
+
+def test_previous_release_over_https(robot, cli, tmp_path, serve, tls):
+    first = tmp_path / "rel"
+    assert robot.build(cli, first, "--previous", RELEASES).exit_code == 0
+    server = serve("good", root=first)
+    robot.rewrite(cli, flex_version="0.3.0")
+    out = tmp_path / "rel2"
+    url = server.url("/")
+    r = robot.build(cli, out, "--previous", url, "--ca-bundle", tls.ca_pem, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["sequence_number"] == 2
+    after = json.loads((out / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
+    assert [e["version"] for e in after["previous"]] == ["0.2.0", "0.1.0"]
+    r = cli("ota", "verify", out, "--key", robot.pub, "--previous", url, "--ca-bundle", tls.ca_pem)
+    assert r.exit_code == 0, r.stderr
+    r = cli("ota", "verify", first, "--key", robot.pub, "--previous", url, "--ca-bundle", tls.ca_pem)
+    assert r.exit_code == 1 and "sequence-number is not greater" in r.stderr
+    # the fleet's own unsigned folder served over https is a previous too (no release.suit: HTTP 404)
+    corpus = serve("good", root=RELEASES)
+    r = robot.build(cli, tmp_path / "rel3", "--previous", corpus.url("/"), "--ca-bundle", tls.ca_pem, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["sequence_number"] == 1
+    # an untrusted server is an input error, nothing written
+    r = robot.build(cli, tmp_path / "rel4", "--previous", url)
+    assert r.exit_code == 3 and not (tmp_path / "rel4").exists()

@@ -58,6 +58,7 @@ class BuildOptions:
     lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
+    ca_bundle: str | None = None  # for an https --previous
 
 
 @dataclass
@@ -132,7 +133,9 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         raise FirmwareError("no <software> entry to build", file=res.root.source)
 
     # 3. the previous release
-    previous = load_previous(options.previous, options.signer, [(p.board, p.app) for p in todo])
+    previous = load_previous(
+        options.previous, options.signer, [(p.board, p.app) for p in todo], ca_bundle=options.ca_bundle
+    )
 
     # 4. the images
     built = _build_images(todo, options, config)
@@ -383,33 +386,76 @@ def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
     )
 
 
-def load_previous(source: str | None, signer: Signer, wanted: list[tuple[str, str]]) -> PreviousRelease:
-    """The previous release folder: its verified manifest (if any) and each image's latest.json.
+def load_previous(
+    source: str | None, signer: Signer, wanted: list[tuple[str, str]], *, ca_bundle: str | None = None
+) -> PreviousRelease:
+    """The previous release (a folder or an https URL): its manifest, verified with our key,
+    if it has one, and each wanted image's latest.json (the fleet's own format is accepted).
 
     Raises:
         SignatureError / MalformedReleaseError: the previous manifest does not verify with our key.
+        FetchError / InputError: a file that exists cannot be read or fetched.
     """
     from .verify import verify_envelope
 
     if source is None:
         return PreviousRelease(None, {}, "")
-    if "://" in source:
-        raise FirmwareError("--previous as a URL is not supported yet: give a local release folder", actual=source)
-    if not os.path.isdir(source):
-        raise NotFoundError(f"--previous {source} is not a folder", file=source)
-    release = None
-    manifest = os.path.join(source, MANIFEST_NAME)
-    if os.path.lexists(manifest):
-        data = read_input(manifest, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
-        release = verify_envelope(data, signer.public, source=manifest)
-    found = {}
-    for board, app in wanted:
-        path = os.path.join(source, board, app, "latest.json")
-        if os.path.lexists(path):
-            found[(board, app)] = latest_json.parse(
-                read_input(path, limit=MAX_LATEST_BYTES, what="latest.json"), source=path
-            )
+    reader = PreviousReader(source, ca_bundle=ca_bundle)
+    try:
+        release = None
+        data = reader.read(MANIFEST_NAME, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
+        if data is not None:
+            release = verify_envelope(data, signer.public, source=reader.name(MANIFEST_NAME))
+        found = {}
+        for board, app in wanted:
+            rel = f"{board}/{app}/latest.json"
+            data = reader.read(rel, limit=MAX_LATEST_BYTES, what="latest.json")
+            if data is not None:
+                found[(board, app)] = latest_json.parse(data, source=reader.name(rel))
+    finally:
+        reader.close()
     return PreviousRelease(release, found, source)
+
+
+class PreviousReader:
+    """Files of a previous release by relative path: a local folder, or https (absent = HTTP 404)."""
+
+    def __init__(self, source: str, *, ca_bundle: str | None = None) -> None:
+        self.source = source
+        self.fetcher: Any = None
+        if "://" in source:
+            from ..include.fetch import HttpFetcher
+
+            if not source.startswith("https://"):
+                raise FirmwareError("--previous must be a folder or an https:// URL", actual=source)
+            self.fetcher = HttpFetcher(ca_bundle=ca_bundle, max_bytes=suit.MAX_MANIFEST_BYTES)
+        elif not os.path.isdir(source):
+            raise NotFoundError(f"--previous {source} is not a folder", file=source)
+
+    def name(self, rel: str) -> str:
+        return self.source.rstrip("/") + "/" + rel if self.fetcher else os.path.join(self.source, rel)
+
+    def read(self, rel: str, *, limit: int, what: str) -> bytes | None:
+        if self.fetcher is None:
+            path = os.path.join(self.source, rel)
+            return read_input(path, limit=limit, what=what) if os.path.lexists(path) else None
+        from ..errors import FetchError
+
+        url = self.name(rel)
+        try:
+            with self.fetcher.open(url) as chunks:
+                data = b"".join(chunks)
+        except FetchError as exc:
+            if exc.message.endswith(": HTTP 404"):
+                return None
+            raise
+        if len(data) > limit:
+            raise FetchError(f"{what} is over the {limit}-byte limit", url=url)
+        return data
+
+    def close(self) -> None:
+        if self.fetcher is not None:
+            self.fetcher.close()
 
 
 def _sequence(config: OtaConfig, previous: PreviousRelease, errors: list[HcdfTrustError]) -> int:
