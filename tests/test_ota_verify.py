@@ -271,3 +271,12 @@ def test_an_image_signed_by_another_key_is_refused_under_a_good_manifest(tmp_pat
     (out / "release.suit").write_bytes(env)
     r = verify(cli, robot, out)
     assert r.exit_code == 1 and "mr_mcxn_t1/flex-io: MCUboot image does not verify with the key" in r.stderr
+
+
+@pytest.mark.parametrize("kind", ["ed25519", "rsa-2048", "rsa-3072"])
+def test_every_key_type_signs_a_release_that_verifies(tmp_path, cli, kind):
+    robot = make_robot(tmp_path, cli, kind=kind)
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    r = verify(cli, robot, out, "--json")
+    assert r.exit_code == 0, r.stderr

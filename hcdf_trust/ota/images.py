@@ -41,10 +41,11 @@ class SignedImage:
     image_hash: str  # MCUboot image hash (hex): header + payload + protected TLVs
     version: McubootVersion
     security_counter: int | None
+    sha256: str = ""  # of ``data``: computed once, by __post_init__ when not given
 
-    @property
-    def sha256(self) -> str:
-        return hashlib.sha256(self.data).hexdigest()
+    def __post_init__(self) -> None:
+        if not self.sha256:
+            object.__setattr__(self, "sha256", hashlib.sha256(self.data).hexdigest())
 
     @property
     def size(self) -> int:

@@ -145,9 +145,9 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     plan = OutputPlan()
     _protect(plan, res, options, config_path)
     components: list[suit.Component] = []
-    for p, (image, version_name, payload_sha) in zip(todo, built, strict=True):
+    for p, (image, version_name) in zip(todo, built, strict=True):
         is_raw = p.settings.type == "raw"
-        computed = payload_sha if is_raw else image.image_hash
+        computed = image.image_hash  # for a raw image: its file's SHA-256
         for use in p.uses:
             pin = parse_pin(use.hash_text, file=use.file, line=use.hash_line) if use.hash_text else None
             if pin is not None and not pin.matches(computed):
@@ -300,16 +300,16 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     return list(plans.values())
 
 
-def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig) -> list[tuple[SignedImage, str, str]]:
+def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig) -> list[tuple[SignedImage, str]]:
     """Read every binary, then sign them in parallel; results in ``todo`` order."""
     jobs = options.jobs or len(os.sched_getaffinity(0))
     inputs = [_read_firmware(p, options.firmware_dir) for p in todo]
 
-    def one(item: tuple[Planned, tuple[bytes, bool]]) -> tuple[SignedImage, str, str]:
+    def one(item: tuple[Planned, tuple[bytes, bool]]) -> tuple[SignedImage, str]:
         p, (payload, intel_hex) = item
         use = p.first
-        payload_sha = hashlib.sha256(payload).hexdigest()
         if p.settings.type == "raw":
+            payload_sha = hashlib.sha256(payload).hexdigest()
             name = (p.version_text or "").strip()
             if not _SAFE.fullmatch(name):
                 raise FirmwareError(
@@ -318,8 +318,10 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
                     line=use.line,
                     actual=name,
                 )
-            image = SignedImage(data=payload, image_hash=payload_sha, version=_raw_version(), security_counter=None)
-            return image, name, payload_sha
+            image = SignedImage(
+                data=payload, image_hash=payload_sha, version=_raw_version(), security_counter=None, sha256=payload_sha
+            )
+            return image, name
         if p.settings.mcuboot_version is not None:
             version = parse_version(
                 p.settings.mcuboot_version, comp=use.comp, app=p.app, file=config.source, source="mcuboot_version"
@@ -337,11 +339,11 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
             intel_hex=intel_hex,
             comp=use.comp,
         )
-        return image, str(version), payload_sha
+        return image, str(version)
 
     with quiet(), ThreadPoolExecutor(max_workers=max(1, min(jobs, len(todo)))) as pool:
         futures = [pool.submit(one, item) for item in zip(todo, inputs, strict=True)]
-        results: list[tuple[SignedImage, str, str]] = []
+        results: list[tuple[SignedImage, str]] = []
         errors: list[HcdfTrustError] = []
         for f in futures:
             try:
