@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(BIN)/hcdf-trust verify examples/robot/robot.hcdf
 	$(BIN)/hcdf-trust validate examples/out/scout2.flat.hcdf
 	# ota: a demo signing key, the robot's signed release, and its verification
-	$(BIN)/hcdf-trust ota keygen --type ecdsa-p256 -o examples/out/ota-demo-key.pem --force
+	test -f examples/out/ota-demo-key.pem || $(BIN)/hcdf-trust ota keygen --type ecdsa-p256 -o examples/out/ota-demo-key.pem
 	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware \
 		--key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2
 	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem

@@ -307,3 +307,26 @@ def test_previous_release_over_https(robot, cli, tmp_path, serve, tls):
     # an untrusted server is an input error, nothing written
     r = robot.build(cli, tmp_path / "rel4", "--previous", url)
     assert r.exit_code == 3 and not (tmp_path / "rel4").exists()
+
+
+def test_building_into_a_release_folder_keeps_its_history(robot, cli, tmp_path):
+    out = tmp_path / "rel"
+    assert robot.build(cli, out, "--previous", RELEASES).exit_code == 0
+    robot.rewrite(cli, flex_version="0.3.0")
+    r = robot.build(cli, out, "--json")  # no --previous: the folder's own release is the previous one
+    assert r.exit_code == 0, r.stderr
+    assert r.json["sequence_number"] == 2
+    assert any(w["code"] == "previous" for w in r.json["warnings"])
+    after = json.loads((out / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
+    assert [e["version"] for e in after["previous"]] == ["0.2.0", "0.1.0"]
+    assert (out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin").exists()  # the older image stays published
+
+
+def test_an_older_version_than_the_previous_latest_is_refused(robot, cli, tmp_path):
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    before = tree(out)
+    robot.rewrite(cli, flex_version="0.1.9")
+    r = robot.build(cli, out)
+    assert r.exit_code == 1 and "version 0.1.9 is older than the previous release's 0.2.0" in r.stderr
+    assert tree(out) == before

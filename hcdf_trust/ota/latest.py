@@ -13,7 +13,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from .errors import FirmwareError, MalformedReleaseError
+from .errors import FirmwareError, MalformedReleaseError, RollbackError
 
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
@@ -127,6 +127,7 @@ def advance(previous: Latest | None, *, board: str, app: str, new: Entry, source
     Rebuilding the same version with the same image keeps the history as it was.
 
     Raises:
+        RollbackError: ``new`` is an older version than the previous latest.
         FirmwareError: the previous release is for another board/app, or already has
             this version with a different image.
     """
@@ -148,5 +149,22 @@ def advance(previous: Latest | None, *, board: str, app: str, new: Entry, source
                 actual=new.mcuboot_hash,
             )
         return Latest(board, app, new, previous.previous)
+    before, after = _ordered(previous.latest.version), _ordered(new.version)
+    if before is not None and after is not None and after < before:
+        raise RollbackError(
+            f"{board}/{app}: version {new.version} is older than the previous release's {previous.latest.version}",
+            file=source,
+            expected=f"> {previous.latest.version}",
+            actual=new.version,
+        )
     history = (previous.latest, *previous.previous)
     return Latest(board, app, new, tuple(e for e in history if e.version != new.version))
+
+
+def _ordered(version: str) -> tuple[int, ...] | None:
+    """A ``major.minor.revision[+build]`` version as a comparable tuple; None if it is not one."""
+    core, _, build = version.strip().lstrip("vV").partition("+")
+    parts = core.split(".")
+    if not all(p.isdigit() for p in parts) or (build and not build.isdigit()) or len(parts) > 3:
+        return None
+    return (*(int(p) for p in parts), *([0] * (3 - len(parts))), int(build or 0))

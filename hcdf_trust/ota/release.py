@@ -132,10 +132,16 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     if not todo:
         raise FirmwareError("no <software> entry to build", file=res.root.source)
 
-    # 3. the previous release
-    previous = load_previous(
-        options.previous, options.signer, [(p.board, p.app) for p in todo], ca_bundle=options.ca_bundle
-    )
+    # 3. the previous release: --previous, else what --out already holds (history is never lost)
+    source = options.previous
+    if source is None and _holds_release(options.out_dir, todo):
+        source = options.out_dir
+        notices.append(
+            Notice(
+                "previous", f"{options.out_dir} already holds a release: using it as --previous", file=options.out_dir
+            )
+        )
+    previous = load_previous(source, options.signer, [(p.board, p.app) for p in todo], ca_bundle=options.ca_bundle)
 
     # 4. the images
     built = _build_images(todo, options, config)
@@ -458,6 +464,12 @@ class PreviousReader:
     def close(self) -> None:
         if self.fetcher is not None:
             self.fetcher.close()
+
+
+def _holds_release(out_dir: str, todo: list[Planned]) -> bool:
+    if os.path.lexists(os.path.join(out_dir, MANIFEST_NAME)):
+        return True
+    return any(os.path.lexists(os.path.join(out_dir, p.board, p.app, "latest.json")) for p in todo)
 
 
 def _sequence(config: OtaConfig, previous: PreviousRelease, errors: list[HcdfTrustError]) -> int:
