@@ -280,3 +280,25 @@ def test_every_key_type_signs_a_release_that_verifies(tmp_path, cli, kind):
     assert robot.build(cli, out).exit_code == 0
     r = verify(cli, robot, out, "--json")
     assert r.exit_code == 0, r.stderr
+
+
+def test_header_version_must_be_the_listed_version(built, cli):
+    from dataclasses import replace
+
+    robot, out = built
+    folder = out / "mr_mcxn_t1" / "flex-io"
+    (folder / "0.2.0.bin").rename(folder / "0.2.1.bin")
+    _resign_release(out, robot, lambda c: replace(c, version="0.2.1", uri=c.uri.replace("0.2.0", "0.2.1")))
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "mr_mcxn_t1/flex-io: image header version differs" in r.stderr
+
+
+def test_release_files_that_are_symlinks_out_of_the_folder_are_refused(built, cli, tmp_path):
+    robot, out = built
+    outside = tmp_path / "outside.json"
+    latest = out / "mr_mcxn_t1" / "flex-io" / "latest.json"
+    outside.write_bytes(latest.read_bytes())
+    latest.unlink()
+    latest.symlink_to(outside)
+    r = verify(cli, robot, out)
+    assert r.exit_code == 3 and "outside the root" in r.stderr

@@ -547,7 +547,10 @@ def read_release(folder: str, public_key: Any) -> tuple[suit.Release, Any]:
         for app in sorted(os.listdir(board_dir)):
             path = os.path.join(board_dir, app, "latest.json")
             if os.path.lexists(path):
-                found[f"{board}/{app}/latest.json"] = read_input(
-                    path, limit=MAX_LATEST_BYTES, what="latest.json", source=f"{board}/{app}/latest.json"
-                )
+                rel = f"{board}/{app}/latest.json"
+                fd, _ = open_checked(path, folder, file=rel)
+                try:
+                    found[rel] = read_bounded(fd, MAX_LATEST_BYTES, source=rel, what="latest.json")
+                finally:
+                    os.close(fd)
     return release, ReleaseFiles(manifest=data, manifest_source=manifest_path, images=images, latest=found)
