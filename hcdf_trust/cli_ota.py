@@ -87,6 +87,11 @@ def _exists(path: Any) -> bool:
 )
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
+@click.option(
+    "--update-hcdf",
+    is_flag=True,
+    help="Write each image's hash into a <software><hash> that differs (minimal edits; includers and lock follow).",
+)
 @click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: beside DOC].")
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
@@ -103,6 +108,7 @@ def build(
     ca_bundle: str | None,
     config: str | None,
     changelog: str | None,
+    update_hcdf: bool,
     lock_path: str | None,
     jobs: int,
     as_json: bool,
@@ -127,6 +133,7 @@ def build(
                 previous=previous,
                 config=config,
                 changelog=changelog,
+                update_hcdf=update_hcdf,
                 lock_path=lock_path,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
@@ -143,6 +150,7 @@ def build(
                 "lock_sha256": report.release.lock_sha256,
                 "images": [c.to_json() for c in report.release.components],
                 "excluded": report.excluded,
+                "hcdf_changes": report.hcdf_changes,
                 "warnings": [n.to_dict() for n in report.notices],
                 "wrote": report.wrote,
                 "errors": [],
@@ -151,6 +159,8 @@ def build(
         return
     for n in report.notices:
         click.echo(f"warning: {n}", err=True)
+    for ch in report.hcdf_changes:
+        click.echo(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}", err=True)
     for c in report.release.components:
         click.echo(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}", err=True)
     click.echo(

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import stat
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ from . import latest as latest_json
 from . import suit
 from .config import ImageSettings, OtaConfig, load_config
 from .errors import FirmwareError, FirmwareHashError, RollbackError
+from .hcdf_edit import HashEdit, check_unchanged, update_tree
 from .images import SignedImage, quiet, sign_image
 from .signer import ALG_NAMES, COSE_ALGS, Signer, key_id
 from .version import parse_version
@@ -55,6 +57,7 @@ class BuildOptions:
     previous: str | None = None
     config: str | None = None
     changelog: str | None = None
+    update_hcdf: bool = False
     lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
@@ -68,6 +71,8 @@ class Use:
     line: int | None
     hash_text: str | None
     hash_line: int | None
+    doc_url: str = ""
+    hash_element: Any = None
 
 
 @dataclass
@@ -89,6 +94,7 @@ class BuildReport:
     notices: list[Notice]
     wrote: list[str]
     excluded: list[str]
+    hcdf_changes: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -148,15 +154,21 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     errors: list[HcdfTrustError] = []
     base_url = options.base_url if options.base_url is not None else config.base_url
     date = options.date or _now()
-    plan = OutputPlan()
-    _protect(plan, res, options, config_path)
+    outputs: list[tuple[Path, bytes]] = []
+    hash_edits: list[HashEdit] = []
+    changes: list[dict[str, Any]] = []
     components: list[suit.Component] = []
     for p, (image, version_name) in zip(todo, built, strict=True):
         is_raw = p.settings.type == "raw"
         computed = image.image_hash  # for a raw image: its file's SHA-256
         for use in p.uses:
             pin = parse_pin(use.hash_text, file=use.file, line=use.hash_line) if use.hash_text else None
-            if pin is not None and not pin.matches(computed):
+            if pin is not None and not pin.matches(computed) and options.update_hcdf:
+                hash_edits.append(HashEdit(use.doc_url, use.hash_element, use.hash_text or "", computed))
+                changes.append(
+                    {"file": use.file, "line": use.hash_line, "comp": use.comp, "old": use.hash_text, "new": computed}
+                )
+            elif pin is not None and not pin.matches(computed):
                 errors.append(
                     FirmwareHashError(
                         f"comp {use.comp!r}: <software name={p.app!r}><hash> is not the "
@@ -185,7 +197,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
             )
         rel = f"{p.board}/{p.app}/{version_name}.bin"
         url = _join(base_url, rel)
-        plan.add(Path(options.out_dir, rel), image.data, flag="--out")
+        outputs.append((Path(options.out_dir, rel), image.data))
         components.append(
             suit.Component(
                 board=p.board,
@@ -216,17 +228,35 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
             except HcdfTrustError as exc:
                 errors.append(exc)
                 continue
-            plan.add(Path(options.out_dir, p.board, p.app, "latest.json"), latest_json.render(doc), flag="--out")
+            outputs.append((Path(options.out_dir, p.board, p.app, "latest.json"), latest_json.render(doc)))
     sequence = _sequence(config, previous, errors)
+    edited: dict[str, bytes] = {}
+    root_data = res.root.data
+    if hash_edits and not errors:
+        result = update_tree(res, hash_edits)
+        errors += check_unchanged(res, list(result.documents))
+        edited = result.documents
+        lock_data = result.lock
+        lock_sha = hashlib.sha256(lock_data).hexdigest()
+        root_data = edited.get(res.root_location.url, root_data)
     if errors:
         raise ErrorGroup(errors)
+    plan = OutputPlan()
+    _protect(plan, res, options, config_path, edited=set(edited))
+    for path, data in outputs:
+        plan.add(path, data, flag="--out")
+    for url, data in edited.items():
+        local = unquote(urlsplit(url).path)
+        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+    if edited:
+        plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
     # 5. the manifest, then everything at once
     release = suit.Release(
         sequence_number=sequence,
         lock_sha256=lock_sha,
         root=os.path.basename(res.root.source),
-        root_sha256=hashlib.sha256(res.root.data).hexdigest(),
+        root_sha256=hashlib.sha256(root_data).hexdigest(),
         components=tuple(components),
     )
     env, alg, kid = sign_release(release, options.signer)
@@ -240,7 +270,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         flag="--out",
     )
     wrote = [str(p) for p in plan.commit()]
-    return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded)
+    return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
 
 
 def sign_release(release: suit.Release, signer: Signer) -> tuple[bytes, int, bytes]:
@@ -263,7 +293,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
         if ref.kind is Kind.FIRMWARE and ref.element is not None:
             hashes[ref.element.getparent()] = ref
     plans: dict[tuple[str, str], Planned] = {}
-    for doc in res.documents.values():
+    for doc_url, doc in res.documents.items():
         for sw in software_elements(doc):
             line = sourceline(sw)
             comp = sw.getparent()
@@ -288,7 +318,15 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
                     )
             version = sw.findtext("version")
             ref = hashes.get(sw)
-            use = Use(comp_name, doc.source, line, ref.sha if ref else None, ref.line if ref else None)
+            use = Use(
+                comp_name,
+                doc.source,
+                line,
+                ref.sha if ref else None,
+                ref.line if ref else None,
+                doc_url,
+                ref.element if ref else None,
+            )
             key = (board, app)
             if key in plans:
                 other = plans[key]
@@ -488,14 +526,15 @@ def _sequence(config: OtaConfig, previous: PreviousRelease, errors: list[HcdfTru
     return 1 if before is None else before + 1
 
 
-def _protect(plan: OutputPlan, res: Any, options: BuildOptions, config_path: str | None) -> None:
+def _protect(plan: OutputPlan, res: Any, options: BuildOptions, config_path: str | None, *, edited: set[str]) -> None:
     for url in res.documents:
-        if url.startswith("file://"):
+        if url.startswith("file://") and url not in edited:
             plan.protect(unquote(urlsplit(url).path), what="a document of the HCDF tree")
     for art in res.artifacts.values():
-        if art.location.path is not None:
+        if art.location.path is not None and art.url not in edited:
             plan.protect(art.location.path, what="a verified artifact")
-    plan.protect(res.lock_path, what="the lock file")
+    if not edited:
+        plan.protect(res.lock_path, what="the lock file")
     plan.protect_tree(options.firmware_dir, what="the firmware folder")
     if config_path:
         plan.protect(config_path, what="ota.toml")
