@@ -5,6 +5,7 @@ imgtool, cbor2 and the COSE library are imported inside the commands only.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import click
@@ -42,7 +43,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
         passphrase = read_passphrase(passphrase_file)
     if not force:
         for path in (out, pub):
-            if _exists(path):
+            if os.path.lexists(path):
                 raise KeyFileError("exists: refusing to replace a key (use --force)", file=str(path))
     key = generate(kind)
     plan.add(out, private_pem(key, passphrase), flag="--out", mode=0o600)
@@ -54,12 +55,6 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     else:
         click.echo(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)", err=True)
         click.echo(f"wrote {pub}", err=True)
-
-
-def _exists(path: Any) -> bool:
-    import os
-
-    return os.path.lexists(path)
 
 
 @ota.command()
@@ -188,25 +183,12 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str 
     """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
     from .cli import fail
     from .ota.keys import load_public
-    from .ota.release import MANIFEST_NAME, read_release
-    from .ota.verify import check_release, verify_envelope
+    from .ota.release import previous_manifest, read_release
+    from .ota.verify import check_release
 
     public = load_public(key)
     release, files = read_release(release_dir, public)
-    before = None
-    if previous is not None:
-        from .ota.errors import MalformedReleaseError
-        from .ota.release import PreviousReader
-        from .ota.suit import MAX_MANIFEST_BYTES
-
-        reader = PreviousReader(previous, ca_bundle=ca_bundle)
-        try:
-            data = reader.read(MANIFEST_NAME, limit=MAX_MANIFEST_BYTES, what="release manifest")
-        finally:
-            reader.close()
-        if data is None:
-            raise MalformedReleaseError("the previous release has no signed manifest", file=reader.name(MANIFEST_NAME))
-        before = verify_envelope(data, public, source=reader.name(MANIFEST_NAME))
+    before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
     errors = check_release(release, files, public, previous=before)
     payload = {
         "sequence_number": release.sequence_number,

@@ -38,7 +38,7 @@ from .errors import FirmwareError, FirmwareHashError, RollbackError
 from .hcdf_edit import HashEdit, check_unchanged, update_tree
 from .images import SignedImage, quiet, sign_image
 from .signer import ALG_NAMES, COSE_ALGS, Signer, key_id
-from .version import parse_version
+from .version import McubootVersion, parse_version
 
 MAX_FIRMWARE_BYTES = 256 << 20
 MAX_LATEST_BYTES = 4 << 20
@@ -363,7 +363,11 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
                     actual=name,
                 )
             image = SignedImage(
-                data=payload, image_hash=payload_sha, version=_raw_version(), security_counter=None, sha256=payload_sha
+                data=payload,
+                image_hash=payload_sha,
+                version=McubootVersion(0, 0, 0),
+                security_counter=None,
+                sha256=payload_sha,
             )
             return image, name
         if p.settings.mcuboot_version is not None:
@@ -397,12 +401,6 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
     if errors:
         raise ErrorGroup(errors)
     return results
-
-
-def _raw_version() -> Any:
-    from .version import McubootVersion
-
-    return McubootVersion(0, 0, 0)
 
 
 def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
@@ -461,6 +459,25 @@ def load_previous(
     finally:
         reader.close()
     return PreviousRelease(release, found, source)
+
+
+def previous_manifest(source: str, public_key: Any, *, ca_bundle: str | None = None) -> suit.Release:
+    """The verified manifest of a previous release (folder or https URL), for ``ota verify``.
+
+    Raises:
+        MalformedReleaseError: it has none. SignatureError etc.: see :func:`.verify.verify_envelope`.
+    """
+    from .errors import MalformedReleaseError
+    from .verify import verify_envelope
+
+    reader = PreviousReader(source, ca_bundle=ca_bundle)
+    try:
+        data = reader.read(MANIFEST_NAME, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
+    finally:
+        reader.close()
+    if data is None:
+        raise MalformedReleaseError("the previous release has no signed manifest", file=reader.name(MANIFEST_NAME))
+    return verify_envelope(data, public_key, source=reader.name(MANIFEST_NAME))
 
 
 class PreviousReader:
