@@ -330,3 +330,30 @@ def test_an_older_version_than_the_previous_latest_is_refused(robot, cli, tmp_pa
     r = robot.build(cli, out)
     assert r.exit_code == 1 and "version 0.1.9 is older than the previous release's 0.2.0" in r.stderr
     assert tree(out) == before
+
+
+def test_hostile_inputs_are_refused_without_hanging(robot, cli, tmp_path):
+    import os
+
+    out = tmp_path / "rel"
+    # a firmware "binary" that is a FIFO, then a symlink out of the firmware folder
+    flex = robot.fw / "mr_mcxn_t1" / "flex-io.bin"
+    flex.unlink()
+    os.mkfifo(flex)
+    r = robot.build(cli, out)
+    assert r.exit_code == 3 and "FIFO" in r.stderr
+    flex.unlink()
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(b"not firmware")
+    flex.symlink_to(secret)
+    r = robot.build(cli, out)
+    assert r.exit_code == 3 and "outside the root" in r.stderr
+    flex.unlink()
+    flex.write_bytes(b"\x00" * 100)
+    # ota.toml as a FIFO
+    toml = robot.root / "ota.toml"
+    toml.unlink()
+    os.mkfifo(toml)
+    r = robot.build(cli, out)
+    assert r.exit_code == 3 and "FIFO" in r.stderr
+    assert not out.exists()

@@ -10,11 +10,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cbor2
 import pkcs11
 import pytest
 from cryptography.hazmat.primitives import serialization
 from pkcs11 import Attribute, KeyType
 from pkcs11.util.ec import encode_ec_public_key, encode_named_curve_parameters
+from pycose.keys import CoseKey
+from pycose.messages import CoseMessage
 
 from hcdf_trust.ota.hsm import DEFAULT_MODULES
 from tests._ota import make_robot, tree
@@ -87,6 +90,12 @@ def test_images_and_manifest_signed_in_the_token_verify(tmp_path, cli, token, ki
         assert proc.returncode == 0 and "correctly validated" in proc.stdout, proc.stdout + proc.stderr
     r = cli("ota", "verify", out, "--key", robot.pub)
     assert r.exit_code == 0, r.stderr
+    # the token-made COSE_Sign1 verifies with pycose too (a second, independent implementation)
+    auth = cbor2.loads(cbor2.loads((out / "release.suit").read_bytes()).value[2])
+    msg = CoseMessage.decode(auth[1])
+    msg.payload = auth[0]
+    msg.key = CoseKey.from_pem_public_key(robot.pub.read_text())
+    assert msg.verify_signature() is True
 
 
 def test_pin_from_the_environment(tmp_path, cli, token, monkeypatch):
