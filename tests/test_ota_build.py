@@ -357,3 +357,38 @@ def test_hostile_inputs_are_refused_without_hanging(robot, cli, tmp_path):
     r = robot.build(cli, out)
     assert r.exit_code == 3 and "FIFO" in r.stderr
     assert not out.exists()
+
+
+def test_two_comps_of_one_board_and_app_share_one_image_but_not_two_versions(robot, cli, tmp_path):
+    text = robot.doc.read_text()
+    twin = (
+        '  <comp name="main2">\n    <board>mr_mcxn_t1</board>\n'
+        '    <software name="flex-io"><version>{v}</version></software>\n  </comp>\n</hcdf>'
+    )
+    robot.doc.write_text(text.replace("</hcdf>", twin.format(v="v0.2.0")))
+    assert cli("resolve", robot.doc).exit_code == 0
+    r = robot.build(cli, tmp_path / "rel", "--json")
+    assert r.exit_code == 0, r.stderr
+    flex = next(i for i in r.json["images"] if i["component_id"] == ["mr_mcxn_t1", "flex-io"])
+    assert flex["comps"] == ["main", "main2"]
+    robot.doc.write_text(text.replace("</hcdf>", twin.format(v="0.3.0")))
+    assert cli("resolve", robot.doc).exit_code == 0
+    r = robot.build(cli, tmp_path / "rel2")
+    assert r.exit_code == 3 and "comps 'main' and 'main2' run mr_mcxn_t1/flex-io at different versions" in r.stderr
+
+
+def test_a_raw_image_hash_is_its_file_sha256(robot, cli, tmp_path):
+    text = robot.doc.read_text()
+    raw_sha = hashlib.sha256((robot.fw / "scout-os.bin").read_bytes()).hexdigest()
+    robot.doc.write_text(
+        text.replace("<version>2026.11</version>", f"<version>2026.11</version><hash>{'0' * 64}</hash>")
+    )
+    assert cli("resolve", robot.doc).exit_code == 0
+    r = robot.build(cli, tmp_path / "rel")
+    assert r.exit_code == 1 and "comp 'compute'" in r.stderr and "SHA-256 of the raw image" in r.stderr
+    assert f"actual:   {raw_sha}" in r.stderr
+    robot.doc.write_text(
+        text.replace("<version>2026.11</version>", f"<version>2026.11</version><hash>{raw_sha}</hash>")
+    )
+    assert cli("resolve", robot.doc).exit_code == 0
+    assert robot.build(cli, tmp_path / "rel").exit_code == 0
