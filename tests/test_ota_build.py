@@ -392,3 +392,32 @@ def test_a_raw_image_hash_is_its_file_sha256(robot, cli, tmp_path):
     )
     assert cli("resolve", robot.doc).exit_code == 0
     assert robot.build(cli, tmp_path / "rel").exit_code == 0
+
+
+def test_a_build_interrupted_after_some_images_leaves_the_release_folder_untouched(robot, cli, tmp_path, monkeypatch):
+    """Ctrl-C (KeyboardInterrupt) while the second image is being signed: nothing is written."""
+    from hcdf_trust.ota import release as release_mod
+    from hcdf_trust.ota.keys import load_private
+    from hcdf_trust.ota.signer import FileSigner
+
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    before = tree(out)
+    robot.rewrite(cli, flex_version="0.3.0")
+    signed = []
+    real = release_mod.sign_image
+
+    def interrupted(*args, **kw):
+        if signed:
+            raise KeyboardInterrupt
+        signed.append(real(*args, **kw))
+        return signed[-1]
+
+    monkeypatch.setattr(release_mod, "sign_image", interrupted)
+    options = release_mod.BuildOptions(
+        firmware_dir=str(robot.fw), out_dir=str(out), signer=FileSigner(load_private(robot.key)), jobs=1
+    )
+    with pytest.raises(KeyboardInterrupt):
+        release_mod.build_release(str(robot.doc), options)
+    assert len(signed) == 1
+    assert tree(out) == before
