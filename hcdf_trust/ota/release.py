@@ -345,12 +345,11 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
 
 
 def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig) -> list[tuple[SignedImage, str]]:
-    """Read every binary, then sign them in parallel; results in ``todo`` order."""
+    """Read and sign every binary in parallel; results in ``todo`` order, errors all collected."""
     jobs = options.jobs or len(os.sched_getaffinity(0))
-    inputs = [_read_firmware(p, options.firmware_dir) for p in todo]
 
-    def one(item: tuple[Planned, tuple[bytes, bool]]) -> tuple[SignedImage, str]:
-        p, (payload, intel_hex) = item
+    def one(p: Planned) -> tuple[SignedImage, str]:
+        payload, intel_hex = _read_firmware(p, options.firmware_dir)
         use = p.first
         if p.settings.type == "raw":
             payload_sha = hashlib.sha256(payload).hexdigest()
@@ -390,7 +389,7 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
         return image, str(version)
 
     with quiet(), ThreadPoolExecutor(max_workers=max(1, min(jobs, len(todo)))) as pool:
-        futures = [pool.submit(one, item) for item in zip(todo, inputs, strict=True)]
+        futures = [pool.submit(one, p) for p in todo]
         results: list[tuple[SignedImage, str]] = []
         errors: list[HcdfTrustError] = []
         for f in futures:
