@@ -135,8 +135,7 @@ def build(
             ),
         )
     finally:
-        if hasattr(signer, "close"):
-            signer.close()
+        signer.close()
     if as_json:
         emit_json(
             {

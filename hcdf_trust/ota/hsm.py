@@ -142,7 +142,7 @@ class HsmSigner:
         self._lock = threading.Lock()
         from cryptography.hazmat.primitives.serialization import load_der_public_key
 
-        from .keys import _wrap
+        from .keys import wrap_key
 
         if public.key_type == KeyType.EC:
             from pkcs11.util.ec import encode_ec_public_key
@@ -155,7 +155,7 @@ class HsmSigner:
         else:
             self.session.close()
             raise KeyFileError(f"unsupported key type in the token: {public.key_type!r} (use ecdsa-p256 or ed25519)")
-        self.public = _wrap(load_der_public_key(spki), "pkcs11 key")
+        self.public = wrap_key(load_der_public_key(spki), "pkcs11 key")
         from .keys import key_type
 
         self.kind = key_type(self.public)

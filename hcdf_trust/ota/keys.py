@@ -98,7 +98,7 @@ def load_private(path: str | os.PathLike[str], passphrase: bytes | None = None) 
         raise KeyFileError("not a PEM private key", file=shown) from None
     except Exception as exc:  # cryptography's unsupported-algorithm and friends
         raise KeyFileError(f"cannot load the private key: {exc}", file=shown) from None
-    return _wrap(pk, shown)
+    return wrap_key(pk, shown)
 
 
 def load_public(path: str | os.PathLike[str]) -> Any:
@@ -119,10 +119,15 @@ def load_public(path: str | os.PathLike[str]) -> Any:
         raise KeyFileError("give the public key (KEY.pub.pem), not the private key", file=shown) from None
     except Exception as exc:
         raise KeyFileError(f"cannot load the public key: {exc}", file=shown) from None
-    return _wrap(pk, shown)
+    return wrap_key(pk, shown)
 
 
-def _wrap(pk: Any, shown: str) -> Any:
+def wrap_key(pk: Any, shown: str) -> Any:
+    """The imgtool key class around a ``cryptography`` key (P-256, Ed25519, RSA-2048/3072).
+
+    Raises:
+        KeyFileError: another curve, size or type.
+    """
     from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
     from imgtool import keys
 

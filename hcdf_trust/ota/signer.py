@@ -32,6 +32,8 @@ class Signer(Protocol):
         """The COSE signature bytes over Sig_structure(protected, payload)."""
         ...
 
+    def close(self) -> None: ...
+
 
 def key_id(public: Any) -> bytes:
     """SHA-256 of the DER SubjectPublicKeyInfo: also MCUboot's KEYHASH TLV."""
@@ -50,6 +52,9 @@ class FileSigner:
 
     def create(self, img: Any, **kw: Any) -> None:
         img.create(self.key, "hash", None, **kw)
+
+    def close(self) -> None:
+        """Nothing to release (a token signer closes its session)."""
 
     def sign_cose(self, protected: bytes, payload: bytes) -> bytes:
         """RFC 9052 §4.4 over the Sig_structure, with the key's algorithm (cwt verifies it).
