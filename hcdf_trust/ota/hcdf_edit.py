@@ -129,12 +129,18 @@ def update_tree(res: Any, edits: list[HashEdit]) -> EditResult:
         new_bytes[url] = data
     base = res.lock_path.parent
     entries = []
+    changed = {lock_url(url, base): data for url, data in new_bytes.items()}
     for entry in res.lock_entries():
-        for url, data in new_bytes.items():
-            if lock_url(url, base) == entry.url:
-                from dataclasses import replace
-
-                entry = replace(entry, sha256=hashlib.sha256(data).hexdigest(), size=len(data))
+        data = changed.get(entry.url)
+        if data is not None:
+            entry = lockfile.LockEntry(
+                kind=entry.kind,
+                uri=entry.uri,
+                url=entry.url,
+                sha256=hashlib.sha256(data).hexdigest(),
+                size=len(data),
+                referenced_from=entry.referenced_from,
+            )
         entries.append(entry)
     lock = lockfile.render(entries, root=lock_url(res.root_location.url, base))
     return EditResult(documents=new_bytes, lock=lock)
