@@ -5,14 +5,33 @@ imgtool, cbor2 and the COSE library are imported inside the commands only.
 
 from __future__ import annotations
 
+import functools
 import os
+from collections.abc import Callable
 from typing import Any
 
 import click
 
-from .cli import emit_json, handle_errors
-
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
+
+
+def handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
+    """:func:`hcdf_trust.cli.handle_errors`, imported when a command runs: ``cli`` imports this
+    module at its end, so importing ``cli`` here would be circular under ``python -m hcdf_trust.cli``."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from .cli import handle_errors as handle
+
+        return handle(func)(*args, **kwargs)
+
+    return wrapper
+
+
+def emit_json(payload: dict[str, Any]) -> None:
+    from .cli import emit_json as emit
+
+    emit(payload)
 
 
 @click.group()

@@ -77,3 +77,19 @@ def test_a_public_key_is_not_a_signing_key(cli, tmp_path):
         load_private(tmp_path / "fw.pub.pem")
     with pytest.raises(KeyFileError, match="not the private key"):
         load_public(out)
+
+
+def test_the_ota_group_loads_under_python_dash_m(tmp_path):
+    """``python -m hcdf_trust.cli`` runs cli.py as __main__: the ota module must not import it back."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "hcdf_trust.cli", "ota", "--help"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "keygen" in proc.stdout and "build" in proc.stdout and "verify" in proc.stdout
+    proc = subprocess.run(
+        [sys.executable, "-m", "hcdf_trust.cli", "ota", "keygen", "-o", tmp_path / "k.pem", "--json"],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0, proc.stderr
