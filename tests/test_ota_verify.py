@@ -302,3 +302,13 @@ def test_release_files_that_are_symlinks_out_of_the_folder_are_refused(built, cl
     latest.symlink_to(outside)
     r = verify(cli, robot, out)
     assert r.exit_code == 3 and "outside the root" in r.stderr
+
+
+def test_the_unsigned_json_rendering_must_say_what_the_manifest_says(built, cli):
+    robot, out = built
+    path = out / "release.suit.json"
+    doc = json.loads(path.read_text())
+    doc["components"][0]["mcuboot_hash"] = "ab" * 32
+    path.write_text(json.dumps(doc))
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "release.suit.json: components differs from the signed manifest" in r.stderr

@@ -608,4 +608,14 @@ def read_release(folder: str, public_key: Any) -> tuple[suit.Release, Any]:
                     found[rel] = read_bounded(fd, MAX_LATEST_BYTES, source=rel, what="latest.json")
                 finally:
                     os.close(fd)
-    return release, ReleaseFiles(manifest=data, manifest_source=manifest_path, images=images, latest=found)
+    rendering = None
+    json_path = os.path.join(folder, MANIFEST_JSON_NAME)
+    if os.path.lexists(json_path):
+        fd, _ = open_checked(json_path, folder, file=MANIFEST_JSON_NAME)
+        try:
+            rendering = read_bounded(fd, suit.MAX_MANIFEST_BYTES, source=MANIFEST_JSON_NAME, what="release.suit.json")
+        finally:
+            os.close(fd)
+    return release, ReleaseFiles(
+        manifest=data, manifest_source=manifest_path, images=images, latest=found, rendering=rendering
+    )

@@ -42,6 +42,7 @@ class ReleaseFiles:
     manifest_source: str
     images: dict[str, bytes | None] = field(default_factory=dict)  # relative path -> bytes (None: missing)
     latest: dict[str, bytes] = field(default_factory=dict)  # "board/app/latest.json" -> bytes
+    rendering: bytes | None = None  # release.suit.json, the unsigned rendering for people
 
 
 def image_path(c: suit.Component) -> str:
@@ -116,8 +117,36 @@ def check_release(
         errors += _check_latest(comp, data, rel)
     for rel in sorted(set(listed) - set(files.latest)):
         errors.append(ReleaseIntegrityError(f"{listed[rel].name}: latest.json is missing", file=rel))
+    if files.rendering is not None:
+        errors += _check_rendering(release, files.rendering)
     if previous is not None:
         errors += check_rollback(release, previous, source=files.manifest_source)
+    return errors
+
+
+def _check_rendering(release: suit.Release, data: bytes) -> list[HcdfTrustError]:
+    """The unsigned ``release.suit.json`` says what the signed manifest says (people read it)."""
+    import json
+
+    name = "release.suit.json"
+    try:
+        doc = json.loads(data)
+    except (ValueError, RecursionError) as exc:
+        return [MalformedReleaseError(f"{name} is not JSON: {exc}", file=name)]
+    want = suit.to_json(release, alg="", kid="")
+    if not isinstance(doc, dict):
+        return [MalformedReleaseError(f"{name} is not an object", file=name)]
+    errors: list[HcdfTrustError] = []
+    for key in ("sequence_number", "hcdf", "components"):
+        if doc.get(key) != want[key]:
+            errors.append(
+                ReleaseIntegrityError(
+                    f"{name}: {key} differs from the signed manifest",
+                    file=name,
+                    expected=json.dumps(want[key])[:200],
+                    actual=json.dumps(doc.get(key))[:200],
+                )
+            )
     return errors
 
 
