@@ -421,3 +421,15 @@ def test_a_build_interrupted_after_some_images_leaves_the_release_folder_untouch
         release_mod.build_release(str(robot.doc), options)
     assert len(signed) == 1
     assert tree(out) == before
+
+
+def test_same_inputs_give_a_byte_identical_release(tmp_path, cli, monkeypatch):
+    """Ed25519 signatures are deterministic and SOURCE_DATE_EPOCH fixes the date: nothing else varies."""
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1767225600")
+    robot = make_robot(tmp_path, cli, kind="ed25519")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert robot.build(cli, a, "-j", "1").exit_code == 0
+    assert robot.build(cli, b).exit_code == 0
+    assert tree(a) == tree(b)
+    latest = json.loads((a / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
+    assert latest["latest"]["date"] == "2026-01-01T00:00:00Z"
