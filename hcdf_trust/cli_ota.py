@@ -107,6 +107,12 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     help="Write each image's hash into a <software><hash> that differs (minimal edits; includers and lock follow).",
 )
 @click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: beside DOC].")
+@click.option(
+    "--online", is_flag=True, help="Fetch remote references the cache lacks (still checked against the lock)."
+)
+@click.option(
+    "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
+)
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
@@ -124,6 +130,8 @@ def build(
     changelog: str | None,
     update_hcdf: bool,
     lock_path: str | None,
+    online: bool,
+    cache_dir: str | None,
     jobs: int,
     as_json: bool,
 ) -> None:
@@ -151,6 +159,8 @@ def build(
                 lock_path=lock_path,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
+                online=online,
+                cache_dir=cache_dir,
             ),
         )
     finally:

@@ -433,3 +433,22 @@ def test_same_inputs_give_a_byte_identical_release(tmp_path, cli, monkeypatch):
     assert tree(a) == tree(b)
     latest = json.loads((a / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
     assert latest["latest"]["date"] == "2026-01-01T00:00:00Z"
+
+
+def test_a_remote_reference_is_fetched_only_under_online(robot, cli, tmp_path, https_server, tls):
+    model = b"remote glTF model"
+    url = https_server.add("/m.glb", model)
+    text = robot.doc.read_text()
+    robot.doc.write_text(
+        text.replace("</hcdf>", f'  <comp name="extra"><visual><model uri="{url}"/></visual></comp>\n</hcdf>')
+    )
+    assert cli("resolve", robot.doc, "--ca-bundle", tls.ca_pem, "--cache-dir", tmp_path / "c1").exit_code == 0
+    out = tmp_path / "rel"
+    r = robot.build(cli, out, "--cache-dir", tmp_path / "c2")
+    assert r.exit_code == 3 and "forbids the network" in r.stderr
+    assert not out.exists()
+    r = robot.build(cli, out, "--cache-dir", tmp_path / "c2", "--online", "--ca-bundle", tls.ca_pem)
+    assert r.exit_code == 0, r.stderr
+    https_server.add("/m.glb", b"swapped on the server")
+    r = robot.build(cli, tmp_path / "rel2", "--cache-dir", tmp_path / "c3", "--online", "--ca-bundle", tls.ca_pem)
+    assert r.exit_code == 1 and not (tmp_path / "rel2").exists()

@@ -15,6 +15,7 @@ The steps, in order (any error stops the build before anything is written):
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import stat
@@ -61,7 +62,9 @@ class BuildOptions:
     lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
-    ca_bundle: str | None = None  # for an https --previous
+    ca_bundle: str | None = None  # for https: --previous, and the tree under --online
+    online: bool = False  # resolve the tree with the network (still under its lock)
+    cache_dir: str | None = None
 
 
 @dataclass
@@ -113,8 +116,18 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     """
     from ..include.resolver import ResolveOptions, resolve
 
-    # 1. a verified description
-    res = resolve(doc_path, ResolveOptions(locked=True, offline=True, write_cache=False, lock_path=options.lock_path))
+    # 1. a verified description: the tree under its lock (offline unless --online)
+    res = resolve(
+        doc_path,
+        ResolveOptions(
+            locked=True,
+            offline=not options.online,
+            write_cache=options.online,
+            lock_path=options.lock_path,
+            cache_dir=options.cache_dir,
+            ca_bundle=options.ca_bundle,
+        ),
+    )
     if not res.ok:
         raise ErrorGroup(res.errors)
     lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
@@ -261,8 +274,6 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     )
     env, alg, kid = sign_release(release, options.signer)
     plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
-    import json
-
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
     plan.add(
         Path(options.out_dir, MANIFEST_JSON_NAME),
