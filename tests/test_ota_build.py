@@ -452,3 +452,55 @@ def test_a_remote_reference_is_fetched_only_under_online(robot, cli, tmp_path, h
     https_server.add("/m.glb", b"swapped on the server")
     r = robot.build(cli, tmp_path / "rel2", "--cache-dir", tmp_path / "c3", "--online", "--ca-bundle", tls.ca_pem)
     assert r.exit_code == 1 and not (tmp_path / "rel2").exists()
+
+
+def test_the_same_version_with_another_image_is_refused(robot, cli, tmp_path):
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    assert robot.build(cli, out).exit_code == 0  # the same image again: fine, history unchanged
+    (robot.fw / "mr_mcxn_t1" / "flex-io.bin").write_bytes(b"other firmware, same version")
+    r = robot.build(cli, out)
+    assert r.exit_code == 3 and "version 0.2.0 was already released with another image: bump the version" in r.stderr
+
+
+def test_a_previous_latest_json_of_another_device_is_refused(robot, cli, tmp_path):
+    prev = tmp_path / "prev"
+    shutil.copytree(RELEASES, prev)
+    doc = json.loads((prev / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
+    doc["app"] = "optical-flow"
+    (prev / "mr_mcxn_t1" / "flex-io" / "latest.json").write_text(json.dumps(doc))
+    r = robot.build(cli, tmp_path / "rel", "--previous", prev)
+    assert r.exit_code == 3 and "the previous latest.json is for mr_mcxn_t1/optical-flow" in r.stderr
+
+
+@pytest.mark.parametrize("board", ["../evil", ".", "a/b", "-x"])
+def test_a_board_that_cannot_name_a_folder_is_refused(robot, cli, tmp_path, board):
+    robot.doc.write_text(robot.doc.read_text().replace("<board>mr_mcxn_t1</board>", f"<board>{board}</board>", 1))
+    assert cli("resolve", robot.doc).exit_code == 0
+    r = robot.build(cli, tmp_path / "rel")
+    assert r.exit_code == 3 and "cannot name a release folder" in r.stderr and "comp 'main'" in r.stderr
+
+
+def test_a_tree_without_software_is_an_input_error(robot, cli, tmp_path):
+    robot.doc.write_text('<?xml version="1.0"?>\n<hcdf version="1.0" name="t"><comp name="c"/></hcdf>\n')
+    assert cli("resolve", robot.doc).exit_code == 0
+    r = robot.build(cli, tmp_path / "rel")
+    assert r.exit_code == 3 and "no <software> entry to build" in r.stderr
+
+
+def test_an_explicit_sequence_number_must_exceed_the_previous(robot, cli, tmp_path):
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    (robot.root / "ota.toml").write_text('[release]\nsequence_number = 1\n[images.scout-os]\ntype = "raw"\n')
+    robot.rewrite(cli, flex_version="0.3.0")
+    r = robot.build(cli, tmp_path / "rel2", "--previous", out)
+    assert r.exit_code == 1 and "sequence_number must be greater" in r.stderr and "expected: > 1" in r.stderr
+    (robot.root / "ota.toml").write_text('[release]\nsequence_number = 7\n[images.scout-os]\ntype = "raw"\n')
+    r = robot.build(cli, tmp_path / "rel2", "--previous", out, "--json")
+    assert r.exit_code == 0 and r.json["sequence_number"] == 7
+
+
+def test_an_unknown_image_type_is_refused(robot, cli, tmp_path):
+    (robot.root / "ota.toml").write_text('[images.scout-os]\ntype = "zip"\n')
+    r = robot.build(cli, tmp_path / "rel")
+    assert r.exit_code == 3 and 'type must be "mcuboot" or "raw"' in r.stderr

@@ -312,3 +312,34 @@ def test_the_unsigned_json_rendering_must_say_what_the_manifest_says(built, cli)
     path.write_text(json.dumps(doc))
     r = verify(cli, robot, out)
     assert r.exit_code == 1 and "release.suit.json: components differs from the signed manifest" in r.stderr
+
+
+def test_a_missing_latest_json_is_refused(built, cli):
+    robot, out = built
+    (out / "mr_mcxn_t1" / "rtk-gnss" / "latest.json").unlink()
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "mr_mcxn_t1/rtk-gnss: latest.json is missing" in r.stderr
+
+
+def test_a_signed_manifest_whose_class_id_is_another_boards_is_refused(built, cli):
+    """A component listed for one board with another board's class-id (a device of that board would take it)."""
+    import uuid
+
+    from hcdf_trust.ota.keys import load_private
+    from hcdf_trust.ota.signer import FileSigner
+
+    robot, out = built
+    env = suit.parse_envelope((out / "release.suit").read_bytes(), source="x")
+    manifest = cbor2.loads(env.manifest)
+    common = cbor2.loads(manifest[3])
+    shared = cbor2.loads(common[4])
+    shared[3][2] = uuid.uuid5(suit.VENDOR_ID, "another_board").bytes
+    common[4] = cbor2.dumps(shared)
+    manifest[3] = cbor2.dumps(common)
+    new = cbor2.dumps(manifest)
+    signer = FileSigner(load_private(robot.key))
+    signature = signer.sign_cose(env.protected, suit.manifest_digest(new))
+    sign1 = cbor2.dumps(cbor2.CBORTag(18, [env.protected, {}, None, signature]))
+    (out / "release.suit").write_bytes(suit.envelope(new, sign1))
+    r = verify(cli, robot, out)
+    assert r.exit_code == 3 and "vendor-id/class-id do not match the component's board" in r.stderr
