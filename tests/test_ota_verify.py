@@ -355,6 +355,7 @@ def test_a_listed_mcuboot_image_that_is_not_one_is_malformed(built, cli):
     (out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin").write_bytes(garbage)
     _resign_release(out, robot, lambda c: replace(c, sha256=hashlib.sha256(garbage).hexdigest(), size=len(garbage)))
     r = verify(cli, robot, out, "--json")
-    assert r.exit_code == 3
+    assert r.exit_code == 1  # latest.json's size now disagrees too (an integrity failure outranks exit 3)
     err = next(e for e in r.json["errors"] if e["file"] == "mr_mcxn_t1/flex-io/0.2.0.bin")
-    assert "not an MCUboot image (header magic)" in err["message"] and err["expected"] == "0x96f3b83d"
+    assert err["code"] == "malformed-release" and "not an MCUboot image (header magic)" in err["message"]
+    assert err["expected"] == "0x96f3b83d" and err["actual"] == "0x00000000"
