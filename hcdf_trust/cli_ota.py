@@ -97,7 +97,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     "--ca-bundle",
     type=click.Path(dir_okay=False, exists=True),
     envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for an https --previous [env: HCDF_TRUST_CA_BUNDLE].",
+    help="PEM CA certificates for https (--previous, --online) [env: HCDF_TRUST_CA_BUNDLE].",
 )
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
