@@ -16,12 +16,17 @@ $(STAMP): pyproject.toml .ci/apt-packages
 ## Resolve, lock, flatten and verify the bundled example robot, then resolve and verify
 ## the flattened document itself. It lives in examples/out and references the robot's
 ## files as ../robot/..., so every run that reads it names the folder holding both.
+## Then build and verify its signed OTA release.
 demo: $(STAMP)
+	rm -rf examples/out
 	$(BIN)/hcdf-trust resolve examples/robot/robot.hcdf --locked --root examples --out examples/out/scout2.flat.hcdf
 	$(BIN)/hcdf-trust verify examples/robot/robot.hcdf
 	$(BIN)/hcdf-trust validate examples/out/scout2.flat.hcdf
 	$(BIN)/hcdf-trust resolve examples/out/scout2.flat.hcdf --root examples
 	$(BIN)/hcdf-trust verify examples/out/scout2.flat.hcdf --root examples
+	$(BIN)/hcdf-trust ota keygen --type ecdsa-p256 -o examples/out/ota-demo-key.pem
+	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware --key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2
+	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem
 
 ## The whole test suite (what CI runs); installs the Debian packages the tests need first.
 test: $(STAMP)

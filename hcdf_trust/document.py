@@ -405,3 +405,9 @@ def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
 
 def _has_location(el: etree._Element) -> bool:
     return any(el.get(a) is not None for a in URI_ATTRS)
+
+
+def software_elements(doc: Document) -> list[etree._Element]:
+    """Every ``<software>`` entry outside extension content, in document order (the ota
+    verbs read them whole: name, version, hash, and the enclosing ``<comp>``'s board)."""
+    return [el for el in doc.root.iter("software") if not any(True for _ in el.iterancestors("extension"))]

@@ -550,7 +550,9 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
 
 # The verb groups import this module's helpers, so they come last.
 from .macsec import macsec  # noqa: E402
+from .ota import ota  # noqa: E402
 from .registry import registry  # noqa: E402
 
 main.add_command(macsec)
+main.add_command(ota)
 main.add_command(registry)

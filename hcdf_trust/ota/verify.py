@@ -1,0 +1,273 @@
+"""``ota verify``: decide, in pure functions over bytes, whether a release is what was signed.
+
+:func:`verify_envelope` takes the manifest apart and checks its signature;
+:func:`check_release` then checks every image and ``latest.json`` against it and,
+given the previous release, that nothing went backwards. The steps, as in
+python-tuf's trusted metadata set, run in order and name the device and field of
+every violation:
+
+1. The envelope is well-formed CBOR of the pinned draft (else exit 3).
+2. The COSE ``alg`` is one bound to the verifying key's type, and the ``kid`` is
+   that key's (a manifest signed by another key, or relabelled, is refused).
+3. The authentication wrapper's digest is over this manifest, and the COSE_Sign1
+   verifies over that digest with the key.
+4. Each image: present, the size and SHA-256 the manifest lists (a file that is
+   another component's image is named a mix-and-match), imgtool verifies it *with
+   the key*, its MCUboot hash, header version and security counter are the listed ones.
+5. Each ``latest.json``: for a component of the manifest, and its version, hash,
+   size and URL are that component's.
+6. Against the previous release: a greater sequence number, and no security
+   counter lower than before.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..errors import HcdfTrustError
+from . import latest as latest_json
+from . import suit
+from .errors import MalformedReleaseError, ReleaseIntegrityError, RollbackError, SignatureError
+from .images import read_info, verify_image
+from .signer import ALG_NAMES, COSE_ALGS, CWT_ALG, key_id
+
+
+@dataclass(frozen=True)
+class ReleaseFiles:
+    """The bytes of one release folder (read by the caller, bounded)."""
+
+    manifest: bytes
+    manifest_source: str
+    images: dict[str, bytes | None] = field(default_factory=dict)  # relative path -> bytes (None: missing)
+    latest: dict[str, bytes] = field(default_factory=dict)  # "board/app/latest.json" -> bytes
+    rendering: bytes | None = None  # release.suit.json, the unsigned rendering for people
+
+
+def image_path(c: suit.Component) -> str:
+    """Where a component's file lies in its release folder."""
+    return f"{c.board}/{c.app}/{c.version}.bin"
+
+
+def verify_envelope(data: bytes, public_key: Any, *, source: str) -> suit.Release:
+    """Steps 1–3: the release an envelope signed with ``public_key`` describes.
+
+    Raises:
+        MalformedReleaseError: step 1. SignatureError / ReleaseIntegrityError: steps 2–3.
+    """
+    import cbor2
+    from cwt import COSE, COSEKey
+    from cwt.exceptions import CWTError
+
+    from .keys import key_type
+
+    env = suit.parse_envelope(data, source=source)
+    kind = key_type(public_key)
+    alg: Any = env.protected_map.get(1)
+    allowed = COSE_ALGS[kind][1]
+    if alg not in allowed:
+        raise SignatureError(
+            f"manifest COSE alg {ALG_NAMES.get(alg, alg)!r} is not bound to the {kind} key",
+            file=source,
+            expected=" or ".join(ALG_NAMES[a] for a in sorted(allowed)),
+            actual=str(ALG_NAMES.get(alg, alg)),
+        )
+    kid = key_id(public_key)
+    if env.protected_map.get(4) != kid:
+        got = env.protected_map.get(4)
+        raise SignatureError(
+            "manifest was signed by another key (COSE kid)",
+            file=source,
+            expected=kid.hex(),
+            actual=got.hex() if isinstance(got, bytes) else repr(got),
+        )
+    want = suit.manifest_digest(env.manifest)
+    if env.digest != want:
+        raise ReleaseIntegrityError(
+            "authentication wrapper digest is not the manifest's",
+            file=source,
+            expected=cbor2.loads(want)[1].hex(),
+            actual=env.digest.hex(),
+        )
+    cose_key = COSEKey.from_pem(public_key.get_public_pem(), alg=CWT_ALG[kind], kid=kid)
+    try:
+        COSE.new().decode(env.cose_sign1, cose_key, detached_payload=env.digest)
+    except (CWTError, ValueError) as exc:
+        raise SignatureError(f"manifest signature does not verify with the key: {exc}", file=source) from None
+    return suit.parse_manifest(env.manifest, source=source)
+
+
+def check_release(
+    release: suit.Release, files: ReleaseFiles, public_key: Any, *, previous: suit.Release | None = None
+) -> list[HcdfTrustError]:
+    """Steps 4–6: every violation, each naming its device (board/app) and field. Pure."""
+    errors: list[HcdfTrustError] = []
+    by_sha = {c.sha256: c for c in release.components}
+    for c in release.components:
+        errors += _check_image(c, files, public_key, by_sha)
+    listed = {f"{c.board}/{c.app}/latest.json": c for c in release.components if c.type == "mcuboot"}
+    for rel, data in sorted(files.latest.items()):
+        comp = listed.get(rel)
+        if comp is None:
+            errors.append(
+                ReleaseIntegrityError(f"{rel}: no such component in the signed manifest (mix-and-match)", file=rel)
+            )
+            continue
+        errors += _check_latest(comp, data, rel)
+    for rel in sorted(set(listed) - set(files.latest)):
+        errors.append(ReleaseIntegrityError(f"{listed[rel].name}: latest.json is missing", file=rel))
+    if files.rendering is not None:
+        errors += _check_rendering(release, files.rendering)
+    if previous is not None:
+        errors += check_rollback(release, previous, source=files.manifest_source)
+    return errors
+
+
+def _check_rendering(release: suit.Release, data: bytes) -> list[HcdfTrustError]:
+    """The unsigned ``release.suit.json`` says what the signed manifest says (people read it)."""
+    import json
+
+    name = "release.suit.json"
+    try:
+        doc = json.loads(data)
+    except (ValueError, RecursionError) as exc:
+        return [MalformedReleaseError(f"{name} is not JSON: {exc}", file=name)]
+    want = suit.to_json(release, alg="", kid="")
+    if not isinstance(doc, dict):
+        return [MalformedReleaseError(f"{name} is not an object", file=name)]
+    errors: list[HcdfTrustError] = []
+    for key in ("sequence_number", "hcdf", "components"):
+        if doc.get(key) != want[key]:
+            errors.append(
+                ReleaseIntegrityError(
+                    f"{name}: {key} differs from the signed manifest",
+                    file=name,
+                    expected=json.dumps(want[key])[:200],
+                    actual=json.dumps(doc.get(key))[:200],
+                )
+            )
+    return errors
+
+
+def check_rollback(release: suit.Release, previous: suit.Release, *, source: str) -> list[HcdfTrustError]:
+    """Step 6. Pure."""
+    errors: list[HcdfTrustError] = []
+    if release.sequence_number <= previous.sequence_number:
+        errors.append(
+            RollbackError(
+                "manifest sequence-number is not greater than the previous release's",
+                file=source,
+                expected=f"> {previous.sequence_number}",
+                actual=str(release.sequence_number),
+            )
+        )
+    for c in release.components:
+        before = previous.component(c.board, c.app)
+        if before is None or before.security_counter is None:
+            continue
+        if c.security_counter is None or c.security_counter < before.security_counter:
+            errors.append(
+                RollbackError(
+                    f"{c.name}: security_counter went down since the previous release",
+                    file=source,
+                    expected=f"≥ {before.security_counter}",
+                    actual=str(c.security_counter),
+                )
+            )
+    return errors
+
+
+def _check_image(
+    c: suit.Component, files: ReleaseFiles, public_key: Any, by_sha: dict[str, suit.Component]
+) -> list[HcdfTrustError]:
+    rel = image_path(c)
+    data = files.images.get(rel)
+    if data is None:
+        return [ReleaseIntegrityError(f"{c.name}: image {rel} is missing", file=rel)]
+    if not c.uri.endswith(rel):
+        return [ReleaseIntegrityError(f"{c.name}: uri does not name {rel}", file=rel, expected=rel, actual=c.uri)]
+    errors: list[HcdfTrustError] = []
+    sha = hashlib.sha256(data).hexdigest()
+    if sha != c.sha256:
+        other = by_sha.get(sha)
+        why = f" (mix-and-match: it is the image of {other.name})" if other is not None and other is not c else ""
+        errors.append(
+            ReleaseIntegrityError(
+                f"{c.name}: file_sha256 differs from the signed manifest{why}", file=rel, expected=c.sha256, actual=sha
+            )
+        )
+    if len(data) != c.size:
+        errors.append(
+            ReleaseIntegrityError(
+                f"{c.name}: size differs from the signed manifest",
+                file=rel,
+                expected=str(c.size),
+                actual=str(len(data)),
+            )
+        )
+    if c.type != "mcuboot" or errors:
+        return errors
+    try:
+        info = read_info(data, source=rel)
+    except MalformedReleaseError as exc:
+        return [exc]
+    result, digest = verify_image(data, public_key)
+    if result != "OK":
+        errors.append(SignatureError(f"{c.name}: MCUboot image does not verify with the key ({result})", file=rel))
+        return errors
+    if digest != c.mcuboot_hash:
+        errors.append(
+            ReleaseIntegrityError(
+                f"{c.name}: mcuboot_hash differs from the signed manifest",
+                file=rel,
+                expected=c.mcuboot_hash,
+                actual=digest,
+            )
+        )
+    if str(info.version) != c.version:
+        errors.append(
+            ReleaseIntegrityError(
+                f"{c.name}: image header version differs from the signed manifest",
+                file=rel,
+                expected=c.version,
+                actual=str(info.version),
+            )
+        )
+    if info.security_counter != c.security_counter:
+        errors.append(
+            ReleaseIntegrityError(
+                f"{c.name}: image security_counter differs from the signed manifest",
+                file=rel,
+                expected=str(c.security_counter),
+                actual=str(info.security_counter),
+            )
+        )
+    return errors
+
+
+def _check_latest(c: suit.Component, data: bytes, rel: str) -> list[HcdfTrustError]:
+    try:
+        doc = latest_json.parse(data, source=rel)
+    except MalformedReleaseError as exc:
+        return [exc]
+    errors: list[HcdfTrustError] = []
+    checks = (
+        ("board", doc.board, c.board),
+        ("app", doc.app, c.app),
+        ("latest.version", doc.latest.version, c.version),
+        ("latest.mcuboot_hash", doc.latest.mcuboot_hash, c.mcuboot_hash),
+        ("latest.size", str(doc.latest.size), str(c.size)),
+        ("latest.url", doc.latest.url, c.uri),
+    )
+    for name, actual, expected in checks:
+        if actual != expected:
+            errors.append(
+                ReleaseIntegrityError(
+                    f"{c.name}: latest.json {name} differs from the signed manifest",
+                    file=rel,
+                    expected=expected,
+                    actual=actual,
+                )
+            )
+    return errors
