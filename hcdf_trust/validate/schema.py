@@ -151,7 +151,7 @@ def load_schema_file(path: str | os.PathLike[str]) -> Schema:
     return compile_schema(data, name=shown, base=p.parent)
 
 
-_cache: OrderedDict[tuple[str, str | None], Schema] = OrderedDict()
+_cache: OrderedDict[tuple[str, str | None, str], Schema] = OrderedDict()
 _cache_lock = threading.Lock()
 
 
@@ -169,7 +169,7 @@ def compile_schema(data: bytes, *, name: str, base: Path | None = None) -> Schem
         has a DTD, a remote, absolute or escaping import, or not a valid XSD.
     """
     digest = hashlib.sha256(data).hexdigest()
-    key = (digest, str(base) if base is not None else None)
+    key = (digest, str(base) if base is not None else None, name)  # the name is part of the report
     with _cache_lock:
         cached = _cache.get(key)
         if cached is not None:
