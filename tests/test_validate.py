@@ -249,7 +249,10 @@ def test_a_clean_local_schema_include_works(tmp_path):
 def test_built_schema_is_cached_by_content():
     first = load_schema_file(XSD)
     assert load_schema_file(XSD) is first
-    assert compile_schema(XSD.read_bytes(), name="other name", base=XSD.parent) is first
+    assert compile_schema(XSD.read_bytes(), name=str(XSD), base=XSD.parent) is first
+    other = compile_schema(XSD.read_bytes(), name="other name", base=XSD.parent)
+    assert other.name == "other name" and other.sha256 == first.sha256  # reports name what was asked for
+    assert load_schema_file(XSD).name == str(XSD)
     assert first.declares("hcdf") and not first.declares("stream-profile")
     assert first.version == "1.0" and len(first.sha256) == 64
 
