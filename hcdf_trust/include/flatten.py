@@ -112,6 +112,7 @@ from lxml import etree
 
 from ..document import URI_ATTRS, Document, Kind
 from ..errors import FlattenError
+from ..localfile import absolute
 from ..xml import sourceline
 from .locate import _normalise, display_path, file_url
 from .resolver import Resolution, display_url
@@ -485,12 +486,12 @@ class _Flattener:
     ) -> None:
         self.res = res
         self.root_url = res.root_location.url
-        self.out_path = os.path.abspath(out_path) if out_path is not None else None
+        self.out_path = absolute(out_path) if out_path is not None else None
         self.target_url = file_url(self.out_path) if self.out_path is not None else self.root_url
         if root is None and base is not None and "://" not in base:
             root = base
         self.named_root = root is not None
-        self.flat_root = os.path.abspath(root) if root is not None else posixpath.dirname(_path(self.target_url))
+        self.flat_root = absolute(root) if root is not None else posixpath.dirname(_path(self.target_url))
         self.max_elements = max_elements
         # Reference element -> (resolved URL, attribute or None for text).
         self.uri_of: dict[etree._Element, tuple[str, str | None]] = {}

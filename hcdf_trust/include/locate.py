@@ -20,6 +20,7 @@ from urllib.parse import quote, unquote, urljoin, urlsplit
 
 from ..errors import CredentialsError, InputError, NotFoundError, PathEscapeError
 from ..errors import display_path as display_path  # re-exported: how messages name a local file
+from ..localfile import absolute
 
 REMOTE_SCHEMES = ("https", "http")
 # Unreserved URL characters plus "/": text that means the same as a URL and as a path.
@@ -123,11 +124,13 @@ class Locator:
             if _is_url(target):
                 refuse_credentials(target, what="--mirror target")
         if base is not None:
-            base_url = base if _is_url(base) else file_url(base, directory=True)
+            base_url = base if _is_url(base) else file_url(absolute(base), directory=True)
             if not base_url.endswith("/"):
                 base_url += "/"
         # Longest prefix first, so a specific mirror beats a general one.
-        ordered = tuple(sorted(mirrors, key=lambda m: len(m[0]), reverse=True))
+        ordered = tuple(
+            sorted(((p, t if _is_url(t) else absolute(t)) for p, t in mirrors), key=lambda m: len(m[0]), reverse=True)
+        )
         return cls(root=Path(os.path.abspath(root)), base=base_url, mirrors=ordered)
 
     def for_document(self, path: str | os.PathLike[str]) -> Location:
@@ -211,7 +214,7 @@ class Locator:
                 rest = url[len(prefix) :]
                 if _is_url(target):
                     return Location(url=url, remote=target.rstrip("/") + "/" + rest.lstrip("/"))
-                mroot = Path(os.path.abspath(target))
+                mroot = Path(target)
                 return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line, uri=uri)
         if url.startswith("file://"):
             return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line, uri=uri)

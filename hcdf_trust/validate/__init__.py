@@ -27,6 +27,7 @@ from lxml import etree
 from ..document import ROOT, Document, require_root
 from ..include.locate import display_path
 from ..include.resolver import link_stub_target
+from ..localfile import absolute
 from ..xml import parse_bytes, sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
@@ -70,7 +71,7 @@ def validate_document(
     if isinstance(doc, Document):
         tree, source = doc.tree, doc.source
     else:
-        path = Path(os.path.abspath(doc))
+        path = Path(absolute(doc))
         data = read_local(path, path.parent, source=display_path(path))
         stub = link_stub_target(path, data)  # a symlink checked out as a plain file
         if stub is not None:
