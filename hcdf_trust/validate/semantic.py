@@ -873,7 +873,8 @@ class _Checker:
         error at the ``<include>`` that brings it in; a file that omits one
         inherits it. Includes that could not be read are warnings.
         """
-        edges = list({(e.parent, e.line): e for e in self.edges}.values())  # one per <include>
+        # One per <include> (a document included twice is walked twice); two on one line stay two.
+        edges = list({(e.parent, e.line, e.uri): e for e in self.edges}.values())
         for edge in edges:
             if edge.child is None and edge.refused:
                 self.findings.append(

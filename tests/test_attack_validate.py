@@ -1,0 +1,35 @@
+"""Attack: validate's include findings cannot be hidden behind another include on the same line."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+HEAD = '<?xml version="1.0"?>\n'
+
+
+def _doc(path: Path, root_attrs: str, body: str) -> Path:
+    path.write_text(f'{HEAD}<hcdf version="1.0" name="{path.stem}"{root_attrs}>{body}</hcdf>\n')
+    return path
+
+
+@pytest.mark.parametrize("newline", ["", "\n"], ids=["one-line", "two-lines"])
+@pytest.mark.parametrize(
+    ("first", "code"),
+    [
+        ('<include uri="frd.hcdf" name="s"/>', "frame-convention-mismatch"),
+        ('<include uri="../../../etc/passwd" name="s"/>', "include-refused"),
+        ('<include uri="fifo.hcdf" name="s"/>', "include-refused"),
+    ],
+)
+def test_an_include_followed_by_another_on_its_line_is_still_checked(tmp_path, cli, newline, first, code):
+    os.mkfifo(tmp_path / "fifo.hcdf")
+    _doc(tmp_path / "frd.hcdf", ' body-frame="FRD"', '<comp name="c"/>')
+    _doc(tmp_path / "ok.hcdf", "", '<comp name="d"/>')
+    root = _doc(tmp_path / "a.hcdf", ' body-frame="FLU"', f'{first}{newline}<include uri="ok.hcdf" name="o"/>')
+    r = cli("validate", root, "--json")
+    assert r.exit_code == 1, r.stdout
+    assert [f["code"] for f in r.json["errors"]] == [code]
+    assert r.json["errors"][0]["line"] == 2
