@@ -33,3 +33,23 @@ def test_an_include_followed_by_another_on_its_line_is_still_checked(tmp_path, c
     assert r.exit_code == 1, r.stdout
     assert [f["code"] for f in r.json["errors"]] == [code]
     assert r.json["errors"][0]["line"] == 2
+
+
+@pytest.mark.parametrize(
+    ("include", "code"),
+    [
+        ('<include href="frd.hcdf" name="s"/>', "frame-convention-mismatch"),
+        ('<include href="../../../etc/passwd" name="s"/>', "include-refused"),
+        ('<comp name="x"><include uri="frd.hcdf" name="s"/></comp>', "frame-convention-mismatch"),
+        ('<comp name="x"><include href="../../../etc/passwd" name="s"/></comp>', "include-refused"),
+    ],
+    ids=["href", "href-escape", "nested", "nested-href-escape"],
+)
+def test_validate_checks_every_include_resolve_follows(tmp_path, cli, include, code):
+    """The includes validate reads are the walker's (uri or href, at any depth), the ones resolve follows."""
+    _doc(tmp_path / "frd.hcdf", ' body-frame="FRD"', '<comp name="c"/>')
+    root = _doc(tmp_path / "a.hcdf", ' body-frame="FLU"', include)
+    r = cli("validate", root, "--json")
+    assert r.exit_code == 1, r.stdout
+    assert [f["code"] for f in r.json["errors"]] == [code]
+    assert r.json["errors"][0]["line"] == 2

@@ -99,7 +99,7 @@ def validate_document(
             findings.extend(_version_mismatch(root, found, source))
 
     if kind == "hcdf":
-        edges = local_include_edges(root, path, source=source) if path is not None else []
+        edges = local_include_edges(doc, path, source=source) if path is not None else []
         result = semantic.check(root, source=source, includes=edges)
         report.checked.append("semantic")
         findings.extend(result.findings)
