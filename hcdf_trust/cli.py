@@ -83,7 +83,7 @@ def _mirror(ctx: click.Context, param: click.Parameter, values: tuple[str, ...])
         prefix, sep, target = value.partition("=")
         if not sep or not prefix or not target:
             raise click.BadParameter(f"{redact(value)!r} is not PREFIX=DIR|URL")
-        if not _is_url(prefix):  # it would never match a reference, silently
+        if prefix.partition("://")[0].lower() not in ("https", "http", "file"):  # it would never match, silently
             raise click.BadParameter(f"prefix {redact(prefix)!r} is not a URL prefix (https://host/...)")
         if _is_url(target):
             _check_url(target, ctx, what="target")
