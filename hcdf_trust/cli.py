@@ -59,10 +59,19 @@ def _is_url(text: str) -> bool:
 def _check_url(value: str, ctx: click.Context, *, what: str) -> None:
     """A flag's URL must be https (or http under --allow-http). Credentials are left to
     the library, which refuses them with exit 3; messages show URLs redacted."""
+    from urllib.parse import urlsplit
+
     from .include.locate import redact
 
     scheme = value.partition("://")[0].lower()
     if scheme == "https" or (scheme == "http" and ctx.params.get("allow_http")):
+        try:
+            parts = urlsplit(value)
+            parts.port  # noqa: B018 -- raises ValueError for a port that is not a number in 0-65535
+        except ValueError as exc:
+            raise click.BadParameter(f"{what} {redact(value)!r} is not a valid URL: {exc}") from None
+        if not parts.hostname or "\\" in value:
+            raise click.BadParameter(f"{what} {redact(value)!r} is not a valid URL: expected {scheme}://host/path")
         return
     hint = " (plain http needs --allow-http)" if scheme == "http" and "allow_http" in ctx.params else ""
     raise click.BadParameter(f"{what} {redact(value)!r} is not an https:// URL{hint}")

@@ -53,13 +53,24 @@ def _is_url(text: str) -> bool:
     return "://" in text
 
 
+# Where a URL's authority starts, as lenient (WHATWG) parsers read it: after the scheme
+# and any run of slashes or backslashes ("https:u:pw@h", "https:\\\\u:pw@h", "https:///u:pw@h").
+# file: URLs keep the strict "//" rule, so file:///u@x/ has no user.
+_LAX_SCHEME = re.compile(r"(?![Ff][Ii][Ll][Ee]:)[A-Za-z][A-Za-z0-9+.-]*:[/\\]*")
+
+
 def _userinfo_end(text: str) -> int:
     """Where ``user:password@`` ends in a URL-like text (after the last ``@`` of the
-    authority), or -1 when it has none. Textual, so it also works on malformed URLs."""
-    start = text.find("//")
-    if start < 0:
-        return -1
-    start += 2
+    authority), or -1 when it has none. Textual, so it also works on malformed URLs
+    (``https:u:pw@host``, which lenient parsers read as ``https://u:pw@host``)."""
+    lax = _LAX_SCHEME.match(text)
+    if lax is not None:
+        start = lax.end()
+    else:
+        start = text.find("//")
+        if start < 0:
+            return -1
+        start += 2
     end = len(text)
     for sep in "/?#\\":
         pos = text.find(sep, start)
@@ -74,7 +85,8 @@ def redact(text: str) -> str:
     end = _userinfo_end(text)
     if end < 0:
         return text
-    start = text.find("//") + 2
+    lax = _LAX_SCHEME.match(text)
+    start = lax.end() if lax is not None else text.find("//") + 2
     return text[:start] + "***@" + text[end:]
 
 
@@ -208,6 +220,19 @@ class Locator:
         return any(prefix.startswith("file:") for prefix, _ in self.mirrors)
 
     def _apply(self, url: str, *, file: str, line: int | None, uri: str) -> Location:
+        parts = urlsplit(url)
+        if parts.scheme.lower() in REMOTE_SCHEMES and (not parts.hostname or "\\" in url):
+            # Without a host, collapsing the path could make one of it (https:u:pw@host/x
+            # -> https://u:pw@host/x), unseen by the credentials check; a backslash is read
+            # as "/" by browsers and as a port or path character by others.
+            shown = redact(uri)
+            raise InputError(
+                f"malformed URL {shown!r}: a remote reference is {parts.scheme}://host/path",
+                file=file,
+                line=line,
+                expected=f"{parts.scheme}://host/path",
+                actual=shown,
+            )
         url = _normalise(url)
         for prefix, target in self.mirrors:
             if url.startswith(prefix):
