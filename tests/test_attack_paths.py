@@ -81,3 +81,19 @@ def test_missing_default_lock_is_named_as_the_user_named_the_document(cli, robot
     r = cli("verify", "robot/robot.hcdf", "--json")
     (lock_error,) = [e for e in r.json["errors"] if e["code"] == "lock-file"]
     assert str(robot) not in lock_error["message"]
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("--cache-dir", "robot"),  # the default lock robot/robot.hcdf.lock lies in the cache
+        ("--lock", "robot/robot.hcdf/x.lock"),  # under a regular file
+        ("--lock", "robot/models/chassis.glb"),
+    ],
+)
+def test_output_errors_name_the_destination_relative_as_given(cli, robot: Path, args: tuple[str, str]) -> None:
+    r = cli("resolve", "robot/robot.hcdf", *args)
+    assert r.exit_code == 3
+    (line,) = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert "--lock robot/" in line, line
+    assert str(robot / "robot.hcdf") not in line, line
