@@ -1,8 +1,8 @@
-"""Atomic writes and the content-addressed cache.
+"""The content-addressed cache, and the folder fsync that makes a rename durable.
 
-Every output (lock file, flattened document, cache blob, later images,
-manifests and key stores) is written to a temporary file in the destination
-folder, fsynced, then renamed: a failed run leaves the previous state intact.
+A blob is written to a temporary file in the cache, checked, then renamed. Every
+other output (lock file, flattened document, later images, manifests and key
+stores) goes through :class:`hcdf_trust.outputs.OutputPlan`.
 """
 
 from __future__ import annotations
@@ -13,37 +13,12 @@ import os
 import stat
 import tempfile
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import BinaryIO
 
 from .digest import Hashed, hash_chunks, hash_stream, is_full_sha256
 from .errors import FetchError, InputError
-
-
-@contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike[str], *, mode: int = 0o644) -> Iterator[BinaryIO]:
-    """Yield a binary file; on clean exit it replaces ``path`` atomically, else vanishes."""
-    dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
-    try:
-        os.fchmod(fd, mode)
-        with os.fdopen(fd, "wb") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, dest)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    fsync_dir(dest.parent)
-
-
-def atomic_write(path: str | os.PathLike[str], data: bytes, *, mode: int = 0o644) -> None:
-    with atomic_writer(path, mode=mode) as f:
-        f.write(data)
 
 
 def fsync_dir(directory: Path) -> None:
