@@ -44,8 +44,17 @@ class Location:
 
 
 def file_url(path: str | os.PathLike[str], *, directory: bool = False) -> str:
+    """The ``file://`` URL of a local path.
+
+    Raises:
+        InputError: the path is not valid UTF-8 (the lock file and --json could not name it).
+    """
     text = os.path.abspath(os.fspath(path))
-    url = "file://" + quote(text)
+    try:
+        url = "file://" + quote(text)
+    except UnicodeEncodeError:  # a name of undecodable bytes, held as surrogates (PEP 383)
+        shown = display_path(text).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        raise InputError(f"{shown}: the path is not valid UTF-8; rename it", file=shown) from None
     return url + "/" if directory and not url.endswith("/") else url
 
 
