@@ -222,11 +222,6 @@ class LockUrls:
         return done
 
 
-def lock_url(url: str, base: Path) -> str:
-    """Local URLs relative to the lock file's folder; remote URLs as they are."""
-    return LockUrls(base).to_lock(url)
-
-
 def display_url(url: str) -> str:
     """How messages name a URL: local files by :func:`display_path`, others as they are."""
     return display_path(unquote(urlsplit(url).path)) if url.startswith("file://") else url
