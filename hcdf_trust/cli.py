@@ -280,6 +280,7 @@ def resolve(
     if out:
         from .include.flatten import flatten
 
+        plan.check(out, flag="--out")  # an input is named as such, before flattening
         plan.add(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),

@@ -119,6 +119,19 @@ class OutputPlan:
                 output of this run, a directory or other non-regular file, or under
                 a regular file.
         """
+        dest, real, shown = self._check(path, flag=flag, edit=edit)
+        self._outputs[real] = _Output(dest, data, mode, flag, shown)
+
+    def check(self, path: str | os.PathLike[str], *, flag: str) -> None:
+        """Refuse now what :meth:`add` would refuse, before the work of making the data.
+
+        Raises:
+            OutputError: as :meth:`add`.
+        """
+        self._check(path, flag=flag, edit=False)
+
+    def _check(self, path: str | os.PathLike[str], *, flag: str, edit: bool) -> tuple[Path, str, str]:
+        """The destination, its real path and how messages show it, or an OutputError."""
         dest = _destination(os.fspath(path), flag=flag)
         shown = display_place(os.fspath(path))  # an absolute path inside the working folder shown relative
         real = os.path.realpath(dest)
@@ -144,7 +157,7 @@ class OutputPlan:
             other = self._outputs[real]
             raise OutputError(f"{flag} {shown} is also the destination of {other.flag}", file=shown)
         _check_parent(dest, flag=flag, shown=shown)
-        self._outputs[real] = _Output(dest, data, mode, flag, shown)
+        return dest, real, shown
 
     @property
     def paths(self) -> list[Path]:

@@ -97,3 +97,21 @@ def test_output_errors_name_the_destination_relative_as_given(cli, robot: Path, 
     (line,) = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
     assert "--lock robot/" in line, line
     assert str(robot / "robot.hcdf") not in line, line
+
+
+@pytest.mark.parametrize(
+    ("out", "what"),
+    [
+        ("robot/assemblies/arm.hcdf", "is an included document"),
+        (f"{VIA_LINK}/assemblies/sensor-head.hcdf", "is an included document"),
+        ("robot/models/chassis.glb", "is a verified model file"),
+    ],
+)
+def test_out_at_an_input_is_refused_as_an_input_before_flattening(cli, robot: Path, out: str, what: str) -> None:
+    """Not as "would reference files outside its folder": the flattening root rule is not the problem."""
+    before = (robot / "assemblies" / "arm.hcdf").read_bytes()
+    r = cli("resolve", "robot/robot.hcdf", "--out", out)
+    assert r.exit_code == 3
+    (line,) = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert what in line and "refusing to overwrite an input" in line, line
+    assert (robot / "assemblies" / "arm.hcdf").read_bytes() == before
