@@ -108,6 +108,11 @@ def load(path: str | os.PathLike[str]) -> Lock:
     try:
         raw = read_input(os.fspath(path), limit=MAX_LOCK_BYTES, what="lock file", source=name)
     except NotFoundError:
+        if os.path.islink(path):  # fail closed, but say what is there
+            target = os.readlink(path)
+            raise LockFileError(
+                f"lock file {name} is a symlink to {target!r}, which does not exist", file=name
+            ) from None
         hint = "run resolve without --locked first"
         raise LockFileError(f"lock file {name} does not exist ({hint})", file=name) from None
     except InputError as exc:  # FIFO, device, directory, too large, unreadable
