@@ -104,6 +104,7 @@ import copy
 import math
 import os
 import posixpath
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from urllib.parse import unquote, urljoin, urlsplit
@@ -237,18 +238,21 @@ class Pose:
         return (roll, pitch, yaw)
 
 
+# An xs:double written as digits (float() also takes "1_0", "\u0661" and "inf"), and
+# the XML whitespace that separates the items of a list (str.split() takes any Unicode space).
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_XML_SPACE = re.compile(r"[ \t\r\n]+")
+
+
 def parse_pose(text: str, *, file: str | None = None, line: int | None = None) -> Pose:
-    """Parse ``"x y z roll pitch yaw"``.
+    """Parse ``"x y z roll pitch yaw"``: six numbers as an XML reader reads them.
 
     Raises:
         FlattenError: not six finite numbers.
     """
-    parts = text.split()
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+    parts = _XML_SPACE.split(text.strip(" \t\r\n"))
+    values = [float(p) for p in parts if _DECIMAL.fullmatch(p)]
+    if len(parts) != 6 or len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise FlattenError(
             f'pose {text.strip()!r} is not six numbers "x y z roll pitch yaw"',
             file=file,
