@@ -35,6 +35,11 @@ def fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+# The names of the cache's temporary files: the sweep removes nothing else, so a
+# --cache-dir that is not a cache of ours (~, /) never loses a file of tmp/ to it.
+PARTIAL_PREFIX = ".hcdf-trust-partial-"
+
+
 def default_cache_dir() -> Path:
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "hcdf-trust"
@@ -101,8 +106,8 @@ class ContentStore:
 
         A file whose ``flock`` can be taken has no writer: it is unlinked while the
         lock is held, so a writer that was about to lock it sees it gone and starts
-        another (:meth:`_new_tmp`). Only regular files are touched. Returns how many
-        were removed; never raises.
+        another (:meth:`_new_tmp`). Only regular files named by :data:`PARTIAL_PREFIX`
+        are touched. Returns how many were removed; never raises.
         """
         try:
             names = os.listdir(self.tmp_dir)
@@ -110,6 +115,8 @@ class ContentStore:
             return 0
         removed = 0
         for name in names:
+            if not name.startswith(PARTIAL_PREFIX):
+                continue  # not one of ours
             path = self.tmp_dir / name
             try:
                 fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
@@ -141,10 +148,10 @@ class ContentStore:
         """A new temporary file in ``tmp/``, created and then locked for this writer."""
         while True:
             try:
-                fd, tmp = tempfile.mkstemp(dir=self.tmp_dir)
+                fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX, dir=self.tmp_dir)
             except FileNotFoundError:  # first blob of a new cache: one mkdir, not one per blob
                 self.tmp_dir.mkdir(parents=True, exist_ok=True)
-                fd, tmp = tempfile.mkstemp(dir=self.tmp_dir)
+                fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX, dir=self.tmp_dir)
             # Blocks only while a sweeper that opened it first holds the lock; it then
             # unlinks it, and we see no link left and start over.
             fcntl.flock(fd, fcntl.LOCK_EX)
