@@ -53,3 +53,20 @@ def test_validate_checks_every_include_resolve_follows(tmp_path, cli, include, c
     assert r.exit_code == 1, r.stdout
     assert [f["code"] for f in r.json["errors"]] == [code]
     assert r.json["errors"][0]["line"] == 2
+
+
+def test_validate_never_shows_the_secret_of_an_include_url(tmp_path, cli):
+    secret = "s3cr3t-Passw0rd"
+    root = _doc(
+        tmp_path / "a.hcdf",
+        "",
+        f'<include uri="https://user:{secret}@127.0.0.1:9/x.hcdf" name="x"/>'
+        '<comp name="c"><port name="p" type="ethernet"/></comp><network name="n"><link name="l">'
+        "<wired><port>x_c/p</port><port>c/p</port></wired></link></network>",
+    )
+    for args in ((), ("--json",)):
+        r = cli("validate", root, *args)
+        assert r.exit_code == 1, r.stdout + r.stderr
+        assert "include-refused" in r.stdout + r.stderr
+        assert secret not in r.stdout + r.stderr
+        assert "https://***@127.0.0.1:9/x.hcdf" in r.stdout + r.stderr

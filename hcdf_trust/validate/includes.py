@@ -20,7 +20,7 @@ from typing import TypedDict
 from ..document import Document, Kind, Reference
 from ..errors import HcdfTrustError, NotFoundError
 from ..include.flatten import SEPARATOR
-from ..include.locate import Location, Locator, display_path, file_url
+from ..include.locate import Location, Locator, display_path, file_url, redact
 from ..localfile import open_local, read_bounded
 from ..xml import MAX_DOCUMENT_BYTES
 from .semantic import IncludeEdge
@@ -82,8 +82,8 @@ def local_include_edges(document: Document, path: Path, *, source: str) -> list[
             if not uri:
                 continue  # the XSD reports the missing attribute
             name = (inc.name or "").strip()
-            edge = _EdgeFields(
-                parent=shown, line=line, uri=uri, prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix
+            edge = _EdgeFields(  # uri is only shown, never the secret of a user:password@ URL
+                parent=shown, line=line, uri=redact(uri), prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix
             )
             try:
                 child = locator.locate(uri, loc, file=shown, line=line)

@@ -24,6 +24,7 @@ from typing import NamedTuple
 from lxml import etree
 
 from ..include.flatten import SEPARATOR
+from ..include.locate import redact
 from ..xml import sourceline
 from .findings import Finding, Severity
 
@@ -237,7 +238,7 @@ class _Checker:
             self.unread = [
                 (
                     f"{n}{INCLUDE_SEPARATOR}" if (n := (el.get("name") or "").strip()) else "",
-                    el.get("uri") or "",
+                    redact(el.get("uri") or ""),
                     source,
                     sourceline(el),
                 )
