@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote, urljoin, urlsplit
 
-from ..errors import CredentialsError, InputError, NotFoundError, PathEscapeError
+from ..errors import CredentialsError, InputError, NotFoundError, PathEscapeError, userinfo_end
 from ..errors import display_path as display_path  # re-exported: how messages name a local file
+from ..errors import redact as redact  # re-exported: how messages show a URL with credentials
 from ..localfile import absolute
 
 REMOTE_SCHEMES = ("https", "http")
@@ -62,50 +63,13 @@ def _is_url(text: str) -> bool:
     return "://" in text
 
 
-# Where a URL's authority starts, as lenient (WHATWG) parsers read it: after the scheme
-# and any run of slashes or backslashes ("https:u:pw@h", "https:\\\\u:pw@h", "https:///u:pw@h").
-# file: URLs keep the strict "//" rule, so file:///u@x/ has no user.
-_LAX_SCHEME = re.compile(r"(?![Ff][Ii][Ll][Ee]:)[A-Za-z][A-Za-z0-9+.-]*:[/\\]*")
-
-
-def _userinfo_end(text: str) -> int:
-    """Where ``user:password@`` ends in a URL-like text (after the last ``@`` of the
-    authority), or -1 when it has none. Textual, so it also works on malformed URLs
-    (``https:u:pw@host``, which lenient parsers read as ``https://u:pw@host``)."""
-    lax = _LAX_SCHEME.match(text)
-    if lax is not None:
-        start = lax.end()
-    else:
-        start = text.find("//")
-        if start < 0:
-            return -1
-        start += 2
-    end = len(text)
-    for sep in "/?#\\":
-        pos = text.find(sep, start)
-        if pos >= 0:
-            end = min(end, pos)
-    at = text.rfind("@", start, end)
-    return -1 if at < 0 else at + 1
-
-
-def redact(text: str) -> str:
-    """``text`` with the ``user:password@`` of its URL (if any) shown as ``***@``."""
-    end = _userinfo_end(text)
-    if end < 0:
-        return text
-    lax = _LAX_SCHEME.match(text)
-    start = lax.end() if lax is not None else text.find("//") + 2
-    return text[:start] + "***@" + text[end:]
-
-
 def refuse_credentials(url: str, *, what: str, file: str | None = None, line: int | None = None) -> None:
     """Refuse a URL that carries ``user:password@`` (``what`` names where it was given).
 
     Raises:
         CredentialsError: naming the URL redacted, never the secret.
     """
-    if _userinfo_end(url) >= 0:
+    if userinfo_end(url) >= 0:
         shown = redact(url)
         raise CredentialsError(
             f"{what} {shown} carries credentials (user:password@): refused, so that no secret "
