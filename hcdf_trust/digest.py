@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import BinaryIO, Protocol
 
-from .errors import MalformedDigestError
+from .errors import MalformedDigestError, redact
 
 FULL_HEX = 64
 # The shortest prefix accepted as a (weak) pin: the 8 hex digits (32 bits) that
@@ -66,7 +66,7 @@ def parse_pin(
         return None
     if value.startswith("sha256:"):
         value = value[len("sha256:") :]
-    about = f"{uri}: " if uri else ""
+    about = f"{redact(uri)}: " if uri else ""
     if not set(value) <= _HEX:
         raise MalformedDigestError(
             f'{about}sha="{text}" is not a hex SHA-256 digest',

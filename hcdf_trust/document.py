@@ -41,7 +41,7 @@ from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousReferenceError, NotHcdfError
+from .errors import AmbiguousReferenceError, NotHcdfError, redact
 from .xml import parse_bytes, sourceline
 
 
@@ -264,14 +264,14 @@ def _walk(
 def _unclear(value: str, *, what: str) -> str | None:
     """Why readers could read ``value`` (a location) differently, or None."""
     if value != value.strip(_XML_SPACE):
-        return f"{what} {value!r} has whitespace around it"
+        return f"{what} {redact(value)!r} has whitespace around it"
     for ch in value:
         if ch == " ":
             continue
         if ch.isspace() or unicodedata.category(ch) in ("Cc", "Cf", "Zl", "Zp", "Zs"):
-            return f"{what} {value!r} contains U+{ord(ch):04X} ({unicodedata.name(ch, 'a control character')})"
+            return f"{what} {redact(value)!r} contains U+{ord(ch):04X} ({unicodedata.name(ch, 'a control character')})"
     if "  " in value:
-        return f"{what} {value!r} has a run of spaces (a schema-aware reader collapses it)"
+        return f"{what} {redact(value)!r} has a run of spaces (a schema-aware reader collapses it)"
     return None
 
 
@@ -280,7 +280,7 @@ def _location(el: etree._Element, tag: str, source: str) -> tuple[str | None, st
     uri, href = el.get("uri"), el.get("href")
     if uri is not None and href is not None and uri != href:
         raise AmbiguousReferenceError(
-            f"<{tag}> has uri={uri!r} and href={href!r}: one element, two different references",
+            f"<{tag}> has uri={redact(uri)!r} and href={redact(href)!r}: one element, two different references",
             file=source,
             line=sourceline(el),
         )
@@ -292,7 +292,7 @@ def _location(el: etree._Element, tag: str, source: str) -> tuple[str | None, st
     text = ((el.text or "") + "".join(child.tail or "" for child in el)).strip(_XML_SPACE)
     if text:
         raise AmbiguousReferenceError(
-            f"<{tag}> holds text {text!r}: its reference is its uri or href attribute, never its text",
+            f"<{tag}> holds text {redact(text)!r}: its reference is its uri or href attribute, never its text",
             file=source,
             line=sourceline(el),
         )
@@ -329,7 +329,7 @@ def _string_value(el: etree._Element, tag: str, source: str) -> str | None:
     for attr in URI_ATTRS:
         if el.get(attr) is not None:
             raise AmbiguousReferenceError(
-                f"<{tag}> has a {attr} attribute ({el.get(attr)!r}): its reference is its text",
+                f"<{tag}> has a {attr} attribute ({redact(el.get(attr) or '')!r}): its reference is its text",
                 file=source,
                 line=sourceline(el),
             )

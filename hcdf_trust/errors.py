@@ -8,6 +8,7 @@ parsed or fetched. Every error can name the file, line, expected and actual valu
 from __future__ import annotations
 
 import os
+import re
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
@@ -25,6 +26,43 @@ def display_place(place: str) -> str:
     if place.startswith("file://"):
         return display_path(unquote(urlsplit(place).path))
     return display_path(place) if os.path.isabs(place) else place
+
+
+# Where a URL's authority starts, as lenient (WHATWG) parsers read it: after the scheme
+# and any run of slashes or backslashes ("https:u:pw@h", "https:\\\\u:pw@h", "https:///u:pw@h").
+# file: URLs keep the strict "//" rule, so file:///u@x/ has no user.
+_LAX_SCHEME = re.compile(r"(?![Ff][Ii][Ll][Ee]:)[A-Za-z][A-Za-z0-9+.-]*:[/\\]*")
+
+
+def userinfo_end(text: str) -> int:
+    """Where ``user:password@`` ends in a URL-like text (after the last ``@`` of the
+    authority), or -1 when it has none. Textual, so it also works on malformed URLs
+    (``https:u:pw@host``, which lenient parsers read as ``https://u:pw@host``)."""
+    lax = _LAX_SCHEME.match(text)
+    if lax is not None:
+        start = lax.end()
+    else:
+        start = text.find("//")
+        if start < 0:
+            return -1
+        start += 2
+    end = len(text)
+    for sep in "/?#\\":
+        pos = text.find(sep, start)
+        if pos >= 0:
+            end = min(end, pos)
+    at = text.rfind("@", start, end)
+    return -1 if at < 0 else at + 1
+
+
+def redact(text: str) -> str:
+    """``text`` with the ``user:password@`` of its URL (if any) shown as ``***@``."""
+    end = userinfo_end(text)
+    if end < 0:
+        return text
+    lax = _LAX_SCHEME.match(text)
+    start = lax.end() if lax is not None else text.find("//") + 2
+    return text[:start] + "***@" + text[end:]
 
 
 class HcdfTrustError(Exception):

@@ -165,3 +165,19 @@ def read_chunks(fd: int) -> Iterator[bytes]:
         return
     while data := os.read(fd, CHUNK):
         yield data
+
+
+def absolute(path: str | os.PathLike[str]) -> str:
+    """``path`` (as given on a command line) made absolute the way the kernel resolves it.
+
+    ``os.path.abspath`` collapses ``link/..`` lexically, naming another file than the
+    one the shell opens when ``link`` is a symlink: here everything up to the last
+    ``..`` is resolved as the kernel does, and the rest is kept as written.
+    """
+    text = os.fspath(path)
+    parts = text.split(os.sep)
+    if ".." not in parts:
+        return os.path.abspath(text)
+    last = len(parts) - parts[::-1].index("..")
+    head = os.path.realpath(os.sep.join(parts[:last]) or os.sep)
+    return os.path.normpath(os.path.join(head, *parts[last:]))

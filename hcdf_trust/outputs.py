@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .errors import InputError
+from .errors import InputError, display_path, display_place
 from .store import default_cache_dir, fsync_dir
 
 if TYPE_CHECKING:
@@ -119,8 +119,21 @@ class OutputPlan:
                 output of this run, a directory or other non-regular file, or under
                 a regular file.
         """
-        shown = os.fspath(path)
-        dest = _destination(shown, flag=flag)
+        dest, real, shown = self._check(path, flag=flag, edit=edit)
+        self._outputs[real] = _Output(dest, data, mode, flag, shown)
+
+    def check(self, path: str | os.PathLike[str], *, flag: str) -> None:
+        """Refuse now what :meth:`add` would refuse, before the work of making the data.
+
+        Raises:
+            OutputError: as :meth:`add`.
+        """
+        self._check(path, flag=flag, edit=False)
+
+    def _check(self, path: str | os.PathLike[str], *, flag: str, edit: bool) -> tuple[Path, str, str]:
+        """The destination, its real path and how messages show it, or an OutputError."""
+        dest = _destination(os.fspath(path), flag=flag)
+        shown = display_place(os.fspath(path))  # an absolute path inside the working folder shown relative
         real = os.path.realpath(dest)
         try:
             st: os.stat_result | None = os.stat(real)
@@ -132,19 +145,19 @@ class OutputPlan:
             raise OutputError(f"{flag} {shown} is a directory", file=shown)
         hit = self._input_at(st) if st is not None and not edit else None
         if hit is not None:
-            named = _display(hit.path)
+            named = display_path(hit.path)
             also = f" ({named})" if named != os.path.normpath(shown) else ""
             raise OutputError(f"{flag} {shown} is {hit.what}{also}: refusing to overwrite an input", file=shown)
         if st is not None and not stat.S_ISREG(st.st_mode):
             raise OutputError(f"{flag} {shown} exists and is not a regular file ({_kind(st.st_mode)})", file=shown)
         for tree in self._trees:
             if real == tree.path or real.startswith(tree.path.rstrip("/") + "/"):
-                raise OutputError(f"{flag} {shown} is inside {tree.what} ({tree.path})", file=shown)
+                raise OutputError(f"{flag} {shown} is inside {tree.what} ({display_path(tree.path)})", file=shown)
         if real in self._outputs:
             other = self._outputs[real]
             raise OutputError(f"{flag} {shown} is also the destination of {other.flag}", file=shown)
         _check_parent(dest, flag=flag, shown=shown)
-        self._outputs[real] = _Output(dest, data, mode, flag, shown)
+        return dest, real, shown
 
     @property
     def paths(self) -> list[Path]:
@@ -229,12 +242,6 @@ def _destination(text: str, *, flag: str) -> Path:
     return Path(os.path.realpath(folder)) / name
 
 
-def _display(path: str) -> str:
-    """A path relative to the working folder when inside it (as ``locate.display_path``)."""
-    rel = os.path.relpath(path)
-    return path if rel.startswith("..") else rel
-
-
 def _kind(mode: int) -> str:
     if stat.S_ISFIFO(mode):
         return "a FIFO"
@@ -251,9 +258,11 @@ def _check_parent(dest: Path, *, flag: str, shown: str) -> None:
         except (FileNotFoundError, NotADirectoryError):  # look further up for the file in the way
             continue
         except OSError as exc:
-            raise OutputError(f"{flag} {shown}: cannot use folder {parent}: {exc.strerror}", file=shown) from None
+            raise OutputError(
+                f"{flag} {shown}: cannot use folder {display_path(parent)}: {exc.strerror}", file=shown
+            ) from None
         if not stat.S_ISDIR(st.st_mode):
-            raise OutputError(f"{flag} {shown}: {parent} is not a folder", file=shown)
+            raise OutputError(f"{flag} {shown}: {display_path(parent)} is not a folder", file=shown)
         return
 
 

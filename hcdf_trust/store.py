@@ -1,8 +1,8 @@
-"""Atomic writes and the content-addressed cache.
+"""The content-addressed cache, and the folder fsync that makes a rename durable.
 
-Every output (lock file, flattened document, cache blob, later images,
-manifests and key stores) is written to a temporary file in the destination
-folder, fsynced, then renamed: a failed run leaves the previous state intact.
+A blob is written to a temporary file in the cache, checked, then renamed. Every
+other output (lock file, flattened document, later images, manifests and key
+stores) goes through :class:`hcdf_trust.outputs.OutputPlan`.
 """
 
 from __future__ import annotations
@@ -13,37 +13,12 @@ import os
 import stat
 import tempfile
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import BinaryIO
 
 from .digest import Hashed, hash_chunks, hash_stream, is_full_sha256
 from .errors import FetchError, InputError
-
-
-@contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike[str], *, mode: int = 0o644) -> Iterator[BinaryIO]:
-    """Yield a binary file; on clean exit it replaces ``path`` atomically, else vanishes."""
-    dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
-    try:
-        os.fchmod(fd, mode)
-        with os.fdopen(fd, "wb") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, dest)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    fsync_dir(dest.parent)
-
-
-def atomic_write(path: str | os.PathLike[str], data: bytes, *, mode: int = 0o644) -> None:
-    with atomic_writer(path, mode=mode) as f:
-        f.write(data)
 
 
 def fsync_dir(directory: Path) -> None:
@@ -58,6 +33,11 @@ def fsync_dir(directory: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+# The names of the cache's temporary files: the sweep removes nothing else, so a
+# --cache-dir that is not a cache of ours (~, /) never loses a file of tmp/ to it.
+PARTIAL_PREFIX = ".hcdf-trust-partial-"
 
 
 def default_cache_dir() -> Path:
@@ -126,8 +106,8 @@ class ContentStore:
 
         A file whose ``flock`` can be taken has no writer: it is unlinked while the
         lock is held, so a writer that was about to lock it sees it gone and starts
-        another (:meth:`_new_tmp`). Only regular files are touched. Returns how many
-        were removed; never raises.
+        another (:meth:`_new_tmp`). Only regular files named by :data:`PARTIAL_PREFIX`
+        are touched. Returns how many were removed; never raises.
         """
         try:
             names = os.listdir(self.tmp_dir)
@@ -135,6 +115,8 @@ class ContentStore:
             return 0
         removed = 0
         for name in names:
+            if not name.startswith(PARTIAL_PREFIX):
+                continue  # not one of ours
             path = self.tmp_dir / name
             try:
                 fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
@@ -166,10 +148,10 @@ class ContentStore:
         """A new temporary file in ``tmp/``, created and then locked for this writer."""
         while True:
             try:
-                fd, tmp = tempfile.mkstemp(dir=self.tmp_dir)
+                fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX, dir=self.tmp_dir)
             except FileNotFoundError:  # first blob of a new cache: one mkdir, not one per blob
                 self.tmp_dir.mkdir(parents=True, exist_ok=True)
-                fd, tmp = tempfile.mkstemp(dir=self.tmp_dir)
+                fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX, dir=self.tmp_dir)
             # Blocks only while a sweeper that opened it first holds the lock; it then
             # unlinks it, and we see no link left and start over.
             fcntl.flock(fd, fcntl.LOCK_EX)

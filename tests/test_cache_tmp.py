@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from hcdf_trust.store import ContentStore
+from hcdf_trust.store import PARTIAL_PREFIX, ContentStore
 
 
 def sha(data: bytes) -> str:
@@ -133,17 +133,17 @@ def test_sweep_takes_only_unlocked_regular_files(tmp_path):
     store = ContentStore(tmp_path / "cache")
     tmp = store.tmp_dir
     tmp.mkdir(parents=True)
-    (tmp / "dead").write_bytes(b"partial")
-    (tmp / "live").write_bytes(b"being written")
-    (tmp / "folder").mkdir()
+    (tmp / f"{PARTIAL_PREFIX}dead").write_bytes(b"partial")
+    (tmp / f"{PARTIAL_PREFIX}live").write_bytes(b"being written")
+    (tmp / f"{PARTIAL_PREFIX}folder").mkdir()
     outside = tmp_path / "outside"
     outside.write_bytes(b"not ours")
-    (tmp / "link").symlink_to(outside)
-    fd = os.open(tmp / "live", os.O_RDONLY)
+    (tmp / f"{PARTIAL_PREFIX}link").symlink_to(outside)  # named like ours, still not a file
+    fd = os.open(tmp / f"{PARTIAL_PREFIX}live", os.O_RDONLY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)  # another open file description: the sweep cannot take it
         assert store.sweep_tmp() == 1
-        assert sorted(p.name for p in tmp.iterdir()) == ["folder", "link", "live"]
+        assert sorted(p.name for p in tmp.iterdir()) == [f"{PARTIAL_PREFIX}{n}" for n in ("folder", "link", "live")]
     finally:
         os.close(fd)
     assert outside.read_bytes() == b"not ours"

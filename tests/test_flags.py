@@ -75,7 +75,7 @@ def test_mirror_targets_are_checked(cli, robot, target, says):
     assert says in result.stderr
 
 
-@pytest.mark.parametrize("prefix", ["models.example/", "models/", "="])
+@pytest.mark.parametrize("prefix", ["models.example/", "models/", "=", "ftp://models.example/", "s3://bucket/"])
 def test_a_mirror_prefix_must_be_a_url(cli, robot, prefix):
     Path("m").mkdir()
     result = resolve(cli, robot, "--mirror", f"{prefix}=m")

@@ -59,10 +59,19 @@ def _is_url(text: str) -> bool:
 def _check_url(value: str, ctx: click.Context, *, what: str) -> None:
     """A flag's URL must be https (or http under --allow-http). Credentials are left to
     the library, which refuses them with exit 3; messages show URLs redacted."""
+    from urllib.parse import urlsplit
+
     from ..include.locate import redact
 
     scheme = value.partition("://")[0].lower()
     if scheme == "https" or (scheme == "http" and ctx.params.get("allow_http")):
+        try:
+            parts = urlsplit(value)
+            parts.port  # noqa: B018 -- raises ValueError for a port that is not a number in 0-65535
+        except ValueError as exc:
+            raise click.BadParameter(f"{what} {redact(value)!r} is not a valid URL: {exc}") from None
+        if not parts.hostname or "\\" in value:
+            raise click.BadParameter(f"{what} {redact(value)!r} is not a valid URL: expected {scheme}://host/path")
         return
     hint = " (plain http needs --allow-http)" if scheme == "http" and "allow_http" in ctx.params else ""
     raise click.BadParameter(f"{what} {redact(value)!r} is not an https:// URL{hint}")
@@ -83,7 +92,7 @@ def _mirror(ctx: click.Context, param: click.Parameter, values: tuple[str, ...])
         prefix, sep, target = value.partition("=")
         if not sep or not prefix or not target:
             raise click.BadParameter(f"{redact(value)!r} is not PREFIX=DIR|URL")
-        if not _is_url(prefix):  # it would never match a reference, silently
+        if prefix.partition("://")[0].lower() not in ("https", "http", "file"):  # it would never match, silently
             raise click.BadParameter(f"prefix {redact(prefix)!r} is not a URL prefix (https://host/...)")
         if _is_url(target):
             _check_url(target, ctx, what="target")
@@ -271,6 +280,7 @@ def resolve(
     if out:
         from ..include.flatten import flatten
 
+        plan.check(out, flag="--out")  # an input is named as such, before flattening
         plan.add(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),

@@ -177,7 +177,7 @@ class HttpFetcher:
                     line=line,
                     url=url,
                 ) from None
-            except (httpx.HTTPError, ssl.SSLError, OSError) as exc:
+            except (httpx.HTTPError, httpx.InvalidURL, ssl.SSLError, OSError) as exc:
                 raise FetchError(f"{current}: {_describe(exc)}", file=file, line=line, url=url) from None
         raise FetchError(
             f"{url}: more than {self.max_redirects} redirects (a redirect loop?)",

@@ -104,6 +104,7 @@ import copy
 import math
 import os
 import posixpath
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from urllib.parse import unquote, urljoin, urlsplit
@@ -112,6 +113,7 @@ from lxml import etree
 
 from ..document import URI_ATTRS, Document, Kind
 from ..errors import FlattenError
+from ..localfile import absolute
 from ..xml import sourceline
 from .locate import _normalise, display_path, file_url
 from .resolver import Resolution, display_url
@@ -236,18 +238,21 @@ class Pose:
         return (roll, pitch, yaw)
 
 
+# An xs:double written as digits (float() also takes "1_0", "\u0661" and "inf"), and
+# the XML whitespace that separates the items of a list (str.split() takes any Unicode space).
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_XML_SPACE = re.compile(r"[ \t\r\n]+")
+
+
 def parse_pose(text: str, *, file: str | None = None, line: int | None = None) -> Pose:
-    """Parse ``"x y z roll pitch yaw"``.
+    """Parse ``"x y z roll pitch yaw"``: six numbers as an XML reader reads them.
 
     Raises:
         FlattenError: not six finite numbers.
     """
-    parts = text.split()
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+    parts = _XML_SPACE.split(text.strip(" \t\r\n"))
+    values = [float(p) for p in parts if _DECIMAL.fullmatch(p)]
+    if len(parts) != 6 or len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise FlattenError(
             f'pose {text.strip()!r} is not six numbers "x y z roll pitch yaw"',
             file=file,
@@ -485,12 +490,12 @@ class _Flattener:
     ) -> None:
         self.res = res
         self.root_url = res.root_location.url
-        self.out_path = os.path.abspath(out_path) if out_path is not None else None
+        self.out_path = absolute(out_path) if out_path is not None else None
         self.target_url = file_url(self.out_path) if self.out_path is not None else self.root_url
         if root is None and base is not None and "://" not in base:
             root = base
         self.named_root = root is not None
-        self.flat_root = os.path.abspath(root) if root is not None else posixpath.dirname(_path(self.target_url))
+        self.flat_root = absolute(root) if root is not None else posixpath.dirname(_path(self.target_url))
         self.max_elements = max_elements
         # Reference element -> (resolved URL, attribute or None for text).
         self.uri_of: dict[etree._Element, tuple[str, str | None]] = {}

@@ -18,8 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote, urljoin, urlsplit
 
-from ..errors import CredentialsError, InputError, NotFoundError, PathEscapeError
+from ..errors import CredentialsError, InputError, NotFoundError, PathEscapeError, userinfo_end
 from ..errors import display_path as display_path  # re-exported: how messages name a local file
+from ..errors import redact as redact  # re-exported: how messages show a URL with credentials
+from ..localfile import absolute
 
 REMOTE_SCHEMES = ("https", "http")
 # Unreserved URL characters plus "/": text that means the same as a URL and as a path.
@@ -43,38 +45,22 @@ class Location:
 
 
 def file_url(path: str | os.PathLike[str], *, directory: bool = False) -> str:
+    """The ``file://`` URL of a local path.
+
+    Raises:
+        InputError: the path is not valid UTF-8 (the lock file and --json could not name it).
+    """
     text = os.path.abspath(os.fspath(path))
-    url = "file://" + quote(text)
+    try:
+        url = "file://" + quote(text)
+    except UnicodeEncodeError:  # a name of undecodable bytes, held as surrogates (PEP 383)
+        shown = display_path(text).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        raise InputError(f"{shown}: the path is not valid UTF-8; rename it", file=shown) from None
     return url + "/" if directory and not url.endswith("/") else url
 
 
 def _is_url(text: str) -> bool:
     return "://" in text
-
-
-def _userinfo_end(text: str) -> int:
-    """Where ``user:password@`` ends in a URL-like text (after the last ``@`` of the
-    authority), or -1 when it has none. Textual, so it also works on malformed URLs."""
-    start = text.find("//")
-    if start < 0:
-        return -1
-    start += 2
-    end = len(text)
-    for sep in "/?#\\":
-        pos = text.find(sep, start)
-        if pos >= 0:
-            end = min(end, pos)
-    at = text.rfind("@", start, end)
-    return -1 if at < 0 else at + 1
-
-
-def redact(text: str) -> str:
-    """``text`` with the ``user:password@`` of its URL (if any) shown as ``***@``."""
-    end = _userinfo_end(text)
-    if end < 0:
-        return text
-    start = text.find("//") + 2
-    return text[:start] + "***@" + text[end:]
 
 
 def refuse_credentials(url: str, *, what: str, file: str | None = None, line: int | None = None) -> None:
@@ -83,7 +69,7 @@ def refuse_credentials(url: str, *, what: str, file: str | None = None, line: in
     Raises:
         CredentialsError: naming the URL redacted, never the secret.
     """
-    if _userinfo_end(url) >= 0:
+    if userinfo_end(url) >= 0:
         shown = redact(url)
         raise CredentialsError(
             f"{what} {shown} carries credentials (user:password@): refused, so that no secret "
@@ -123,11 +109,13 @@ class Locator:
             if _is_url(target):
                 refuse_credentials(target, what="--mirror target")
         if base is not None:
-            base_url = base if _is_url(base) else file_url(base, directory=True)
+            base_url = base if _is_url(base) else file_url(absolute(base), directory=True)
             if not base_url.endswith("/"):
                 base_url += "/"
         # Longest prefix first, so a specific mirror beats a general one.
-        ordered = tuple(sorted(mirrors, key=lambda m: len(m[0]), reverse=True))
+        ordered = tuple(
+            sorted(((p, t if _is_url(t) else absolute(t)) for p, t in mirrors), key=lambda m: len(m[0]), reverse=True)
+        )
         return cls(root=Path(os.path.abspath(root)), base=base_url, mirrors=ordered)
 
     def for_document(self, path: str | os.PathLike[str]) -> Location:
@@ -205,13 +193,26 @@ class Locator:
         return any(prefix.startswith("file:") for prefix, _ in self.mirrors)
 
     def _apply(self, url: str, *, file: str, line: int | None, uri: str) -> Location:
+        parts = urlsplit(url)
+        if parts.scheme.lower() in REMOTE_SCHEMES and (not parts.hostname or "\\" in url):
+            # Without a host, collapsing the path could make one of it (https:u:pw@host/x
+            # -> https://u:pw@host/x), unseen by the credentials check; a backslash is read
+            # as "/" by browsers and as a port or path character by others.
+            shown = redact(uri)
+            raise InputError(
+                f"malformed URL {shown!r}: a remote reference is {parts.scheme}://host/path",
+                file=file,
+                line=line,
+                expected=f"{parts.scheme}://host/path",
+                actual=shown,
+            )
         url = _normalise(url)
         for prefix, target in self.mirrors:
             if url.startswith(prefix):
                 rest = url[len(prefix) :]
                 if _is_url(target):
                     return Location(url=url, remote=target.rstrip("/") + "/" + rest.lstrip("/"))
-                mroot = Path(os.path.abspath(target))
+                mroot = Path(target)
                 return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line, uri=uri)
         if url.startswith("file://"):
             return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line, uri=uri)

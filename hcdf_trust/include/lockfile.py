@@ -25,7 +25,7 @@ from json.encoder import encode_basestring  # the C escaper json itself uses
 from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
 
-from ..errors import InputError, LockDriftError, LockFileError, NotFoundError
+from ..errors import InputError, LockDriftError, LockFileError, NotFoundError, display_path
 from ..localfile import read_input
 
 LOCK_VERSION = 2
@@ -104,10 +104,15 @@ def load(path: str | os.PathLike[str]) -> Lock:
         LockFileError: missing, not a regular file, over :data:`MAX_LOCK_BYTES`,
             not JSON, an unknown ``lock_version``, or any shape :func:`render` does not write.
     """
-    name = os.fspath(path)
+    name = display_path(path)  # as messages show it: relative to the working folder when inside it
     try:
-        raw = read_input(name, limit=MAX_LOCK_BYTES, what="lock file")
+        raw = read_input(os.fspath(path), limit=MAX_LOCK_BYTES, what="lock file", source=name)
     except NotFoundError:
+        if os.path.islink(path):  # fail closed, but say what is there
+            target = os.readlink(path)
+            raise LockFileError(
+                f"lock file {name} is a symlink to {target!r}, which does not exist", file=name
+            ) from None
         hint = "run resolve without --locked first"
         raise LockFileError(f"lock file {name} does not exist ({hint})", file=name) from None
     except InputError as exc:  # FIFO, device, directory, too large, unreadable

@@ -78,7 +78,7 @@ from ..outputs import OutputError, OutputPlan, protect_inputs
 from ..xml import MAX_DOCUMENT_BYTES, sourceline
 from . import lockfile
 from .locate import Location, display_path, file_url
-from .resolver import Artifact, Resolution, ResolveOptions, Use, display_url, lock_url, resolve
+from .resolver import Artifact, Resolution, ResolveOptions, Use, display_url, resolve
 
 PINNABLE = frozenset({Kind.INCLUDE, Kind.MODEL, Kind.STREAM_PROFILE})
 
@@ -339,10 +339,9 @@ def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: lis
     update = list(update)
     if not update:
         return set()
-    base = res.lock_path.parent
     names: dict[str, set[str]] = {}
     for art in res.artifacts.values():
-        keys = {u.ref.uri for u in art.uses if u.ref.uri} | {art.url, display_url(art.url), lock_url(art.url, base)}
+        keys = {u.ref.uri for u in art.uses if u.ref.uri} | {art.url, display_url(art.url), res.lock_url(art.url)}
         if art.location.path is not None:
             keys.add(os.path.realpath(art.location.path))
         names[art.url] = keys
@@ -525,9 +524,8 @@ def _lock_says(pin: Pin, read: str, locked: str | None) -> str:
 
 def _lock_entries(res: Resolution, planner: _Planner) -> list[lockfile.LockEntry]:
     """What a plain ``resolve`` locks after the edits: edited includes by their new bytes."""
-    base = res.lock_path.parent
     edited = {
-        lock_url(url, base): (planner.digest[url], len(data))
+        res.lock_url(url): (planner.digest[url], len(data))
         for url, data in planner.new_bytes.items()
         if data != res.documents[url].data
     }

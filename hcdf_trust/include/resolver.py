@@ -48,7 +48,7 @@ from ..errors import (
     UnpinnedError,
     WeakPinError,
 )
-from ..localfile import hash_local, open_local, read_bounded
+from ..localfile import absolute, hash_local, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
@@ -222,11 +222,6 @@ class LockUrls:
         return done
 
 
-def lock_url(url: str, base: Path) -> str:
-    """Local URLs relative to the lock file's folder; remote URLs as they are."""
-    return LockUrls(base).to_lock(url)
-
-
 def display_url(url: str) -> str:
     """How messages name a URL: local files by :func:`display_path`, others as they are."""
     return display_path(unquote(urlsplit(url).path)) if url.startswith("file://") else url
@@ -298,8 +293,8 @@ class _Run:
     # -- step 0: the root document and the lock --------------------------------------
 
     def run(self, doc_path: Path) -> Resolution:
-        doc_path = Path(os.path.abspath(doc_path))
-        lock_path = Path(self.o.lock_path) if self.o.lock_path else lockfile.default_path(doc_path)
+        doc_path = Path(absolute(doc_path))
+        lock_path = Path(absolute(self.o.lock_path)) if self.o.lock_path else lockfile.default_path(doc_path)
         root_dir = self._confinement_root(doc_path)
         locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
         root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
@@ -381,9 +376,9 @@ class _Run:
 
     def _confinement_root(self, doc_path: Path) -> Path:
         if self.o.root:
-            return Path(os.path.abspath(self.o.root))
+            return Path(absolute(self.o.root))
         if self.o.base and "://" not in self.o.base:
-            return Path(os.path.abspath(self.o.base))
+            return Path(absolute(self.o.base))
         return doc_path.parent
 
     # -- step 1: the include tree ----------------------------------------------------

@@ -77,7 +77,6 @@ def update_tree(res: Any, edits: list[HashEdit]) -> EditResult:
         InputError: a document to edit is remote, or an edit cannot be made safely.
     """
     from ..include import lockfile
-    from ..include.resolver import lock_url
 
     by_doc: dict[str, list[HashEdit]] = {}
     for e in edits:
@@ -127,9 +126,8 @@ def update_tree(res: Any, edits: list[HashEdit]) -> EditResult:
                 target = _elements(current)[index[e.element]]
                 data = replace_text(current, target, e.new)
         new_bytes[url] = data
-    base = res.lock_path.parent
     entries = []
-    changed = {lock_url(url, base): data for url, data in new_bytes.items()}
+    changed = {res.lock_url(url): data for url, data in new_bytes.items()}
     for entry in res.lock_entries():
         data = changed.get(entry.url)
         if data is not None:
@@ -142,7 +140,7 @@ def update_tree(res: Any, edits: list[HashEdit]) -> EditResult:
                 referenced_from=entry.referenced_from,
             )
         entries.append(entry)
-    lock = lockfile.render(entries, root=lock_url(res.root_location.url, base))
+    lock = lockfile.render(entries, root=res.lock_url(res.root_location.url))
     return EditResult(documents=new_bytes, lock=lock)
 
 

@@ -27,6 +27,7 @@ from lxml import etree
 from ..document import ROOT, Document, require_root
 from ..include.locate import display_path
 from ..include.resolver import link_stub_target
+from ..localfile import absolute
 from ..xml import parse_bytes, sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
@@ -70,7 +71,7 @@ def validate_document(
     if isinstance(doc, Document):
         tree, source = doc.tree, doc.source
     else:
-        path = Path(os.path.abspath(doc))
+        path = Path(absolute(doc))
         data = read_local(path, path.parent, source=display_path(path))
         stub = link_stub_target(path, data)  # a symlink checked out as a plain file
         if stub is not None:
@@ -98,7 +99,7 @@ def validate_document(
             findings.extend(_version_mismatch(root, found, source))
 
     if kind == "hcdf":
-        edges = local_include_edges(root, path, source=source) if path is not None else []
+        edges = local_include_edges(doc, path, source=source) if path is not None else []
         result = semantic.check(root, source=source, includes=edges)
         report.checked.append("semantic")
         findings.extend(result.findings)

@@ -1,6 +1,8 @@
 """Read the local include chain of a document, for the frame-convention rule.
 
-Only local files are read, through the include package's locator (relative to
+The includes are those the document walker finds (:meth:`Document.references`, the
+same ones resolve follows: ``uri`` or ``href``, at any depth). Only local files are
+read, through the include package's locator (relative to
 the including document, confined to the root document's folder) and its safe
 opener (no symlink escape, regular files only); every file is parsed by
 :func:`hcdf_trust.xml.parse_bytes`. Nothing is fetched, hashed or cached: that
@@ -15,14 +17,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TypedDict
 
-from lxml import etree
-
-from ..document import Document
+from ..document import Document, Kind, Reference
 from ..errors import HcdfTrustError, NotFoundError
 from ..include.flatten import SEPARATOR
-from ..include.locate import Location, Locator, display_path, file_url
+from ..include.locate import Location, Locator, display_path, file_url, redact
 from ..localfile import open_local, read_bounded
-from ..xml import MAX_DOCUMENT_BYTES, sourceline
+from ..xml import MAX_DOCUMENT_BYTES
 from .semantic import IncludeEdge
 
 MAX_INCLUDE_DEPTH = 16
@@ -31,7 +31,7 @@ MAX_INCLUDE_EDGES = 1000
 
 # One file of the walk: its location, its includes still to visit, its name, its prefix,
 # and the chain of files from the root down to it.
-_Frame = tuple[Location, Iterator[etree._Element], str, str, tuple[str, ...]]
+_Frame = tuple[Location, Iterator[Reference], str, str, tuple[str, ...]]
 
 
 class _EdgeFields(TypedDict):
@@ -53,7 +53,11 @@ def read_local(path: Path | str, root: Path | str, *, source: str, line: int | N
         return read_bounded(fd, MAX_DOCUMENT_BYTES, source=source)
 
 
-def local_include_edges(root: etree._Element, path: Path, *, source: str) -> list[IncludeEdge]:
+def _includes(doc: Document) -> Iterator[Reference]:
+    return (ref for ref in doc.references() if ref.kind is Kind.INCLUDE)
+
+
+def local_include_edges(document: Document, path: Path, *, source: str) -> list[IncludeEdge]:
     """Every ``<include>`` reachable through local files, depth first in document order
     (the order flattening uses).
 
@@ -70,17 +74,16 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
 
     # Depth first with an explicit stack of (location, its remaining includes, name, prefix,
     # the chain of files above it): no recursion, however long the chain.
-    frames: list[_Frame] = [(start, iter(root.findall("include")), source, "", (start.url,))]
+    frames: list[_Frame] = [(start, _includes(document), source, "", (start.url,))]
     while frames:
         loc, includes, shown, prefix, stack = frames[-1]
         for inc in includes:
-            uri = inc.get("uri")
-            line = sourceline(inc)
+            uri, line = inc.uri, inc.line
             if not uri:
                 continue  # the XSD reports the missing attribute
-            name = (inc.get("name") or "").strip()
-            edge = _EdgeFields(
-                parent=shown, line=line, uri=uri, prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix
+            name = (inc.name or "").strip()
+            edge = _EdgeFields(  # uri is only shown, never the secret of a user:password@ URL
+                parent=shown, line=line, uri=redact(uri), prefix=f"{prefix}{name}{SEPARATOR}" if name else prefix
             )
             try:
                 child = locator.locate(uri, loc, file=shown, line=line)
@@ -118,7 +121,7 @@ def local_include_edges(root: etree._Element, path: Path, *, source: str) -> lis
                 )
             )
             below = (*stack, child.url)
-            frames.append((child, iter(doc.root.findall("include")), child_name, edge["prefix"], below))
+            frames.append((child, _includes(doc), child_name, edge["prefix"], below))
             break  # walk the included file's includes first: depth first, document order
         else:
             frames.pop()

@@ -28,7 +28,7 @@ from lxml import etree
 
 from ..errors import InputError
 from ..include.locate import display_path
-from ..localfile import open_local, read_bounded
+from ..localfile import absolute, open_local, read_bounded
 from ..xml import parse_bytes, sourceline
 from .findings import Finding, Severity
 
@@ -144,7 +144,7 @@ def load_schema_file(path: str | os.PathLike[str]) -> Schema:
     Raises:
         NotFoundError, InputError: unreadable, too large, not XML, not a usable XSD.
     """
-    p = Path(os.path.abspath(path))
+    p = Path(absolute(path))
     shown = display_path(p)
     with open_local(p, p.parent, file=shown) as fd:
         data = read_bounded(fd, MAX_SCHEMA_BYTES, source=shown, what="schema")

@@ -24,6 +24,7 @@ from typing import NamedTuple
 from lxml import etree
 
 from ..include.flatten import SEPARATOR
+from ..include.locate import redact
 from ..xml import sourceline
 from .findings import Finding, Severity
 
@@ -237,7 +238,7 @@ class _Checker:
             self.unread = [
                 (
                     f"{n}{INCLUDE_SEPARATOR}" if (n := (el.get("name") or "").strip()) else "",
-                    el.get("uri") or "",
+                    redact(el.get("uri") or ""),
                     source,
                     sourceline(el),
                 )
@@ -873,7 +874,8 @@ class _Checker:
         error at the ``<include>`` that brings it in; a file that omits one
         inherits it. Includes that could not be read are warnings.
         """
-        edges = list({(e.parent, e.line): e for e in self.edges}.values())  # one per <include>
+        # One per <include> (a document included twice is walked twice); two on one line stay two.
+        edges = list({(e.parent, e.line, e.uri): e for e in self.edges}.values())
         for edge in edges:
             if edge.child is None and edge.refused:
                 self.findings.append(
