@@ -168,8 +168,8 @@ def registry_options(func: Callable[..., Any]) -> Callable[..., Any]:
         "--registry",
         "registry_site",
         metavar="URL|DIR",
-        help="Check extensions and stream profiles against this signed registry: an http(s) URL, or a folder "
-        "(offline, and for verify, a folder only). Needs --trusted-root.",
+        help="Check extensions and stream profiles against this signed registry: an http(s) URL or a folder "
+        "(a folder only when offline, as verify always is). Needs --trusted-root.",
     )(func)
 
 
