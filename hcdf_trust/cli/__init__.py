@@ -155,12 +155,45 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             show_default=True,
             help="Deepest include nesting accepted.",
         ),
-        click.option("--strict", is_flag=True, help="Refuse weak pins (hex prefixes shorter than 64 digits)."),
+        click.option(
+            "--strict",
+            is_flag=True,
+            help="Refuse weak pins (hex prefixes shorter than 64 digits); with --registry, also unregistered "
+            "extension domains and versions.",
+        ),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout."),
     ]
     for option in reversed(options):
         func = option(func)
     return func
+
+
+def registry_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``--registry`` and ``--trusted-root`` of resolve and verify (checks: hcdf_trust.registry.resolution)."""
+    func = click.option(
+        "--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust (with --registry)."
+    )(func)
+    return click.option(
+        "--registry",
+        "registry_site",
+        metavar="URL|DIR",
+        help="Check extensions and stream profiles against this signed registry: an http(s) URL or a folder "
+        "(a folder only when offline, as verify always is). Needs --trusted-root.",
+    )(func)
+
+
+def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offline: bool, persist: bool) -> Any:
+    if site is None:
+        if trusted_root is not None:
+            raise click.UsageError("--trusted-root goes with --registry")
+        return None
+    if trusted_root is None:
+        raise click.UsageError("--registry needs --trusted-root")
+    if offline and _is_url(site):
+        raise click.UsageError(f"--registry {site!r} is a URL, and this run is offline: give a folder copy of the site")
+    from ..registry.resolution import RegistryCheck
+
+    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist)
 
 
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -239,6 +272,7 @@ def main() -> None:
     help="Most elements the --out document may have once every include is expanded.",
 )
 @click.option("--no-lock", is_flag=True, help="Do not write the lock file.")
+@registry_options
 @click.option(
     "--update",
     "update",
@@ -251,7 +285,15 @@ def main() -> None:
 )
 @handle_errors
 def resolve(
-    doc: str, out: str | None, max_elements: int, no_lock: bool, update: tuple[str, ...], as_json: bool, **kw: Any
+    doc: str,
+    out: str | None,
+    max_elements: int,
+    no_lock: bool,
+    update: tuple[str, ...],
+    as_json: bool,
+    registry_site: str | None,
+    trusted_root: str | None,
+    **kw: Any,
 ) -> None:
     """Fetch every file DOC references, verify its SHA-256, cache it, write the lock file.
 
@@ -259,7 +301,8 @@ def resolve(
     --base. Nothing is written unless every reference verifies. The lock is the
     pin of every reference without a full sha (trust on first use): content that
     changed since it was locked fails (exit 1) until accepted with --update.
-    With --locked the lock is checked, never written.
+    With --locked the lock is checked, never written. With --registry, the tree's
+    extensions and stream profiles are also checked against a signed registry.
     """
     from ..include.locate import display_path
     from ..include.resolver import ResolveOptions
@@ -269,10 +312,13 @@ def resolve(
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
     no_lock = no_lock or options.locked
-    res = _run_resolve(doc, options, as_json=as_json)
+    registry = _registry(registry_site, trusted_root, strict=options.strict, offline=options.offline, persist=True)
+    res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     # Every output is checked against every input before any is written; all land or none.
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)
+    if registry is not None:
+        registry.protect(plan)
     if no_lock:
         plan.protect(res.lock_path, what="the lock file")
     else:
@@ -293,17 +339,20 @@ def resolve(
 @main.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
+@registry_options
 @handle_errors
-def verify(doc: str, as_json: bool, **kw: Any) -> None:
+def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str | None, **kw: Any) -> None:
     """Check DOC's tree against its lock file, offline; write nothing.
 
     Every file must be present locally, in a mirror or in the cache, and match
-    both its pin and the lock.
+    both its pin and the lock. --registry (a folder) also checks the tree's
+    extensions and stream profiles against a signed registry.
     """
     from ..include.resolver import ResolveOptions
 
     options = ResolveOptions(locked=True, offline=True, write_cache=False, **kw)
-    res = _run_resolve(doc, options, as_json=as_json)
+    registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
+    res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     _report(res, as_json=as_json, wrote=[])
 
 
@@ -427,11 +476,15 @@ def validate(
     sys.exit(0 if report.ok else 1)
 
 
-def _run_resolve(doc: str, options: Any, *, as_json: bool) -> Any:
+def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None) -> Any:
     from ..include.resolver import resolve as do_resolve
 
     with _progress(enabled=not as_json) as (on_start, on_progress):
         res = do_resolve(doc, options, on_start=on_start, on_progress=on_progress)
+    if res.ok and registry is not None:  # a step after resolution: the tree verified, now its registry checks
+        errors, warnings = registry.check(res, cache_dir=options.cache_dir)
+        res.errors += errors
+        res.warnings += warnings
     if not res.ok:
         if not as_json:
             _warn(res.warnings)

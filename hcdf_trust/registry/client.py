@@ -140,8 +140,7 @@ class RegistryClient:
 
         self.site = site
         local = "://" not in site
-        key = hashlib.sha256(f"{os.path.realpath(site) if local else site}\0".encode() + trusted_root).hexdigest()
-        self.cache_dir = Path(cache_dir) if cache_dir else _default_cache() / key[:24]
+        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(site, trusted_root)
         self.metadata_dir = self.cache_dir / "metadata"
         self.metadata_dir.mkdir(parents=True, exist_ok=True)
         (self.cache_dir / "targets").mkdir(exist_ok=True)
@@ -320,9 +319,13 @@ class RegistryClient:
                 )
 
 
-def _default_cache() -> Path:
+def default_cache_dir(site: str, trusted_root: bytes) -> Path:
+    """Where a client of ``site`` trusting ``trusted_root`` keeps its metadata by default:
+    one folder per site and root, under ``$XDG_CACHE_HOME/hcdf-trust/registry``."""
+    local = "://" not in site
+    key = hashlib.sha256(f"{os.path.realpath(site) if local else site}\0".encode() + trusted_root).hexdigest()
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "hcdf-trust" / "registry"
+    return Path(base) / "hcdf-trust" / "registry" / key[:24]
 
 
 def latest(versions: dict[str, Any]) -> str:
