@@ -18,7 +18,8 @@ Any path can instead be told to misbehave::
     srv.drip("/d", data, every=0.2)              # one byte at a time
     srv.latency = 0.02                           # added before every response
 
-``srv.hits[path]`` counts requests per path (``srv.total_hits`` all of them).
+``srv.hits[path]`` counts requests per path (``srv.total_hits`` all of them);
+``srv.max_in_flight`` is the most requests answered at once (while the latency sleeps).
 TLS certificates come from ``trustme``: see the fixtures at the bottom, which
 this suite registers as a plugin from ``tests/conftest.py``.
 """
@@ -75,6 +76,8 @@ class LoopbackServer:
         self.routes: dict[str, Route] = {}
         self.hits: Counter[str] = Counter()
         self.latency = 0.0
+        self.in_flight = 0  # requests being answered now, and the most at once
+        self.max_in_flight = 0
         self.closing = threading.Event()
         self._lock = threading.Lock()
         self._httpd = _Server((HOST, 0), _Handler, owner=self)
@@ -216,7 +219,12 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         route = owner._route(path)
         delay = owner.latency + (route.latency if route else 0.0)
         if delay:
+            with owner._lock:
+                owner.in_flight += 1
+                owner.max_in_flight = max(owner.max_in_flight, owner.in_flight)
             time.sleep(delay)
+            with owner._lock:
+                owner.in_flight -= 1
         if route is None:
             self._send_simple(404, b"not found\n")
             return

@@ -677,7 +677,9 @@ def test_digest_mismatch_over_https_names_file_line_expected_actual(https_server
 # -- parallel fetch ---------------------------------------------------------------------------
 
 
-def test_parallel_fetch_beats_sequential_latency(https_server, resolve, work, cache):
+def test_fetches_run_in_parallel_up_to_jobs(https_server, resolve, work, cache):
+    """--jobs 16 keeps many requests in flight at once, each file fetched once. Counted by the
+    server (not timed: the speed-up itself is measured in bench/, as a ratio)."""
     n, latency = 200, 0.02
     files = {f"/m/{i:03}.glb": blob(2000, seed=1000 + i) for i in range(n)}
     for path, data in files.items():
@@ -685,12 +687,18 @@ def test_parallel_fetch_beats_sequential_latency(https_server, resolve, work, ca
     https_server.latency = latency
     doc = write_doc(work, *(model(https_server.url(p), sha(d)) for p, d in files.items()))
 
-    started = time.monotonic()
     result = resolve(doc, "--jobs", "16")
-    elapsed = time.monotonic() - started
 
     assert result.exit_code == 0, result.stderr
     assert all(https_server.hits[p] == 1 for p in files)
-    speedup = n * latency / elapsed
-    print(f"200 files x 20 ms: {elapsed * 1000:.0f} ms, {speedup:.1f}x faster than sequential")
-    assert speedup >= 4, f"{elapsed:.2f} s is only {speedup:.1f}x the sequential {n * latency:.0f} s"
+    assert 8 <= https_server.max_in_flight <= 16, https_server.max_in_flight
+
+
+def test_jobs_1_fetches_one_at_a_time(https_server, resolve, work, cache):
+    files = {f"/s/{i:02}.glb": blob(500, seed=2000 + i) for i in range(10)}
+    for path, data in files.items():
+        https_server.add(path, data)
+    https_server.latency = 0.02
+    doc = write_doc(work, *(model(https_server.url(p), sha(d)) for p, d in files.items()))
+    assert resolve(doc, "--jobs", "1").exit_code == 0
+    assert https_server.max_in_flight == 1
