@@ -95,8 +95,9 @@ def _software(report: Report, source: str, sw: Any, hashes: dict[Any, Any], rele
             line=line,
         )
         return
-    signed = component.mcuboot_hash or component.sha256
-    if sha is not None and sha.lower() not in (component.mcuboot_hash, component.sha256):
+    # What <hash> must be (README, ota): MCUboot's image hash, or a raw image's file SHA-256.
+    signed = component.mcuboot_hash if component.type == "mcuboot" else component.sha256
+    if sha is not None and sha.lower() != signed:
         report.add(
             "firmware-unreleased",
             f"{what}: <hash> is not the image of release {release.sequence_number} "
