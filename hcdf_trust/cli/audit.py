@@ -60,6 +60,8 @@ def audit_cmd(
         raise click.UsageError("--release and --key go together")
     if registry_site is not None and trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
+    if registry_site is not None and "://" in registry_site and offline:
+        raise click.UsageError(f"--registry {registry_site} is on the network: add --online (or give a folder)")
     if store_dir is None and (passphrase_file or now_text or any(backend.values())):
         raise click.UsageError("the key store options need --store")
     policy = load(policy_file) if policy_file is not None else DEFAULT
