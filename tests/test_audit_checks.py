@@ -142,3 +142,17 @@ def test_an_unreadable_reference_is_an_integrity_error(cli, tmp_path):
                     "</visual></comp>")  # fmt: skip
     r = _audit(cli, remote, tmp_path)  # offline by default: never fetched, and said so
     assert [f["code"] for f in r.json["findings"] if f["check"] == "integrity"] == ["offline"]
+
+
+def test_control_traffic_in_an_included_network(cli, tmp_path):
+    """The plan prefixes an included network's name (``left_n``); the check still finds its VLANs."""
+    sub = tmp_path / "arm.hcdf"
+    sub.write_text(hcdf(_wired("7", "integrity-only")))
+    doc = tmp_path / "robot.hcdf"
+    sha = hashlib.sha256(sub.read_bytes()).hexdigest()
+    doc.write_text(hcdf(f'<include uri="arm.hcdf" sha="{sha}" name="left"/>'))
+    lock_tree(doc)
+    r = _audit(cli, doc, tmp_path)
+    (f,) = [f for f in r.json["findings"] if f["code"] == "macsec-control-traffic"]
+    assert (Path(f["file"]).name, f["line"]) == ("arm.hcdf", _line(sub, '<link name="l">'))
+    assert "left_n" in f["message"] and "pcp 7" in f["message"]

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from ..errors import LockFileError
+from ..errors import InputError, LockFileError
 from ..include import lockfile
 from ..include.resolver import ResolveOptions, resolve
 from . import extensions, firmware, macsec, references
@@ -75,7 +75,8 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
 
     release = None
     if o.release_dir is not None:
-        assert o.release_key is not None
+        if o.release_key is None:
+            raise InputError("a release is verified with its public key: release_key is missing", file=o.release_dir)
         release, errors = firmware.read_release(o.release_dir, o.release_key)
         for error in errors:
             report.add_error(error)

@@ -7,6 +7,7 @@ The ``<hash>`` values are the walker's (``Resolution.others``, :class:`~hcdf_tru
 
 from __future__ import annotations
 
+import os
 import re
 from typing import TYPE_CHECKING, Any
 
@@ -43,9 +44,17 @@ def read_release(folder: str, key: str) -> tuple[suit.Release | None, list[HcdfT
     public = load_public(key)
     try:
         release, files = read(folder, public)
+        errors = check_release(release, files, public)
     except HcdfTrustError as exc:
-        return None, [exc]
-    return release, check_release(release, files, public)
+        return None, [_in_folder(exc, folder)]
+    return release, [_in_folder(e, folder) for e in errors]
+
+
+def _in_folder(error: HcdfTrustError, folder: str) -> HcdfTrustError:
+    """ota names a release's files relative to its folder; the audit report names the folder too."""
+    if error.file and not os.path.isabs(error.file) and not error.file.startswith(folder):
+        error.file = os.path.join(folder, error.file)
+    return error
 
 
 def check(report: Report, res: Resolution, release: suit.Release | None) -> None:
