@@ -619,3 +619,7 @@ from .registry import registry  # noqa: E402
 main.add_command(macsec)
 main.add_command(ota)
 main.add_command(registry)
+
+from .audit import audit_cmd  # noqa: E402
+
+main.add_command(audit_cmd)

@@ -76,7 +76,7 @@ def plan_cmd(doc: str, as_json: bool) -> None:
 # --- the key store ---------------------------------------------------------------------------
 
 
-def store_options(func: Any) -> Any:
+def store_options(func: Any, *, required: bool = True) -> Any:
     func = click.option(
         "--tpm",
         "tpm_tcti",
@@ -102,7 +102,7 @@ def store_options(func: Any) -> Any:
         help="File holding the store passphrase (else $HCDF_TRUST_MACSEC_PASSPHRASE; never an argument).",
     )(func)
     func = click.option(
-        "--store", "store_dir", required=True, type=click.Path(file_okay=False), help="Key store folder."
+        "--store", "store_dir", required=required, type=click.Path(file_okay=False), help="Key store folder."
     )(func)
     return func
 

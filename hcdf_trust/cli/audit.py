@@ -1,0 +1,107 @@
+"""``hcdf-trust audit``: one report over the whole include tree. Parses, calls, renders."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Any
+
+import click
+
+from . import emit_json, handle_errors
+from .macsec import store_options
+
+
+@click.command(name="audit")
+@click.argument("doc", type=click.Path(dir_okay=False))
+@click.option(
+    "--policy", "policy_file", type=click.Path(dir_okay=False), help="Audit policy (TOML) [default: built-in]."
+)
+@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock].")
+@click.option(
+    "--offline/--online", default=True, show_default=True, help="Never open a socket (remote files from the cache)."
+)
+@click.option("--cache-dir", type=click.Path(file_okay=False), help="Content cache to read remote files from.")
+@click.option("--root", type=click.Path(file_okay=False), help="Folder local references may not leave.")
+@click.option("--release", "release_dir", type=click.Path(file_okay=False), help="Signed OTA release folder.")
+@click.option("--key", "release_key", type=click.Path(dir_okay=False), help="The release's public key (PEM).")
+@click.option("--registry", "registry_site", help="Registry (URL or folder): extension domains and schemas.")
+@click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
+@functools.partial(store_options, required=False)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (README: `hcdf-trust audit`).")
+@handle_errors
+def audit_cmd(
+    doc: str,
+    policy_file: str | None,
+    lock_path: str | None,
+    offline: bool,
+    cache_dir: str | None,
+    root: str | None,
+    release_dir: str | None,
+    release_key: str | None,
+    registry_site: str | None,
+    trusted_root: str | None,
+    store_dir: str | None,
+    passphrase_file: str | None,
+    now_text: str | None,
+    as_json: bool,
+    **backend: Any,
+) -> None:
+    """Audit DOC's supply chain: references, firmware, MACsec, extensions.
+
+    Every finding has a severity, a code, a file and a line. Exits 1 when a finding is at or
+    above the policy's threshold, 3 when an input cannot be read.
+    """
+    from ..audit import AuditOptions
+    from ..audit import audit as run
+    from ..audit.policy import DEFAULT, load
+
+    if (release_dir is None) != (release_key is None):
+        raise click.UsageError("--release and --key go together")
+    if registry_site is not None and trusted_root is None:
+        raise click.UsageError("--registry needs --trusted-root")
+    if registry_site is not None and "://" in registry_site and offline:
+        raise click.UsageError(f"--registry {registry_site} is on the network: add --online (or give a folder)")
+    if store_dir is None and (passphrase_file or now_text or any(backend.values())):
+        raise click.UsageError("the key store options need --store")
+    policy = load(policy_file) if policy_file is not None else DEFAULT
+    wrapper = now = schemas = None
+    if store_dir is not None:
+        from .macsec import _now, _wrapper
+
+        now = _now(now_text)
+        wrapper = _wrapper(passphrase_file, backend)
+    if registry_site is not None:
+        from ..registry.validation import RegistrySchemaSource
+        from .registry import _client
+
+        assert trusted_root is not None
+        schemas = RegistrySchemaSource(_client(registry_site, trusted_root, None))
+    report = run(
+        doc,
+        AuditOptions(
+            policy=policy,
+            lock_path=lock_path,
+            offline=offline,
+            cache_dir=cache_dir,
+            root=root,
+            release_dir=release_dir,
+            release_key=release_key,
+            store_dir=store_dir,
+            store_wrapper=wrapper,
+            now=now,
+            registry=schemas,
+        ),
+    )
+    if as_json:
+        emit_json(report.to_dict())
+    else:
+        for f in report.sorted():
+            click.echo(str(f), err=True)
+        counts = report.to_dict()["counts"]
+        click.echo(
+            f"audit: {counts['error']} error(s), {counts['warning']} warning(s), {counts['info']} info "
+            f"({', '.join(report.checked)}); {len(report.failing)} at or above {policy.threshold}",
+            err=True,
+        )
+    sys.exit(0 if report.ok else 1)
