@@ -556,3 +556,4 @@ from .registry import registry  # noqa: E402
 main.add_command(macsec)
 main.add_command(ota)
 main.add_command(registry)
+from . import sbom as _sbom  # noqa: E402, F401  (registers `hcdf-trust sbom`)
