@@ -524,9 +524,7 @@ def properties(pairs: Iterable[tuple[str, str | int | None]]) -> list[tuple[str,
 
 
 def assembly_properties(a: AssemblyFact) -> list[tuple[str, str]]:
-    return properties(
-        [("hcdf:file", a.file), ("hcdf:instance", a.instance), ("hcdf:include-line", a.line)]
-    )
+    return properties([("hcdf:file", a.file), ("hcdf:instance", a.instance), ("hcdf:include-line", a.line)])
 
 
 def comp_properties(c: CompFact) -> list[tuple[str, str]]:
