@@ -111,3 +111,27 @@ def test_a_tree_that_multiplies_past_the_limit_is_refused(cli, monkeypatch):
     monkeypatch.setattr(model, "MAX_COMPONENTS", 6)  # the robot: 8 comps in 3 sub-assemblies
     r = cli("sbom", ROBOT / "robot.hcdf", "--format", "cyclonedx")
     assert r.exit_code == 3 and "more than 6" in r.stderr and r.stdout == ""
+
+
+def test_firmware_the_release_does_not_list_has_no_signer(cli, robot, tmp_path):
+    import json
+
+    config = tmp_path / "ota.toml"
+    config.write_text((robot / "ota.toml").read_text().replace('type = "raw"', 'type = "raw"\nexclude = true'))
+    assert cli("ota", "keygen", "-o", tmp_path / "k.pem").exit_code == 0
+    out = tmp_path / "release"
+    r = cli(
+        "ota", "build", robot / "robot.hcdf", "--firmware-dir", robot / "firmware", "--key", tmp_path / "k.pem",
+        "--out", out, "--config", config,
+    )  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    r = cli("sbom", robot / "robot.hcdf", "--format", "cyclonedx", "--release", out, "--key", tmp_path / "k.pub.pem")
+    assert r.exit_code == 0, r.stderr
+    assert "compute/scout-os is not in the release" in r.stderr
+    comps = {c["bom-ref"]: c for c in json.loads(r.stdout)["components"]}
+    signed = {
+        ref
+        for ref, c in comps.items()
+        if any(p["name"] == "hcdf:signature:key-sha256" for p in c.get("properties", []))
+    }
+    assert signed == {"firmware/scout2_arm/arm-ctrl@1.4.2"}

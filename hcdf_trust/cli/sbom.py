@@ -59,9 +59,9 @@ def sbom(
         raise click.UsageError("--release and --key go together: a release's signer is only named once verified")
     options = ResolveOptions(locked=True, offline=True, write_cache=False, lock_path=lock_path, cache_dir=cache_dir)
     res = resolve(doc, options)
+    for w in res.warnings:
+        click.echo(f"warning: {w}", err=True)
     if not res.ok:
-        for w in res.warnings:
-            click.echo(f"warning: {w}", err=True)
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
     facts = collect(res, release=release, fmt=fmt)

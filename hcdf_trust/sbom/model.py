@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import os
 import uuid
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -346,6 +347,7 @@ class _Collector:
             if child is None or art is None or art.sha256 is None or art.size is None:
                 continue  # not parsed: the resolver reported it (and the caller refused the run)
             sub = f"{instance}/{seg}" if instance else seg
+            self._count()
             fact = self._assembly(child_url, child, sub, f"assembly/{sub}", inc_ref.line, art.sha256, art.size)
             self.assemblies.append(fact)
             depends.append(fact.ref)
@@ -496,8 +498,9 @@ def _replace(fw: FirmwareFact, **kw: Any) -> FirmwareFact:
 def _segments(includes: list[tuple[Any, str]]) -> Iterator[tuple[str, tuple[Any, str]]]:
     """Each include's instance name: its ``name``, else ``include@LINE``; made unique by line."""
     names = [ref.name or f"include@{ref.line}" for ref, _ in includes]
+    counts = Counter(names)
     for name, (ref, url) in zip(names, includes, strict=True):
-        yield (name if names.count(name) == 1 else f"{name}@{ref.line}"), (ref, url)
+        yield (name if counts[name] == 1 else f"{name}@{ref.line}"), (ref, url)
 
 
 def _owner(el: Any, comps: dict[Any, list[str]]) -> Any:
