@@ -135,3 +135,35 @@ def test_firmware_the_release_does_not_list_has_no_signer(cli, robot, tmp_path):
         if any(p["name"] == "hcdf:signature:key-sha256" for p in c.get("properties", []))
     }
     assert signed == {"firmware/scout2_arm/arm-ctrl@1.4.2"}
+
+
+def test_names_that_could_collide_or_break_an_iri_give_distinct_valid_refs(cli, tmp_path):
+    """Comps named alike, unnamed comps and includes, '/' '#' '%' and spaces in names: every
+    comp and instance is listed once, under a ref that is also a valid IRI path."""
+    import json
+    import re
+
+    from tests._sbom import spdx_graph, validate_cyclonedx, validate_spdx
+
+    (tmp_path / "r.hcdf").write_text(
+        '<hcdf version="1.0" name="r">'
+        '<comp name="a b#c?d%e"><board>b/1</board><software name="fw 1"><version>1.0</version></software></comp>'
+        '<comp name="b"><board>b</board><software name="1/fw 1"><version>1.0</version></software></comp>'
+        '<comp/><comp/><comp name="x"/><comp name="x"/>'
+        '<include uri="s.hcdf"/><include uri="s.hcdf" name="n"/><include uri="s.hcdf" name="n"/></hcdf>'
+    )
+    (tmp_path / "s.hcdf").write_text('<hcdf version="1.0" name="s"><comp name="c"/></hcdf>')
+    assert cli("resolve", tmp_path / "r.hcdf").exit_code == 0
+    r = cli("sbom", tmp_path / "r.hcdf", "--format", "cyclonedx")
+    assert r.exit_code == 0, r.stderr
+    validate_cyclonedx(r.stdout)
+    components = json.loads(r.stdout)["components"]
+    kinds = [c["type"] for c in components]
+    # 6 comps of r, 3 instances of s with one comp each, 2 firmware (b/1 + "fw 1" is not b + "1/fw 1")
+    assert (kinds.count("device"), kinds.count("firmware")) == (6 + 3 + 3, 2)
+    assert len({c["bom-ref"] for c in components}) == len(components)
+    data = cli("sbom", tmp_path / "r.hcdf", "--format", "spdx").stdout.encode()
+    validate_spdx(data)
+    elements, _ = spdx_graph(data)
+    for element in elements.values():
+        assert re.fullmatch(r"https://[A-Za-z0-9._~%/@:-]+", element["spdxId"]), element["spdxId"]

@@ -29,6 +29,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
+from urllib.parse import quote
 
 from lxml import etree
 
@@ -268,7 +269,7 @@ class _Collector:
         if self.release is not None:
             self._check_binding(lock_sha, root_sha)
         root_url = res.root_location.url
-        robot = self._assembly(root_url, res.root, "", "robot", None, root_sha, len(res.root.data))
+        robot = self._assembly(root_url, res.root, _Instance(), "robot", None, root_sha, len(res.root.data))
         seed = hashlib.sha256()
         for part in (fmt, lock_sha, root_sha, self.release.manifest_sha256 if self.release else ""):
             seed.update(part.encode() + b"\0")
@@ -310,7 +311,7 @@ class _Collector:
         self,
         url: str,
         doc: Document,
-        instance: str,
+        at: _Instance,
         ref: str,
         line: int | None,
         sha256: str,
@@ -320,18 +321,16 @@ class _Collector:
         depends: list[str] = []
         comps, loose = self._parts(url, doc)
         depends += loose
-        prefix = instance.replace("/", SEPARATOR)
-        for comp, comp_deps in comps:
-            local = comp.get("name") or f"comp@{sourceline(comp)}"
-            name = f"{prefix}{SEPARATOR}{local}" if prefix else local
-            cref = f"comp/{instance}/{local}" if instance else f"comp/{local}"
+        for (seg, shown), (comp, comp_deps) in _unique([c.get("name") for c, _ in comps], comps, "comp"):
+            cref = "comp/" + "/".join((*at.path, seg))
+            local = comp.get("name") or shown
             self._count()
             self.comps.append(
                 CompFact(
                     ref=cref,
-                    name=name,
+                    name=SEPARATOR.join((*at.prefix, local)),
                     local_name=local,
-                    instance=instance,
+                    instance=at.shown,
                     board=_text(comp, "board"),
                     role=comp.get("role"),
                     description=_text(comp, "description"),
@@ -341,20 +340,21 @@ class _Collector:
                 )
             )
             depends.append(cref)
-        for seg, (inc_ref, child_url) in _segments(self.res.includes.get(url, [])):
+        for sub, (inc_ref, child_url) in _instances(at, self.res.includes.get(url, [])):
             child = self.res.documents.get(child_url)
             art = self.res.artifacts.get(child_url)
             if child is None or art is None or art.sha256 is None or art.size is None:
                 continue  # not parsed: the resolver reported it (and the caller refused the run)
-            sub = f"{instance}/{seg}" if instance else seg
             self._count()
-            fact = self._assembly(child_url, child, sub, f"assembly/{sub}", inc_ref.line, art.sha256, art.size)
+            fact = self._assembly(
+                child_url, child, sub, "assembly/" + "/".join(sub.path), inc_ref.line, art.sha256, art.size
+            )
             self.assemblies.append(fact)
             depends.append(fact.ref)
         return AssemblyFact(
             ref=ref,
             name=root.get("name") or os.path.basename(self.res.lock_url(url)),
-            instance=instance,
+            instance=at.shown,
             file=self.res.lock_url(url),
             sha256=sha256,
             size=size,
@@ -401,7 +401,7 @@ class _Collector:
                 name = (drv.get("name") or "").strip()
                 if not name or any(True for _ in drv.iterancestors("extension")):
                     continue
-                d = self.drivers.setdefault(name, DriverFact(ref=f"driver/{name}", name=name))
+                d = self.drivers.setdefault(name, DriverFact(ref=f"driver/{_q(name)}", name=name))
                 deps[comp].append(d.ref)
         for ref in doc.references():
             if ref.kind not in FILE_KINDS:
@@ -411,7 +411,8 @@ class _Collector:
                 continue
             name = self.res.lock_url(art.url)
             f = self.files.setdefault(
-                name, FileFact(ref=f"file/{name}", kind=art.kind.value, name=name, sha256=art.sha256, size=art.size)
+                name,
+                FileFact(ref=f"file/{quote(name)}", kind=art.kind.value, name=name, sha256=art.sha256, size=art.size),
             )
             owner = _owner(ref.element, deps)
             holder = ref.element.getparent() if ref.kind is Kind.FIRMWARE_MANIFEST else None
@@ -467,9 +468,9 @@ class _Collector:
         key = (board, name, version, digest)
         fact = self.firmware.get(key)
         if fact is None:
-            base = f"firmware/{board}/{name}" + (f"@{version}" if version else "")
+            base = f"firmware/{_q(board)}/{_q(name)}" + (f"@{_q(version)}" if version else "")
             taken = {f.ref for f in self.firmware.values()}
-            fref = base if base not in taken else f"{base}#{(digest or 'none')[:16]}"
+            fref = base if base not in taken else f"{base}~{digest or 'none'}"  # same name, another hash
             fact = self.firmware[key] = FirmwareFact(
                 ref=fref,
                 name=name,
@@ -495,12 +496,37 @@ def _replace(fw: FirmwareFact, **kw: Any) -> FirmwareFact:
     return replace(fw, **kw)
 
 
-def _segments(includes: list[tuple[Any, str]]) -> Iterator[tuple[str, tuple[Any, str]]]:
-    """Each include's instance name: its ``name``, else ``include@LINE``; made unique by line."""
-    names = [ref.name or f"include@{ref.line}" for ref, _ in includes]
+@dataclass(frozen=True)
+class _Instance:
+    """Where a sub-assembly instance sits: its ref path, display path and comp-name prefix."""
+
+    path: tuple[str, ...] = ()  # ref segments (percent-encoded, so never ambiguous)
+    shown: str = ""  # include names (else include@K) joined with "/"
+    prefix: tuple[str, ...] = ()  # include names only: an unnamed include adds no prefix (flatten's rule)
+
+
+def _instances(at: _Instance, includes: list[tuple[Any, str]]) -> Iterator[tuple[_Instance, tuple[Any, str]]]:
+    """Each include's instance, named by its ``name``; an unnamed include, or a name several
+    includes of one document share, by its position K (1-based) among them: ``name@K``."""
+    for (seg, shown), (ref, url) in _unique([r.name for r, _ in includes], includes, "include"):
+        prefix = (*at.prefix, ref.name) if ref.name else at.prefix
+        yield _Instance((*at.path, seg), f"{at.shown}/{shown}" if at.shown else shown, prefix), (ref, url)
+
+
+def _unique(names: list[str | None], items: list[Any], what: str) -> Iterator[tuple[tuple[str, str], Any]]:
+    """((ref segment, shown name), item): the name when written once, else ``name@K`` (``what@K``
+    when unnamed), K the item's position (1-based): never two items with one ref."""
     counts = Counter(names)
-    for name, (ref, url) in zip(names, includes, strict=True):
-        yield (name if counts[name] == 1 else f"{name}@{ref.line}"), (ref, url)
+    for k, (name, item) in enumerate(zip(names, items, strict=True), start=1):
+        if name and counts[name] == 1:
+            yield (_q(name), name), item
+        else:
+            yield (f"{_q(name) if name else ''}@{k}", f"{name or what}@{k}"), item
+
+
+def _q(text: str) -> str:
+    """One ref segment: percent-encoded (also '/', '@', '~'), so refs are unique and valid IRI paths."""
+    return quote(text, safe="").replace("~", "%7E")
 
 
 def _owner(el: Any, comps: dict[Any, list[str]]) -> Any:
