@@ -612,14 +612,11 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
 
 
 # The verb groups import this module's helpers, so they come last.
+from .audit import audit_cmd  # noqa: E402
 from .macsec import macsec  # noqa: E402
 from .ota import ota  # noqa: E402
 from .registry import registry  # noqa: E402
+from .sbom import sbom  # noqa: E402
 
-main.add_command(macsec)
-main.add_command(ota)
-main.add_command(registry)
-
-from .audit import audit_cmd  # noqa: E402
-
-main.add_command(audit_cmd)
+for _command in (audit_cmd, macsec, ota, registry, sbom):
+    main.add_command(_command)

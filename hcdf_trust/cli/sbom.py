@@ -1,0 +1,87 @@
+"""``hcdf-trust sbom``: parses, calls :mod:`hcdf_trust.sbom`, writes through one OutputPlan.
+
+The SBOM libraries are imported inside the command only (start-up stays light).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from . import handle_errors
+
+
+@click.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@click.option(
+    "--format", "fmt", required=True, type=click.Choice(["cyclonedx", "spdx"]), help="CycloneDX 1.6 or SPDX 3.0.1 JSON."
+)
+@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout].")
+@click.option(
+    "--release",
+    "release_dir",
+    type=click.Path(file_okay=False),
+    help="A release folder (ota build) of this tree: each firmware gets its signer, file digest and counter.",
+)
+@click.option(
+    "--key", type=click.Path(dir_okay=False), help="Public key (PEM) the --release must verify with (required with it)."
+)
+@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC].")
+@click.option(
+    "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
+)
+@handle_errors
+def sbom(
+    doc: str,
+    fmt: str,
+    out: str | None,
+    release_dir: str | None,
+    key: str | None,
+    lock_path: str | None,
+    cache_dir: str | None,
+) -> None:
+    """Write a bill of materials of DOC's verified tree: sub-assemblies with their author and
+    license, comps (devices) with their board, firmware, drivers, every file with its SHA-256,
+    and the dependency graph.
+
+    The tree is verified first, offline, under its lock (as `verify` does); any error stops
+    the run with nothing written. The same inputs give byte-identical output: the serial
+    number comes from the lock's, root document's (and release's) digests, the time from
+    SOURCE_DATE_EPOCH (else 1970-01-01T00:00:00Z).
+    """
+    from ..errors import ErrorGroup
+    from ..include.resolver import ResolveOptions, resolve
+    from ..outputs import OutputPlan, protect_inputs
+    from ..sbom.model import collect, read_release
+
+    if (release_dir is None) != (key is None):
+        raise click.UsageError("--release and --key go together: a release's signer is only named once verified")
+    options = ResolveOptions(locked=True, offline=True, write_cache=False, lock_path=lock_path, cache_dir=cache_dir)
+    res = resolve(doc, options)
+    for w in res.warnings:
+        click.echo(f"warning: {w}", err=True)
+    if not res.ok:
+        raise ErrorGroup(res.errors)
+    release = read_release(release_dir, key) if release_dir is not None and key is not None else None
+    facts = collect(res, release=release, fmt=fmt)
+    if fmt == "cyclonedx":
+        from ..sbom.cyclonedx import render
+    else:
+        from ..sbom.spdx import render
+    data = render(facts)
+    for n in facts.notices:
+        click.echo(f"warning: {n}", err=True)
+    if out is None:
+        sys.stdout.buffer.write(data)
+        sys.stdout.buffer.flush()
+        return
+    plan = OutputPlan()
+    protect_inputs(plan, res, doc=doc, options=options)
+    plan.protect(res.lock_path, what="the lock file")
+    if release_dir is not None and key is not None:
+        plan.protect_tree(release_dir, what="the release folder")
+        plan.protect(key, what="the public key")
+    plan.add(out, data, flag="--out")
+    for path in plan.commit():
+        click.echo(f"wrote {path}", err=True)
