@@ -27,7 +27,6 @@ from hcdf_trust.errors import MalformedDigestError
 from ._kill import hcdf, model, sha
 from ._kill import other_digest as _same_prefix_other_digest
 
-
 # -- Pin.matches: a full pin is compared in full ---------------------------------------
 
 
