@@ -261,3 +261,21 @@ def test_read_input_closes_its_descriptor_on_success_and_refusal(tmp_path):
         with pytest.raises(InputError):
             read_input(p, limit=0)
     assert len(os.listdir("/proc/self/fd")) == before
+
+
+def test_a_read_error_after_open_is_an_input_error_naming_the_input():
+    """/proc/self/mem is a regular file whose first read fails (EIO): a read error, not a crash."""
+    with pytest.raises(InputError) as info:
+        read_input("/proc/self/mem", limit=10, what="key", source="KEY")
+    assert info.value.file == "KEY" and "KEY: cannot read key: Input/output error" in str(info.value)
+
+
+def test_default_words_name_a_file(tmp_path):
+    with pytest.raises(NotFoundError, match="no such file"):
+        open_regular(tmp_path / "none")
+    with pytest.raises(NotFoundError, match="no such file"):
+        read_input(tmp_path / "none", limit=1)
+    with pytest.raises(InputError, match=f"{tmp_path} is a directory"):
+        open_regular(tmp_path)
+    with pytest.raises(InputError, match=f"{tmp_path} is a directory"):
+        open_checked(tmp_path, tmp_path)

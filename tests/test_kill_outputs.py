@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import resource
+import signal
 import stat
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -222,3 +225,96 @@ def test_the_mode_is_applied_before_any_byte_is_written(tmp_path):
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "key").stat().st_mode) == 0o600
+
+
+def test_messages_name_the_input_by_its_real_path(tmp_path):
+    doc = tmp_path / "robot.hcdf"
+    doc.write_bytes(b"x")
+    (tmp_path / "alias").symlink_to(doc)
+    plan = OutputPlan()
+    plan.protect(tmp_path / "alias", what="the root document")
+    with pytest.raises(OutputError) as info:
+        plan.add(doc, b"y", flag="--lock")
+    assert f"is the root document ({doc})" in str(info.value)
+
+
+def test_every_refusal_names_the_destination_as_given(tmp_path):
+    (tmp_path / "file").write_bytes(b"")
+    plan = OutputPlan()
+    plan.protect_tree(tmp_path / "cache", what="the cache")
+    plan.add(tmp_path / "one", b"1", flag="--lock")
+    for dest in (tmp_path / "cache" / "x", tmp_path / "one", tmp_path / "file" / "x"):
+        with pytest.raises(OutputError) as info:
+            plan.add(dest, b"2", flag="--out")
+        assert info.value.file == str(dest)
+        assert info.value.to_dict()["file"] == str(dest)
+    (tmp_path / "loop").symlink_to("loop")
+    with pytest.raises(OutputError) as info:
+        plan.add(tmp_path / "loop" / "x", b"2", flag="--out")
+    assert info.value.file == str(tmp_path / "loop" / "x")
+
+
+@pytest.mark.parametrize("name", ["boX", "cache ", "dir."])
+def test_a_protected_tree_whose_name_ends_in_any_character(tmp_path, name):
+    tree = tmp_path / name
+    tree.mkdir()
+    plan = OutputPlan()
+    plan.protect_tree(tree, what="the cache")
+    with pytest.raises(OutputError, match="inside the cache"):
+        plan.add(tree / "x", b"x", flag="--out")
+
+
+def test_the_filesystem_root_as_a_protected_tree_covers_everything(tmp_path):
+    plan = OutputPlan()
+    plan.protect_tree("/", what="everything")
+    with pytest.raises(OutputError, match="inside everything"):
+        plan.add(tmp_path / "x", b"x", flag="--out")
+
+
+def test_missing_folders_are_made_at_any_depth(tmp_path):
+    plan = OutputPlan()
+    plan.add(tmp_path / "a" / "b" / "c" / "out", b"deep", flag="--out")
+    plan.commit()
+    assert (tmp_path / "a" / "b" / "c" / "out").read_bytes() == b"deep"
+
+
+def test_outputs_are_staged_in_their_own_folder_not_in_the_temp_dir(tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "no-such-tmp"))
+    plan = OutputPlan()
+    plan.add(tmp_path / "out", b"x", flag="--out")
+    plan.commit()
+    assert (tmp_path / "out").read_bytes() == b"x"
+
+
+@pytest.fixture
+def small_disk():
+    """Files may grow to 4 KiB at most (RLIMIT_FSIZE): a write past it fails like a full disk."""
+    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    old = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, old[1]))
+    yield
+    resource.setrlimit(resource.RLIMIT_FSIZE, old)
+    signal.signal(signal.SIGXFSZ, old_handler)
+
+
+def test_a_full_disk_is_an_output_error_and_nothing_is_left(tmp_path, small_disk):
+    (tmp_path / "flat.hcdf").write_bytes(b"previous")
+    plan = OutputPlan()
+    plan.add(tmp_path / "flat.hcdf", b"f" * 100, flag="--out")
+    plan.add(tmp_path / "x.lock", b"l" * 10_000, flag="--lock")
+    with pytest.raises(OutputError) as info:
+        plan.commit()
+    assert str(info.value).endswith(": File too large")
+    assert "cannot write --lock" in str(info.value) and info.value.file == str(tmp_path / "x.lock")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["flat.hcdf"]
+    assert (tmp_path / "flat.hcdf").read_bytes() == b"previous"
+
+
+def test_a_full_disk_leaks_no_descriptor(tmp_path, small_disk):
+    before = len(os.listdir("/proc/self/fd"))
+    for _ in range(5):
+        plan = OutputPlan()
+        plan.add(tmp_path / "x", b"l" * 10_000, flag="--out")
+        with pytest.raises(OutputError):
+            plan.commit()
+    assert len(os.listdir("/proc/self/fd")) == before

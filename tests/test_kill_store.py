@@ -210,3 +210,32 @@ def test_verified_path_of_a_large_blob(tmp_path):
     data = os.urandom((2 << 20) + 1)
     _, path = store.ingest([data])
     assert store.verified_path(sha(data)) == path
+
+
+@pytest.fixture
+def small_disk():
+    """Files may grow to 4 KiB at most (RLIMIT_FSIZE): a write past it fails like a full disk."""
+    import resource
+    import signal
+
+    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    old = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, old[1]))
+    yield
+    resource.setrlimit(resource.RLIMIT_FSIZE, old)
+    signal.signal(signal.SIGXFSZ, old_handler)
+
+
+def test_atomic_write_on_a_full_disk_keeps_the_old_file_and_leaves_no_temporary(tmp_path, small_disk):
+    dest = tmp_path / "lock"
+    dest.write_bytes(b"old")
+    with pytest.raises(OSError):
+        atomic_write(dest, b"x" * 10_000)
+    assert dest.read_bytes() == b"old" and _leftovers(tmp_path) == []
+
+
+def test_ingest_on_a_full_disk_leaves_nothing(tmp_path, small_disk):
+    store = ContentStore(tmp_path / "cache")
+    with pytest.raises(OSError):
+        store.ingest([b"x" * 3000, b"y" * 3000])
+    assert list((tmp_path / "cache" / "tmp").iterdir()) == []
