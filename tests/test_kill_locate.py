@@ -185,3 +185,12 @@ def test_file_url_and_display_path(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert display_path(tmp_path / "x" / "y") == os.path.join("x", "y")
     assert display_path("/elsewhere/z") == "/elsewhere/z"
+
+
+def test_a_root_document_outside_the_root_is_named_as_given(tmp_path):
+    loc = Locator.create(root=tmp_path / "robot")
+    with pytest.raises(PathEscapeError) as info:
+        loc.for_document(tmp_path / "other" / "d.hcdf")
+    assert info.value.file == str(tmp_path / "other" / "d.hcdf") and info.value.line is None
+    inside = loc.for_document(tmp_path / "robot" / "d.hcdf")
+    assert inside.path == str(tmp_path / "robot" / "d.hcdf") and inside.url == file_url(inside.path)
