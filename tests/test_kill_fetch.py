@@ -8,12 +8,20 @@ from __future__ import annotations
 
 import gzip
 import os
+import ssl
 import zlib
 
 import pytest
 
 from hcdf_trust.errors import FetchError
-from hcdf_trust.include.fetch import DEFAULT_DEADLINE, DEFAULT_MAX_BYTES, DEFAULT_TIMEOUT, MAX_REDIRECTS, HttpFetcher
+from hcdf_trust.include.fetch import (
+    DEFAULT_DEADLINE,
+    DEFAULT_MAX_BYTES,
+    DEFAULT_TIMEOUT,
+    MAX_REDIRECTS,
+    HttpFetcher,
+    _describe,
+)
 
 
 @pytest.fixture
@@ -303,3 +311,77 @@ def test_an_unknown_encoding_is_refused_as_written(fetcher, https_server):
     url = https_server.add("/b", b"x", headers={"Content-Encoding": "br"})
     with pytest.raises(FetchError, match="unsupported Content-Encoding 'br'"):
         get(fetcher, url)
+
+
+def test_decoding_errors_name_the_reference(fetcher, https_server):
+    url = https_server.add("/g", b"\x1f\x8b" + b"\xff" * 30, headers={"Content-Encoding": "gzip"})
+    with pytest.raises(FetchError) as info:
+        get(fetcher, url, file="d.hcdf", line=7)
+    err = info.value
+    assert (err.file, err.line, err.url) == ("d.hcdf", 7, url)
+
+
+def test_truncation_message(fetcher, https_server):
+    body = gzip.compress(os.urandom(5000))[:-30]
+    url = https_server.add("/t", body, headers={"Content-Encoding": "gzip"})
+    with pytest.raises(FetchError) as info:
+        get(fetcher, url)
+    assert str(info.value).endswith("the body ends before the compressed stream does (truncated)")
+
+
+def test_gzip_members_after_zero_padding_are_decoded(fetcher, https_server):
+    body = gzip.compress(b"first ") + b"\0" * 7 + gzip.compress(b"second")
+    url = https_server.add("/m", body, headers={"Content-Encoding": "gzip"})
+    assert get(fetcher, url) == b"first second"
+
+
+def test_only_zero_bytes_count_as_padding(fetcher, https_server):
+    url = https_server.add("/d", _deflate(b"x", raw=False) + b"XXX", headers={"Content-Encoding": "deflate"})
+    with pytest.raises(FetchError, match="data after the end of the stream"):
+        get(fetcher, url)
+
+
+# -- how transport failures are described (fetch._describe: pure, over exception chains) --
+
+
+def _chain(depth: int, last: BaseException, *, via: str = "__cause__") -> BaseException:
+    """An exception whose ``via`` chain reaches ``last`` after ``depth - 1`` links."""
+    top: BaseException = last
+    for i in range(depth - 1):
+        outer = RuntimeError(f"layer {i}")
+        setattr(outer, via, top)
+        top = outer
+    return top
+
+
+def _cert_error(message: str | None = "self-signed certificate") -> ssl.SSLCertVerificationError:
+    err = ssl.SSLCertVerificationError(1, "[SSL: CERTIFICATE_VERIFY_FAILED] certificate verify failed")
+    err.verify_message = message
+    return err
+
+
+@pytest.mark.parametrize("via", ["__cause__", "__context__"])
+@pytest.mark.parametrize("depth", [1, 2, 8])
+def test_a_certificate_failure_is_found_up_to_eight_links_down(via, depth):
+    text = _describe(_chain(depth, _cert_error(), via=via))
+    assert text == "TLS certificate verification failed: self-signed certificate"
+
+
+def test_a_certificate_failure_nine_links_down_is_not_looked_for():
+    assert _describe(_chain(9, _cert_error())) == "layer 7"
+
+
+def test_a_certificate_failure_without_a_verify_message_shows_the_error():
+    err = _cert_error(None)
+    assert _describe(err) == f"TLS certificate verification failed: {err}"
+
+
+def test_failure_texts():
+    assert _describe(RuntimeError("x [SSL: CERTIFICATE_VERIFY_FAILED] y")).startswith(
+        "TLS certificate verification failed: x [SSL"
+    )
+    assert _describe(ssl.SSLError(1, "bad record")) == f"TLS handshake failed: {ssl.SSLError(1, 'bad record')}"
+    assert _describe(OSError("SSL: wrong version")) == "TLS handshake failed: SSL: wrong version"
+    assert _describe(OSError("ssl is lower case")) == "ssl is lower case"
+    assert _describe(ConnectionRefusedError()) == "ConnectionRefusedError"
+    assert _describe(OSError("connection refused")) == "connection refused"
