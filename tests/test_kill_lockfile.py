@@ -81,6 +81,7 @@ def test_drift_names_the_referencing_file_and_line(robot, cli):
     assert Path(e["file"]).name == "sub.hcdf" and e["line"] == 3
     assert e["expected"] == sha(b"solid b") and e["actual"] == sha(b"solid B")
     assert "changed since it was locked" in e["message"] and "m/b.stl" in e["message"]
+    assert e["url"].endswith("m/b.stl")
 
 
 def test_a_new_reference_is_not_in_the_lock(robot, cli):
@@ -91,7 +92,7 @@ def test_a_new_reference_is_not_in_the_lock(robot, cli):
     assert r.exit_code == 1, r.stdout
     [e] = [e for e in r.json["errors"] if "not in the lock file" in e["message"]]
     assert e["code"] == "lock-drift" and Path(e["file"]).name == "robot.hcdf" and e["line"] == 5
-    assert "m/c.glb" in e["message"]
+    assert "m/c.glb" in e["message"] and e["url"].endswith("m/c.glb")
 
 
 def test_a_removed_reference_is_no_longer_referenced(robot, cli):
@@ -101,7 +102,22 @@ def test_a_removed_reference_is_no_longer_referenced(robot, cli):
     assert r.exit_code == 1, r.stdout
     [e] = r.json["errors"]
     assert e["code"] == "lock-drift" and "no longer referenced" in e["message"] and "a.glb" in e["message"]
-    assert Path(e["file"]).name == "hcdf.lock"
+    assert Path(e["file"]).name == "hcdf.lock" and e["url"].endswith("m/a.glb")
+
+
+def test_drift_in_a_folder_whose_name_has_a_colon(tmp_path, cli):
+    root = tmp_path / "robot"
+    (root / "a:b").mkdir(parents=True)
+    (root / "a:b" / "m.stl").write_bytes(b"solid a")
+    (root / "a:b" / "sub.hcdf").write_text(hcdf(model("m.stl"), name="sub"))
+    doc = root / "robot.hcdf"
+    doc.write_text(hcdf(include("./a:b/sub.hcdf")))
+    assert cli("resolve", doc, "--json", "--cache-dir", tmp_path / "c").exit_code == 0
+    (root / "a:b" / "m.stl").write_bytes(b"solid b")
+    r = cli("verify", doc, "--json", "--cache-dir", tmp_path / "c")
+    assert r.exit_code == 1, r.stdout
+    [e] = [e for e in r.json["errors"] if e["code"] == "lock-drift" and "m.stl" in e["message"]]
+    assert e["file"].endswith("a:b/sub.hcdf") and e["line"] == 3
 
 
 def test_an_unchanged_tree_has_no_drift_and_verify_writes_nothing(robot, cli):
