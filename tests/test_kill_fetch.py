@@ -385,3 +385,11 @@ def test_failure_texts():
     assert _describe(OSError("ssl is lower case")) == "ssl is lower case"
     assert _describe(ConnectionRefusedError()) == "ConnectionRefusedError"
     assert _describe(OSError("connection refused")) == "connection refused"
+
+
+def test_a_body_that_inflates_past_one_chunk_per_read_is_decoded_whole(fetcher, https_server):
+    data = b"\0" * (5 << 20) + b"end"  # a few KB on the wire, far more than 1 MiB per network read
+    url = https_server.add("/z", gzip.compress(data), headers={"Content-Encoding": "gzip"})
+    with fetcher.open(url) as chunks:
+        parts = list(chunks)
+    assert b"".join(parts) == data and max(len(p) for p in parts) <= 1 << 20

@@ -195,3 +195,23 @@ def test_a_missing_lock_under_locked_says_how_to_make_one(robot, cli):
     assert r.exit_code == 3, r.stdout
     [e] = r.json["errors"]
     assert e["code"] == "lock-file" and "does not exist" in e["message"] and "without --locked" in e["message"]
+
+
+def test_lock_file_errors_name_the_lock(robot, cli):
+    robot["lock"].unlink()
+    r = cli("resolve", robot["doc"], "--json", "--cache-dir", robot["cache"], "--locked")
+    assert r.json["errors"][0]["file"] == str(robot["lock"])
+    robot["lock"].mkdir()  # unreadable as a file
+    for verb in ("verify", "resolve"):
+        extra = ("--locked",) if verb == "resolve" else ()
+        r = cli(verb, robot["doc"], "--json", "--cache-dir", robot["cache"], *extra)
+        assert r.exit_code == 3, r.stdout
+        [e] = r.json["errors"]
+        assert e["code"] == "lock-file" and e["file"] == str(robot["lock"])
+
+
+def test_an_unsupported_version_names_expected_and_actual(robot, cli):
+    _edit(robot["lock"], lambda d: d.update(lock_version=7))
+    r = cli("verify", robot["doc"], "--json", "--cache-dir", robot["cache"])
+    [e] = r.json["errors"]
+    assert e["expected"] == "1" and e["actual"] == "7" and e["file"] == str(robot["lock"])
