@@ -393,3 +393,29 @@ def test_a_body_that_inflates_past_one_chunk_per_read_is_decoded_whole(fetcher, 
     with fetcher.open(url) as chunks:
         parts = list(chunks)
     assert b"".join(parts) == data and max(len(p) for p in parts) <= 1 << 20
+
+
+def test_body_and_encoding_errors_name_the_reference(tls, https_server):
+    f = HttpFetcher(ca_bundle=str(tls.ca_pem), timeout=5.0, max_bytes=10, deadline=0.2)
+    try:
+        cases = [
+            https_server.stream("/big", 100, chunked=True),  # over the limit while streaming
+            https_server.drip("/slow", b"x" * 8, every=0.1),  # past the deadline
+            https_server.add("/br", b"x", headers={"Content-Encoding": "br"}),  # unsupported encoding
+        ]
+        for url in cases:
+            with pytest.raises(FetchError) as info:
+                get(f, url, file="d.hcdf", line=9)
+            err = info.value
+            assert (err.file, err.line, err.url) == ("d.hcdf", 9, url), url
+            assert str(err).startswith(f"d.hcdf:9: {url}:") or url in str(err)
+    finally:
+        f.close()
+
+
+def test_a_decoding_error_names_the_url_it_was_read_from(fetcher, https_server):
+    https_server.add("/bad", b"\xff" * 20, headers={"Content-Encoding": "deflate"})
+    url = https_server.redirect("/r", "/bad")
+    with pytest.raises(FetchError) as info:
+        get(fetcher, url, file="d", line=1)
+    assert info.value.url == url and f"{https_server.url('/bad')}: Content-Encoding deflate" in str(info.value)

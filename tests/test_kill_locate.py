@@ -194,3 +194,21 @@ def test_a_root_document_outside_the_root_is_named_as_given(tmp_path):
     assert info.value.file == str(tmp_path / "other" / "d.hcdf") and info.value.line is None
     inside = loc.for_document(tmp_path / "robot" / "d.hcdf")
     assert inside.path == str(tmp_path / "robot" / "d.hcdf") and inside.url == file_url(inside.path)
+
+
+@pytest.mark.parametrize("prefix", ["https://h.example/m", "https://h.example/m/"])
+def test_mirror_prefixes_with_or_without_a_trailing_slash(tmp_path, prefix):
+    doc = _doc(tmp_path)
+    remote = Locator.create(root=tmp_path, mirrors=[(prefix, "https://cache.example/boX")])
+    got = remote.locate("https://h.example/m/a/b.glb", doc, file="d", line=1)
+    assert got.remote == "https://cache.example/boX/a/b.glb"
+    local = Locator.create(root=tmp_path, mirrors=[(prefix, str(tmp_path / "mir"))])
+    got = local.locate("https://h.example/m/a/b.glb", doc, file="d", line=1)
+    assert got.path == str(tmp_path / "mir" / "a" / "b.glb")
+
+
+def test_an_escape_from_a_mirror_folder_names_the_reference(tmp_path):
+    loc = Locator.create(root=tmp_path, mirrors=[("https://h.example/m/", str(tmp_path / "mir"))])
+    with pytest.raises(PathEscapeError) as info:
+        loc.locate("https://h.example/m/%2E%2E/x", _doc(tmp_path), file="d.hcdf", line=6)
+    assert (info.value.file, info.value.line) == ("d.hcdf", 6)
