@@ -332,3 +332,33 @@ def test_a_stub_root_document_resolves_its_target(cli, tmp_path):
     r = _run(cli, tmp_path / "stub.hcdf", tmp_path / "c", "--no-lock")
     assert r.exit_code == 0, r.stdout
     assert r.json["root"].endswith("real.hcdf") and r.json["summary"]["files"] == 1
+
+
+def test_a_missing_locked_file_is_reported_once_as_missing_not_as_unreferenced(cli, unpinned):
+    unpinned["mesh"].unlink()
+    r = _run(cli, unpinned["doc"], unpinned["cache"], "--locked")
+    assert r.exit_code == 3, r.stdout
+    [e] = r.json["errors"]
+    assert e["code"] == "not-found" and e["line"] == 3
+
+
+def test_an_include_of_itself_is_a_cycle(cli, tmp_path):
+    doc = tmp_path / "a.hcdf"
+    doc.write_text(hcdf(include("a.hcdf")))
+    r = _run(cli, doc, tmp_path / "c", "--no-lock")
+    assert r.exit_code == 3, r.stdout
+    [e] = r.json["errors"]
+    assert e["code"] == "include-cycle" and e["line"] == 3
+
+
+def test_max_depth_one_allows_one_level_of_includes(cli, tmp_path):
+    (tmp_path / "b.hcdf").write_text(hcdf('<comp name="b"/>', name="b"))
+    (tmp_path / "a.hcdf").write_text(hcdf(include("b.hcdf"), name="a"))
+    doc = tmp_path / "r.hcdf"
+    doc.write_text(hcdf(include("a.hcdf")))
+    r = _run(cli, tmp_path / "a.hcdf", tmp_path / "c", "--no-lock", "--max-depth", "1")
+    assert r.exit_code == 0, r.stdout
+    r = _run(cli, doc, tmp_path / "c", "--no-lock", "--max-depth", "1")
+    assert r.exit_code == 3, r.stdout
+    [e] = r.json["errors"]
+    assert e["code"] == "include-depth" and Path(e["file"]).name == "a.hcdf" and e["line"] == 3
