@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import signal
@@ -286,23 +287,26 @@ def test_outputs_are_staged_in_their_own_folder_not_in_the_temp_dir(tmp_path, mo
     assert (tmp_path / "out").read_bytes() == b"x"
 
 
-@pytest.fixture
+@contextlib.contextmanager
 def small_disk():
-    """Files may grow to 4 KiB at most (RLIMIT_FSIZE): a write past it fails like a full disk."""
+    """While inside, files may grow to 4 KiB at most (RLIMIT_FSIZE): a write past it fails like a
+    full disk. Kept to the one call under test: the limit applies to every file the process writes."""
     old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     old = resource.getrlimit(resource.RLIMIT_FSIZE)
     resource.setrlimit(resource.RLIMIT_FSIZE, (4096, old[1]))
-    yield
-    resource.setrlimit(resource.RLIMIT_FSIZE, old)
-    signal.signal(signal.SIGXFSZ, old_handler)
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, old)
+        signal.signal(signal.SIGXFSZ, old_handler)
 
 
-def test_a_full_disk_is_an_output_error_and_nothing_is_left(tmp_path, small_disk):
+def test_a_full_disk_is_an_output_error_and_nothing_is_left(tmp_path):
     (tmp_path / "flat.hcdf").write_bytes(b"previous")
     plan = OutputPlan()
     plan.add(tmp_path / "flat.hcdf", b"f" * 100, flag="--out")
     plan.add(tmp_path / "x.lock", b"l" * 10_000, flag="--lock")
-    with pytest.raises(OutputError) as info:
+    with pytest.raises(OutputError) as info, small_disk():
         plan.commit()
     assert str(info.value).endswith(": File too large")
     assert "cannot write --lock" in str(info.value) and info.value.file == str(tmp_path / "x.lock")
@@ -310,11 +314,11 @@ def test_a_full_disk_is_an_output_error_and_nothing_is_left(tmp_path, small_disk
     assert (tmp_path / "flat.hcdf").read_bytes() == b"previous"
 
 
-def test_a_full_disk_leaks_no_descriptor(tmp_path, small_disk):
+def test_a_full_disk_leaks_no_descriptor(tmp_path):
     before = len(os.listdir("/proc/self/fd"))
     for _ in range(5):
         plan = OutputPlan()
         plan.add(tmp_path / "x", b"l" * 10_000, flag="--out")
-        with pytest.raises(OutputError):
+        with pytest.raises(OutputError), small_disk():
             plan.commit()
     assert len(os.listdir("/proc/self/fd")) == before

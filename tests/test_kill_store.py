@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import resource
+import signal
 import stat
 from pathlib import Path
 
@@ -212,30 +215,30 @@ def test_verified_path_of_a_large_blob(tmp_path):
     assert store.verified_path(sha(data)) == path
 
 
-@pytest.fixture
+@contextlib.contextmanager
 def small_disk():
-    """Files may grow to 4 KiB at most (RLIMIT_FSIZE): a write past it fails like a full disk."""
-    import resource
-    import signal
-
+    """While inside, files may grow to 4 KiB at most (RLIMIT_FSIZE): a write past it fails like a
+    full disk. Kept to the one call under test: the limit applies to every file the process writes."""
     old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     old = resource.getrlimit(resource.RLIMIT_FSIZE)
     resource.setrlimit(resource.RLIMIT_FSIZE, (4096, old[1]))
-    yield
-    resource.setrlimit(resource.RLIMIT_FSIZE, old)
-    signal.signal(signal.SIGXFSZ, old_handler)
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, old)
+        signal.signal(signal.SIGXFSZ, old_handler)
 
 
-def test_atomic_write_on_a_full_disk_keeps_the_old_file_and_leaves_no_temporary(tmp_path, small_disk):
+def test_atomic_write_on_a_full_disk_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     dest = tmp_path / "lock"
     dest.write_bytes(b"old")
-    with pytest.raises(OSError):
+    with pytest.raises(OSError), small_disk():
         atomic_write(dest, b"x" * 10_000)
     assert dest.read_bytes() == b"old" and _leftovers(tmp_path) == []
 
 
-def test_ingest_on_a_full_disk_leaves_nothing(tmp_path, small_disk):
+def test_ingest_on_a_full_disk_leaves_nothing(tmp_path):
     store = ContentStore(tmp_path / "cache")
-    with pytest.raises(OSError):
+    with pytest.raises(OSError), small_disk():
         store.ingest([b"x" * 3000, b"y" * 3000])
     assert list((tmp_path / "cache" / "tmp").iterdir()) == []
