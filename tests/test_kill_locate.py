@@ -212,3 +212,13 @@ def test_an_escape_from_a_mirror_folder_names_the_reference(tmp_path):
     with pytest.raises(PathEscapeError) as info:
         loc.locate("https://h.example/m/%2E%2E/x", _doc(tmp_path), file="d.hcdf", line=6)
     assert (info.value.file, info.value.line) == ("d.hcdf", 6)
+
+
+def test_segments_starting_with_x_survive_normalisation_and_mirrors(tmp_path):
+    doc = _doc(tmp_path)
+    loc = Locator.create(root=tmp_path)
+    assert loc.locate("https://h.example//Xa/b", doc, file="d", line=1).url == "https://h.example/Xa/b"
+    remote = Locator.create(root=tmp_path, mirrors=[("https://h.example/m/", "https://c.example/x/")])
+    assert remote.locate("https://h.example/m/Xa.glb", doc, file="d", line=1).remote == "https://c.example/x/Xa.glb"
+    local = Locator.create(root=tmp_path, mirrors=[("https://h.example/m/", str(tmp_path / "mir"))])
+    assert local.locate("https://h.example/m/Xa.glb", doc, file="d", line=1).path == str(tmp_path / "mir" / "Xa.glb")

@@ -215,3 +215,12 @@ def test_an_unsupported_version_names_expected_and_actual(robot, cli):
     r = cli("verify", robot["doc"], "--json", "--cache-dir", robot["cache"])
     [e] = r.json["errors"]
     assert e["expected"] == "1" and e["actual"] == "7" and e["file"] == str(robot["lock"])
+
+
+def test_the_lock_keeps_non_ascii_names_readable(tmp_path, cli):
+    (tmp_path / "modèle.glb").write_bytes(b"m")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("modèle.glb")))
+    assert cli("resolve", doc, "--json", "--cache-dir", tmp_path / "c").exit_code == 0
+    text = (tmp_path / "hcdf.lock").read_bytes().decode("utf-8")
+    assert '"uri": "modèle.glb"' in text
