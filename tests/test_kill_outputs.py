@@ -252,7 +252,7 @@ def test_every_refusal_names_the_destination_as_given(tmp_path):
     (tmp_path / "loop").symlink_to("loop")
     with pytest.raises(OutputError) as info:
         plan.add(tmp_path / "loop" / "x", b"2", flag="--out")
-    assert info.value.file == str(tmp_path / "loop" / "x")
+    assert info.value.file == str(tmp_path / "loop" / "x") and str(info.value).startswith(f"{info.value.file}: --out ")
 
 
 @pytest.mark.parametrize("name", ["boX", "cache ", "dir."])
