@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench clean mutation
 
 $(STAMP): pyproject.toml .ci/apt-packages
 	bash .ci/install-system-deps
@@ -40,8 +40,18 @@ lint: $(STAMP)
 	$(BIN)/mypy hcdf_trust
 
 clean:
-	rm -rf $(VENV) examples/out bench/work .pytest_cache
+	rm -rf $(VENV) examples/out bench/work .pytest_cache mutants
 
 ## Ratio benchmarks (a few minutes, not part of `make test`); writes bench/RESULTS.md.
 bench: $(STAMP)
 	$(BIN)/python bench/run.py $(BENCH_ARGS)
+
+## Mutation testing of the verification core (slow; not part of `make test`). One worker: the
+## machine is shared. Resumes where it stopped; MUTANTS='hcdf_trust.digest.*' narrows it.
+## The corpus is passed explicitly: mutmut runs the tests from a copy in mutants/.
+MUTANTS ?=
+mutation: $(STAMP)
+	$(BIN)/pip install --quiet -e '.[test,mutation]'
+	HCDF_CORPUS="$${HCDF_CORPUS:-$(abspath $(CURDIR)/..)/shared/corpus}" HCDF_FUZZ_EXAMPLES="$${HCDF_FUZZ_EXAMPLES:-10}" \
+		$(BIN)/mutmut run --max-children 1 $(MUTANTS)
+	$(BIN)/python tests/mutation_summary.py

@@ -215,7 +215,10 @@ class Locator:
                 mroot = Path(target)
                 return self._local(url, mroot / unquote(rest.lstrip("/")), mroot, file=file, line=line, uri=uri)
         if url.startswith("file://"):
-            return self._local(url, Path(unquote(urlsplit(url).path)), self.root, file=file, line=line, uri=uri)
+            # One file, one identity: quoted as file_url() quotes it, whether the reference
+            # wrote a character such as ":" literally or escaped (the lock keys on it).
+            path = Path(unquote(urlsplit(url).path))
+            return self._local(file_url(path), path, self.root, file=file, line=line, uri=uri)
         return Location(url=url, remote=url)
 
     @staticmethod
