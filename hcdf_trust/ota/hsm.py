@@ -9,7 +9,8 @@ Images are signed through imgtool's external-signature path: a first ``create()`
 ``vector_to_sign="digest"`` gives the image digest, the token signs it (``CKM_ECDSA`` on
 the digest, or ``CKM_EDDSA`` on the digest as imgtool does for non-pure Ed25519), and a
 second ``create()`` takes the signature as ``fixed_sig``. A PKCS#11 ECDSA signature is raw
-``r‖s``: MCUboot's ECDSA TLV wants DER, COSE wants it raw.
+``r‖s``: MCUboot's ECDSA TLV wants DER, COSE wants it raw. The manifest's COSE_Sign1 is
+made by cwt, through a cwt key object (:class:`_TokenCoseKey`) whose ``sign`` asks the token.
 """
 
 from __future__ import annotations
