@@ -7,7 +7,8 @@ image), built by one ``hcdf-trust ota build`` process (resolve under the lock, s
 every image, latest.json, the signed SUIT manifest), is compared with invoking the
 ``imgtool sign`` CLI once per image in sequence, which is what release scripts do
 today. With SoftHSM2 installed, the same build is timed with the key in a PKCS#11
-token. Wall clock, median of ``--repeat`` runs after one untimed warm-up; inputs are
+token. Wall clock and CPU time (user + system of the child processes), medians of
+``--repeat`` runs after one untimed warm-up, with the 1-minute load average; inputs are
 read once first so both sides hash from the page cache. Files go to bench/work/ota/.
 Targets: imgtool / ota build ≥ 10×; HSM build ≤ 2× the file-key build.
 """
@@ -18,6 +19,7 @@ import argparse
 import json
 import os
 import random
+import resource
 import shutil
 import statistics
 import subprocess
@@ -37,18 +39,30 @@ SOFTHSM_MODULES = ("/usr/lib/softhsm/libsofthsm2.so", "/usr/lib/x86_64-linux-gnu
 PIN = "1234"
 
 
+CPU: list[float] = []  # CPU seconds (user + system) of the processes of the current measurement
+
+
 def run(argv: list[str | os.PathLike[str]], env: dict[str, str] | None = None) -> float:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     proc = subprocess.run([str(a) for a in argv], capture_output=True, text=True, env=env or ENV)
     wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    CPU.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
     if proc.returncode != 0:
         sys.exit(f"failed ({proc.returncode}): {' '.join(map(str, argv))}\n{proc.stderr}")
     return wall
 
 
-def timed(fn, repeat: int) -> float:
+def timed(fn, repeat: int) -> tuple[float, float]:
+    """Median wall clock and median CPU time of ``repeat`` runs of ``fn`` after a warm-up."""
     fn()  # warm-up
-    return statistics.median(fn() for _ in range(repeat))
+    walls, cpus = [], []
+    for _ in range(repeat):
+        CPU.clear()
+        walls.append(fn())
+        cpus.append(sum(CPU))
+    return statistics.median(walls), statistics.median(cpus)
 
 
 def generate(images: int, size: int) -> Path:
@@ -142,17 +156,17 @@ def main() -> None:
             )
         return total
 
-    results: dict[str, float] = {
-        "ota_build_s": timed(build, args.repeat),
-        "imgtool_cli_s": timed(imgtool_each, args.repeat),
-    }
+    results: dict[str, float] = {"load_before": os.getloadavg()[0]}
+    results["ota_build_s"], results["ota_build_cpu_s"] = timed(build, args.repeat)
+    results["imgtool_cli_s"], results["imgtool_cli_cpu_s"] = timed(imgtool_each, args.repeat)
     results["ratio_imgtool_over_ota"] = results["imgtool_cli_s"] / results["ota_build_s"]
     if not args.no_hsm:
         env = dict(ENV)
         uri = softhsm(env)
         if uri is not None:
-            results["ota_build_hsm_s"] = timed(lambda: build(uri, env), args.repeat)
+            results["ota_build_hsm_s"], results["ota_build_hsm_cpu_s"] = timed(lambda: build(uri, env), args.repeat)
             results["ratio_hsm_over_file"] = results["ota_build_hsm_s"] / results["ota_build_s"]
+    results["load_after"] = os.getloadavg()[0]
     n = args.images
     rows = [
         ("`imgtool sign` CLI, once per image", "imgtool_cli_s"),
@@ -160,13 +174,15 @@ def main() -> None:
     ]
     if "ota_build_hsm_s" in results:
         rows.append(("`hcdf-trust ota build`, key in SoftHSM2", "ota_build_hsm_s"))
-    print(f"| {n} × {args.size >> 20} MiB images | seconds | per image |")
-    print("|---|---|---|")
+    print(f"| {n} × {args.size >> 20} MiB images | seconds | per image | CPU seconds |")
+    print("|---|---|---|---|")
     for label, key in rows:
-        print(f"| {label} | {results[key]:.2f} | {results[key] / n * 1000:.0f} ms |")
+        cpu = results[key.removesuffix("_s") + "_cpu_s"]
+        print(f"| {label} | {results[key]:.2f} | {results[key] / n * 1000:.0f} ms | {cpu:.2f} |")
     print(f"\nimgtool CLI / ota build: {results['ratio_imgtool_over_ota']:.1f}× (target ≥ 10×)")
     if "ratio_hsm_over_file" in results:
         print(f"HSM / file key: {results['ratio_hsm_over_file']:.2f}× (target ≤ 2×)")
+    print(f"1-minute load average: {results['load_before']:.1f} before, {results['load_after']:.1f} after")
     (WORK / "results.json").write_text(json.dumps(results, indent=2) + "\n")
 
 

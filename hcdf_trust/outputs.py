@@ -11,9 +11,10 @@ its outputs here first:
    the kernel resolves it, and an existing file is compared with the inputs by
    inode, so neither a symlink nor ``..`` nor a hard link gets around the check.
 3. :meth:`OutputPlan.commit` writes every output to a temporary file in its
-   destination folder and fsyncs it; only when all are ready is each renamed into
-   place. A failure before the renames leaves every destination as it was; a rename
-   that fails puts back the files already replaced.
+   destination folder, then fsyncs them all (together, on a few threads); only when
+   all are ready is each renamed into place, and each folder is fsynced once. A
+   failure before the renames leaves every destination as it was; a rename that
+   fails puts back the files already replaced.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ import os
 import secrets
 import stat
 import tempfile
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 from .errors import InputError, display_path, display_place
 from .store import default_cache_dir, fsync_dir
@@ -166,18 +169,42 @@ class OutputPlan:
     def commit(self) -> list[Path]:
         """Write every planned output; rename them into place only when all are written.
 
+        Every file is written to a temporary file beside its destination first, then the
+        temporary files are fsynced together (a few threads: fsync releases the GIL and
+        the filesystem can commit them in one journal transaction); only then is each
+        renamed into place, and each folder that changed is fsynced once.
+
         Raises:
             OutputError: a folder could not be made or written (read-only, full disk...);
                 then no destination has changed and no temporary file or new folder is left.
         """
+        outputs = list(self._outputs.values())
         made: list[Path] = []  # folders this commit created, outermost first
         staged: list[tuple[str, _Output]] = []
         done: list[tuple[_Output, str | None]] = []  # renamed so far, with a link to the file they replaced
         current: _Output | None = None
         try:
-            for current in self._outputs.values():
-                made += _make_folders(current.path.parent)
-                staged.append((_stage(current), current))
+            folders: set[Path] = set()
+            for current in outputs:
+                if current.path.parent not in folders:
+                    made += _make_folders(current.path.parent)
+                    folders.add(current.path.parent)
+            for start in range(0, len(outputs), _OPEN_AT_ONCE):
+                batch = outputs[start : start + _OPEN_AT_ONCE]
+                fds: list[int] = []
+                try:
+                    for current in batch:
+                        fd, tmp = _stage(current)
+                        fds.append(fd)
+                        staged.append((tmp, current))
+                    failed = _in_parallel(_fsync, fds)
+                finally:
+                    for fd in fds:
+                        os.close(fd)
+                for i, err in enumerate(failed):
+                    if err is not None:
+                        current = batch[i]  # the message names the file whose fsync failed
+                        raise err
             for tmp, current in staged:
                 backup = _keep_previous(current.path)
                 try:
@@ -194,8 +221,8 @@ class OutputPlan:
             ) from None
         for _, backup in done:
             _discard(backup)
-        for folder in {o.path.parent for o in self._outputs.values()}:
-            fsync_dir(folder)
+        # the renamed files' folders, and the folders that hold a folder this commit made
+        _in_parallel(fsync_dir, sorted(folders | {folder.parent for folder in made}))
         return self.paths
 
 
@@ -286,22 +313,47 @@ def _make_folders(folder: Path) -> list[Path]:
     return made
 
 
-def _stage(out: _Output) -> str:
-    """Write ``out`` to a fsynced temporary file beside its destination, with its mode from the first byte."""
+_OPEN_AT_ONCE = 256  # temporary files held open while their fsyncs run (bounded: RLIMIT_NOFILE)
+_FSYNC_THREADS = 8  # fsyncs wait on the disk, not the CPU
+_T = TypeVar("_T")
+_R = TypeVar("_R")
+
+
+def _fsync(fd: int) -> OSError | None:
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        return exc
+    return None
+
+
+def _in_parallel(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
+    """``fn`` over ``items`` on a few threads (inline for one item), results in order.
+
+    Every call has returned when this returns or raises (the pool is shut down with
+    ``wait``), so the caller may then close what the calls use.
+    """
+    if len(items) <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(max_workers=min(_FSYNC_THREADS, len(items))) as pool:
+        return list(pool.map(fn, items))
+
+
+def _stage(out: _Output) -> tuple[int, str]:
+    """Write ``out`` to a temporary file beside its destination, with its mode from the first
+    byte; return the open descriptor (to fsync) and the path."""
     fd, tmp = tempfile.mkstemp(prefix=f".{out.path.name}.", suffix=".tmp", dir=out.path.parent)  # 0600
     try:
         os.fchmod(fd, out.mode)
         view = memoryview(out.data)
         while view:
             view = view[os.write(fd, view) :]
-        os.fsync(fd)
     except BaseException:
         os.close(fd)
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    os.close(fd)
-    return tmp
+    return fd, tmp
 
 
 def _keep_previous(dest: Path) -> str | None:

@@ -74,3 +74,28 @@ def test_pycose_verifies_our_cose_sign1(release):
     assert msg.verify_signature() is True
     msg.payload = auth[0][:-1] + bytes([auth[0][-1] ^ 1])
     assert msg.verify_signature() is False  # pycose returns False rather than raising
+
+
+@pytest.mark.parametrize(("kind", "alg"), [("ecdsa-p256", -7), ("ed25519", -8), ("rsa-2048", -37), ("rsa-3072", -37)])
+def test_cwt_made_cose_sign1_is_detached_bound_to_the_key_and_pycose_verifies_it(kind, alg):
+    """Every file-key type: cwt signs, the payload is nil, and pycose checks the Sig_structure
+    over the detached SUIT_Digest with the public key alone."""
+    from hcdf_trust.ota import keys
+    from hcdf_trust.ota.release import sign_manifest
+    from hcdf_trust.ota.signer import FileSigner, key_id
+
+    key = keys.generate(kind)
+    manifest = cbor2.dumps({1: 1, 2: 7})
+    data, got_alg, kid = sign_manifest(manifest, FileSigner(key))
+    env = cbor2.loads(data)
+    digest, sign1 = cbor2.loads(env.value[2])
+    assert digest == cbor2.dumps([-16, hashlib.sha256(cbor2.dumps(manifest)).digest()])
+    protected, unprotected, payload, _sig = cbor2.loads(sign1).value
+    assert (got_alg, payload, unprotected) == (alg, None, {})
+    assert cbor2.loads(protected) == {1: alg, 4: key_id(key)} and kid == key_id(key)
+    msg = CoseMessage.decode(sign1)
+    msg.payload = digest
+    msg.key = CoseKey.from_pem_public_key(keys.public_pem(key).decode())
+    assert msg.verify_signature() is True
+    msg.payload = digest[:-1] + bytes([digest[-1] ^ 1])
+    assert msg.verify_signature() is False

@@ -137,7 +137,8 @@ def _resign(out, robot, protected: dict) -> bytes:
     env = suit.parse_envelope((out / "release.suit").read_bytes(), source="x")
     key = serialization.load_pem_private_key(robot.key.read_bytes(), None)
     header = cbor2.dumps(protected)
-    r, s = decode_dss_signature(key.sign(suit.sig_structure(header, env.digest), ec.ECDSA(hashes.SHA256())))
+    to_sign = cbor2.dumps(["Signature1", header, b"", env.digest])  # RFC 9052 Sig_structure, built here
+    r, s = decode_dss_signature(key.sign(to_sign, ec.ECDSA(hashes.SHA256())))
     sign1 = cbor2.CBORTag(18, [header, {}, None, r.to_bytes(32, "big") + s.to_bytes(32, "big")])
     return suit.envelope(env.manifest, cbor2.dumps(sign1))
 
@@ -327,6 +328,7 @@ def test_a_signed_manifest_whose_class_id_is_another_boards_is_refused(built, cl
     import uuid
 
     from hcdf_trust.ota.keys import load_private
+    from hcdf_trust.ota.release import sign_manifest
     from hcdf_trust.ota.signer import FileSigner
 
     robot, out = built
@@ -338,10 +340,8 @@ def test_a_signed_manifest_whose_class_id_is_another_boards_is_refused(built, cl
     common[4] = cbor2.dumps(shared)
     manifest[3] = cbor2.dumps(common)
     new = cbor2.dumps(manifest)
-    signer = FileSigner(load_private(robot.key))
-    signature = signer.sign_cose(env.protected, suit.manifest_digest(new))
-    sign1 = cbor2.dumps(cbor2.CBORTag(18, [env.protected, {}, None, signature]))
-    (out / "release.suit").write_bytes(suit.envelope(new, sign1))
+    data, _alg, _kid = sign_manifest(new, FileSigner(load_private(robot.key)))
+    (out / "release.suit").write_bytes(data)
     r = verify(cli, robot, out)
     assert r.exit_code == 3 and "vendor-id/class-id do not match the component's board" in r.stderr
 

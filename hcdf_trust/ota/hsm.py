@@ -9,7 +9,8 @@ Images are signed through imgtool's external-signature path: a first ``create()`
 ``vector_to_sign="digest"`` gives the image digest, the token signs it (``CKM_ECDSA`` on
 the digest, or ``CKM_EDDSA`` on the digest as imgtool does for non-pure Ed25519), and a
 second ``create()`` takes the signature as ``fixed_sig``. A PKCS#11 ECDSA signature is raw
-``r‖s``: MCUboot's ECDSA TLV wants DER, COSE wants it raw.
+``r‖s``: MCUboot's ECDSA TLV wants DER, COSE wants it raw. The manifest's COSE_Sign1 is
+made by cwt, through a cwt key object (:class:`_TokenCoseKey`) whose ``sign`` asks the token.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qsl, unquote
+
+from cwt.cose_key_interface import COSEKeyInterface
 
 from .errors import FirmwareError, KeyFileError
 from .keys import read_passphrase
@@ -191,10 +194,23 @@ class HsmSigner:
                 "imgtool's two passes disagree on the image digest", expected=digest.hex(), actual=img.image_hash.hex()
             )
 
-    def sign_cose(self, protected: bytes, payload: bytes) -> bytes:
-        from .suit import sig_structure
+    def cose_key(self, kid: bytes) -> COSEKeyInterface:
+        """A cwt key whose ``sign`` is done by the token (cwt builds the Sig_structure)."""
+        return _TokenCoseKey(self, kid)
 
-        data = sig_structure(protected, payload)
-        if self.kind == "ecdsa-p256":
-            return self._sign(hashlib.sha256(data).digest())  # raw r‖s is COSE's ES256 format
-        return self._sign(data)
+
+class _TokenCoseKey(COSEKeyInterface):
+    """cwt's key interface over a token key: ES256 signs SHA-256 of the Sig_structure
+    (``CKM_ECDSA`` gives COSE's raw ``r‖s``), EdDSA signs the Sig_structure itself."""
+
+    def __init__(self, signer: HsmSigner, kid: bytes) -> None:
+        from .signer import COSE_ALGS
+
+        kty = 2 if signer.kind == "ecdsa-p256" else 1  # EC2 / OKP
+        super().__init__({1: kty, 2: kid, 3: COSE_ALGS[signer.kind][0]})
+        self._signer = signer
+
+    def sign(self, msg: bytes) -> bytes:
+        if self._signer.kind == "ecdsa-p256":
+            return self._signer._sign(hashlib.sha256(msg).digest())
+        return self._signer._sign(msg)

@@ -1,15 +1,21 @@
 """Who signs a release: a key file (imgtool key) or a PKCS#11 token (:mod:`.hsm`).
 
-A signer does two things: complete an imgtool ``Image`` (``create``) and produce the
-COSE_Sign1 over the release manifest's digest. :data:`COSE_ALGS` binds each key type
-to the COSE algorithms a verifier accepts for it (cwt itself verifies with the key's
-algorithm and ignores a mismatching protected ``alg``).
+A signer does two things: complete an imgtool ``Image`` (``create``) and give cwt a
+signing key (``cose_key``) for the COSE_Sign1 over the release manifest's digest: cwt's
+own key for a file, a :class:`cwt.cose_key_interface.COSEKeyInterface` whose ``sign``
+asks the token for a token key. cwt builds the Sig_structure and the COSE_Sign1 either way.
+
+:data:`COSE_ALGS` binds each key type to the COSE algorithms a verifier accepts for it
+(cwt itself verifies with the key's algorithm and ignores a mismatching protected ``alg``).
 """
 
 from __future__ import annotations
 
 import hashlib
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from cwt.cose_key_interface import COSEKeyInterface
 
 # key type -> (the algorithm we sign with, every algorithm accepted for that key)
 COSE_ALGS: dict[str, tuple[int, frozenset[int]]] = {
@@ -19,7 +25,8 @@ COSE_ALGS: dict[str, tuple[int, frozenset[int]]] = {
     "rsa-3072": (-37, frozenset({-37})),
 }
 ALG_NAMES = {-7: "ES256", -9: "ESP256", -8: "EdDSA", -19: "Ed25519", -37: "PS256"}
-CWT_ALG = {"ecdsa-p256": "ES256", "ed25519": "EdDSA", "rsa-2048": "PS256", "rsa-3072": "PS256"}  # for verifying
+# cwt's names for COSE_ALGS[kind][0]
+CWT_ALG = {"ecdsa-p256": "ES256", "ed25519": "EdDSA", "rsa-2048": "PS256", "rsa-3072": "PS256"}
 
 
 class Signer(Protocol):
@@ -28,8 +35,8 @@ class Signer(Protocol):
 
     def create(self, img: Any, **kw: Any) -> None: ...
 
-    def sign_cose(self, protected: bytes, payload: bytes) -> bytes:
-        """The COSE signature bytes over Sig_structure(protected, payload)."""
+    def cose_key(self, kid: bytes) -> COSEKeyInterface:
+        """A cwt signing key for the release manifest's COSE_Sign1 (alg ``COSE_ALGS[kind][0]``)."""
         ...
 
     def close(self) -> None: ...
@@ -56,26 +63,10 @@ class FileSigner:
     def close(self) -> None:
         """Nothing to release (a token signer closes its session)."""
 
-    def sign_cose(self, protected: bytes, payload: bytes) -> bytes:
-        """RFC 9052 §4.4 over the Sig_structure, with the key's algorithm (cwt verifies it).
+    def cose_key(self, kid: bytes) -> COSEKeyInterface:
+        """cwt's own key object for this private key: cwt signs the Sig_structure."""
+        from cwt import COSEKey
 
-        Signed here with ``cryptography`` rather than through cwt, so that file keys and
-        token keys build the COSE_Sign1 the same way and a build does not import cwt
-        (~0.3 s, most of a release's fixed cost); cwt and pycose verify the result.
-        """
-        from cryptography.hazmat.primitives import hashes
-        from cryptography.hazmat.primitives.asymmetric import ec, padding
-        from cryptography.hazmat.primitives.asymmetric.utils import decode_dss_signature
+        from .keys import private_pem
 
-        from .suit import sig_structure
-
-        data = sig_structure(protected, payload)
-        key = self.key.key
-        if self.kind == "ecdsa-p256":
-            r, s = decode_dss_signature(key.sign(data, ec.ECDSA(hashes.SHA256())))
-            return r.to_bytes(32, "big") + s.to_bytes(32, "big")
-        if self.kind == "ed25519":
-            signature: bytes = key.sign(data)
-            return signature
-        signature = key.sign(data, padding.PSS(padding.MGF1(hashes.SHA256()), 32), hashes.SHA256())
-        return signature
+        return COSEKey.from_pem(private_pem(self.key, None), alg=CWT_ALG[self.kind], kid=kid)

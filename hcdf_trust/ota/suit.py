@@ -166,13 +166,6 @@ def manifest_digest(manifest: bytes) -> bytes:
     return cbor2.dumps([SHA256, hashlib.sha256(cbor2.dumps(manifest)).digest()])
 
 
-def sig_structure(protected: bytes, payload: bytes) -> bytes:
-    """COSE Sig_structure for COSE_Sign1 (RFC 9052 §4.4), no external AAD."""
-    import cbor2
-
-    return cbor2.dumps(["Signature1", protected, b"", payload])
-
-
 def envelope(manifest: bytes, cose_sign1: bytes) -> bytes:
     """The tagged envelope around a manifest and its detached COSE_Sign1."""
     import cbor2
