@@ -126,10 +126,13 @@ class Artifact:
 
     @property
     def pin_status(self) -> str:
-        pins = [u.pin for u in self.uses if u.pin is not None]
-        if any(p.is_full for p in pins):
-            return "full"
-        return "weak" if pins else "unpinned"
+        status = "unpinned"
+        for use in self.uses:
+            if use.pin is not None:
+                if use.pin.is_full:
+                    return "full"
+                status = "weak"
+        return status
 
 
 @dataclass
@@ -170,8 +173,9 @@ class Resolution:
                 if ref is None:
                     ref = docs[use.doc_url] = to_lock(use.doc_url)
                 refs.add(ref)
+            referenced_from = tuple(refs) if len(refs) == 1 else tuple(sorted(refs))
             entries.append(
-                lockfile.LockEntry(art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, tuple(sorted(refs)))
+                lockfile.LockEntry(art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, referenced_from)
             )
         return entries
 
@@ -744,6 +748,8 @@ def check_artifact(
     assert sha is not None
     for use in art.uses:
         pin = use.pin
+        if pin is not None and pin.is_full and pin.hex == sha:
+            continue  # the common case: a full pin that matches
         where = functools.partial(Notice, file=use.doc, line=use.ref.line, url=art.url)
         if pin is None:
             if locked and lock_entry is None:
