@@ -7,7 +7,7 @@ import os
 import re
 import threading
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from typing import BinaryIO, Protocol
 
@@ -99,6 +99,9 @@ def is_full_sha256(text: str) -> bool:
 class Hashed:
     sha256: str
     size: int
+    # (st_dev, st_ino) of the local file the bytes were read from, when known: lets
+    # output planning compare a destination with this input without another stat.
+    inode: tuple[int, int] | None = field(default=None, compare=False)
 
 
 def hash_bytes(data: bytes) -> Hashed:

@@ -119,6 +119,8 @@ class Artifact:
     size: int | None = None
     source: str | None = None  # file | mirror | cache | network
     error: HcdfTrustError | None = None
+    inode: tuple[int, int] | None = None  # (st_dev, st_ino) of the local file hashed, when known
+
 
     @property
     def url(self) -> str:
@@ -315,6 +317,7 @@ class _Run:
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
         res.documents[root_loc.url] = root
+        self._to_lock = res.lock_url
         try:
             self._load_lock(res)
             lock_error = None
@@ -373,7 +376,7 @@ class _Run:
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
 
     def _entry(self, art: Artifact) -> lockfile.LockEntry | None:
-        return self.lock.get(self.res.lock_url(art.url)) if self.lock else None
+        return self.lock.get(self._to_lock(art.url)) if self.lock else None
 
     def _is_updating(self, art: Artifact) -> bool:
         """Does ``--update`` re-pin this artifact? (All, or named by its lock url or a uri as written.)"""
@@ -426,27 +429,27 @@ class _Run:
         res = self.res
         doc = res.documents[doc_loc.url]
         includes: list[Artifact] = []
-        res.includes.setdefault(doc_loc.url, [])
+        edges = res.includes.setdefault(doc_loc.url, [])
+        source, doc_url, artifacts, locate = doc.source, doc_loc.url, res.artifacts, self.locator.locate
         for ref in doc.references():
-            if not ref.kind.fetchable:
-                res.others.append((doc.source, ref))
+            kind = ref.kind
+            if not kind.fetchable:
+                res.others.append((source, ref))
                 continue
             try:
-                pin = parse_pin(ref.sha, file=doc.source, line=ref.line, uri=ref.uri)
+                pin = parse_pin(ref.sha, file=source, line=ref.line, uri=ref.uri)
                 if not ref.uri:
-                    raise InputError(
-                        f"<{ref.kind.value}> has no {ref.uri_attr or 'uri'}", file=doc.source, line=ref.line
-                    )
-                loc = self.locator.locate(ref.uri, doc_loc, file=doc.source, line=ref.line)
+                    raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=ref.line)
+                loc = locate(ref.uri, doc_loc, file=source, line=ref.line)
             except HcdfTrustError as exc:
                 res.errors.append(exc)
                 continue
-            art = res.artifacts.get(loc.url)
+            art = artifacts.get(loc.url)
             if art is None:
-                art = res.artifacts[loc.url] = Artifact(kind=ref.kind, uri=ref.uri, location=loc)
-            art.uses.append(Use(doc=doc.source, doc_url=doc_loc.url, ref=ref, pin=pin))
-            if ref.kind is Kind.INCLUDE:
-                res.includes[doc_loc.url].append((ref, loc.url))
+                art = artifacts[loc.url] = Artifact(kind=kind, uri=ref.uri, location=loc)
+            art.uses.append(Use(source, doc_url, ref, pin))
+            if kind is Kind.INCLUDE:
+                edges.append((ref, loc.url))
                 includes.append(art)
         return includes
 
@@ -488,8 +491,8 @@ class _Run:
         blobs are CPU work: hashing a large one releases the GIL, so one thread per
         core hashes in parallel, but for a small one the per-file Python work costs
         more than the hash, and threads contending for the GIL make it several times
-        slower than doing it here. The sizes are only a hint (a stat, no open):
-        :meth:`_obtain` still makes every check.
+        slower than doing it here. The sizes are only a hint (the lock's, else a stat;
+        no open): :meth:`_obtain` still makes every check.
         """
         if self.o.jobs <= 1:
             return artifacts, [], []
@@ -497,14 +500,9 @@ class _Run:
         sized: list[tuple[int, Artifact]] = []
         net: list[Artifact] = []
         for art in artifacts:
-            try:
-                path: str | Path | None = art.location.path
-                if path is None:
-                    want = self._wanted_sha(art)
-                    path = self.store.path_for(want) if want else None
-                size = os.stat(path).st_size if path is not None else -1
-            except (OSError, ValueError):
-                size = -1
+            entry = self._entry(art) if art.location.path is not None else None
+            # A local file the lock knows: the size it had (a wrong hint costs speed, not safety).
+            size = entry.size if entry is not None else self._stat_size(art)
             if size < 0:
                 (inline if art.location.path is not None else net).append(art)
             elif size < PARALLEL_MIN_BYTES:
@@ -513,6 +511,17 @@ class _Run:
                 sized.append((size, art))
         sized.sort(key=lambda pair: -pair[0])  # largest first: the cores finish together
         return inline, [art for _, art in sized], net
+
+    def _stat_size(self, art: Artifact) -> int:
+        """The size of the local file, or of the cache blob of a remote one; -1 if none."""
+        try:
+            path: str | Path | None = art.location.path
+            if path is None:
+                want = self._wanted_sha(art)
+                path = self.store.path_for(want) if want else None
+            return os.stat(path).st_size if path is not None else -1
+        except (OSError, ValueError):
+            return -1
 
     def _obtain_one(self, art: Artifact, keep: bool) -> None:
         use = art.uses[0]
@@ -603,7 +612,7 @@ class _Run:
         return data
 
     def _record(self, art: Artifact, hashed: Hashed, source: str) -> None:
-        art.sha256, art.size, art.source = hashed.sha256, hashed.size, source
+        art.sha256, art.size, art.source, art.inode = hashed.sha256, hashed.size, source, hashed.inode
 
     def _wanted_sha(self, art: Artifact) -> str | None:
         for use in art.uses:
