@@ -14,8 +14,9 @@ clock from spawn to exit, median of ``--repeat`` runs after one untimed warm-up.
 Every input file is read once before timing, so both sides hash from the page
 cache (a fair CPU comparison; cold-disk numbers would measure the disk). Trees
 are generated under bench/work/ (git-ignored), deterministically from ``--seed``.
-Prints a Markdown table and writes it to bench/RESULTS.md (and the raw numbers
-to bench/work/results.json).
+Prints a Markdown table and writes it to bench/RESULTS.md and, between the
+``<!-- bench:begin -->`` and ``<!-- bench:end -->`` markers, to the README's
+Performance section (and the raw numbers to bench/work/results.json).
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from loopback import LoopbackServer
 
 HERE = Path(__file__).resolve().parent
 PROJECT = HERE.parent
+README = PROJECT / "README.md"
+README_BEGIN, README_END = "<!-- bench:begin -->", "<!-- bench:end -->"
 CLI = Path(os.environ.get("HCDF_TRUST_CLI", PROJECT / ".venv" / "bin" / "hcdf-trust"))
 PYTHON = Path(os.environ.get("HCDF_TRUST_PYTHON", PROJECT / ".venv" / "bin" / "python"))
 TIME = "/usr/bin/time"  # GNU time, for a child's own peak RSS
@@ -577,12 +580,8 @@ def render(
         f"Machine: {env}. Load average (1 min) at start / end: {load[0]:.2f} / {load[1]:.2f}; "
         f"per section: {per_section}.",
         "",
-        "| benchmark | hcdf-trust | baseline | ratio | target | met |",
-        "|---|---|---|---|---|---|",
+        *table(rows),
     ]
-    for r in rows:
-        met = "info" if r.met is None else ("yes" if r.met else "**no**")
-        out.append(f"| {r.name} | {r.ours} | {r.baseline} | {r.ratio} | {r.target} | {met} |")
     out += [
         "",
         f"How: `make bench` runs `bench/run.py --repeat {args.repeat}` ({seconds:.0f} s here). **Ratio = our time /",
@@ -612,6 +611,40 @@ def render(
             "",
         ]
     return "\n".join(out)
+
+
+def table(rows: list[Row]) -> list[str]:
+    out = [
+        "| benchmark | hcdf-trust | baseline | ratio (ours / baseline) | target | met |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        met = "info" if r.met is None else ("yes" if r.met else "**no**")
+        out.append(f"| {r.name} | {r.ours} | {r.baseline} | {r.ratio} | {r.target} | {met} |")
+    return out
+
+
+def readme_section(rows: list[Row], load: tuple[float, float], loads: dict[str, tuple[float, float]]) -> str:
+    """The README's copy of the table (between its markers), with when and under what load."""
+    worst = max([*load, *(b for pair in loads.values() for b in pair)])
+    return "\n".join(
+        [
+            README_BEGIN,
+            f"Last `make bench` here: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, 2 shared cores, "
+            f"1-minute load average up to {worst:.1f} (per section in bench/RESULTS.md).",
+            "",
+            *table(rows),
+            README_END,
+        ]
+    )
+
+
+def update_readme(text: str) -> None:
+    old = README.read_text()
+    start, end = old.find(README_BEGIN), old.find(README_END)
+    if start < 0 or end < start:
+        raise SystemExit(f"bench: {README} has no {README_BEGIN} ... {README_END} markers")
+    README.write_text(old[:start] + text + old[end + len(README_END) :])
 
 
 def wait_for_idle(limit: float, seconds: float) -> None:
@@ -665,6 +698,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if not args.no_write and set(only) == set(SECTIONS):
         (HERE / "RESULTS.md").write_text(text)
+        update_readme(readme_section(rows, (load_start, os.getloadavg()[0]), loads))
     return 0
 
 

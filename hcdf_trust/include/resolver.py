@@ -317,7 +317,7 @@ class _Run:
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
         res.documents[root_loc.url] = root
-        self._to_lock = res.lock_url
+        self._to_lock = res._urls.to_lock
         try:
             self._load_lock(res)
             lock_error = None
