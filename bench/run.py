@@ -113,6 +113,10 @@ class Cmd:
     check: Callable[[Proc], None] | None = None
     rss: bool = False
     env: dict | None = None
+    retry: bool = False  # a failed run is reported in the results and run once more (a known flaky fault)
+
+
+FAILURES: list[str] = []  # runs that failed and were retried (Cmd.retry), for the results' notes
 
 
 def measure(cmds: dict[str, Cmd], *, repeat: int, warmup: int = 1) -> dict[str, list[Proc]]:
@@ -127,6 +131,13 @@ def measure(cmds: dict[str, Cmd], *, repeat: int, warmup: int = 1) -> dict[str, 
             if cmd.setup is not None:
                 cmd.setup()
             proc = spawn(cmd.argv, cwd=cmd.cwd, rss=cmd.rss, env=cmd.env)
+            if proc.rc != 0 and cmd.retry:
+                last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+                FAILURES.append(f"{name}: exit {proc.rc}: {last}")
+                print(f"bench: {name} failed ({last}); running it again", file=sys.stderr)
+                if cmd.setup is not None:
+                    cmd.setup()
+                proc = spawn(cmd.argv, cwd=cmd.cwd, rss=cmd.rss, env=cmd.env)
             if proc.rc != 0:
                 raise SystemExit(
                     f"bench: {' '.join(map(str, cmd.argv))} exited {proc.rc}:\n{proc.stderr[-2000:]}"
@@ -277,8 +288,10 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
         )
         hits = server.hits
         cold = measure(
+            # retry: 2,000 fetches on 16 threads fail now and then with EBADF (seen before
+            # issue 6's changes too); the failure is listed in the results, not hidden.
             {"cold": Cmd(resolve_argv(doc, http_cache, *mirror), setup=fresh(http_cache),
-                         check=wrote_lock(doc, f"{info['model_files']} fetched"))},
+                         check=wrote_lock(doc, f"{info['model_files']} fetched"), retry=True)},
             repeat=max(1, args.repeat - 1),
         )["cold"]
         gets = (server.hits - hits) / (len(cold) + 1)
@@ -604,6 +617,9 @@ def render(
         f"as an installed tool does. Trees are generated under bench/work/ from `--seed` ({args.seed}).",
         "",
     ]
+    if FAILURES:
+        out += ["Runs that failed and were run again (a known fault, to be fixed, not a timing):", ""]
+        out += [f"- `{f}`" for f in FAILURES] + [""]
     if max(load) > 0.5:
         out += [
             f"Note: the machine was not idle (load {max(load):.1f}); numbers from a busy 2-core machine",
