@@ -1,7 +1,12 @@
-"""Ratio benchmarks for ``hcdf-trust resolve`` (issue 2), against baselines measured in the same run.
+"""Ratio benchmarks for ``hcdf-trust resolve`` (issues 2 and 6), against baselines measured in the same run.
 
-    .venv/bin/python bench/run.py [--repeat 3] [--only robot,small,latency,memory,startup]
+    .venv/bin/python bench/run.py [--repeat 3] [--only robot,tree,small,latency,memory,startup]
                                   [--wait-idle SECONDS] [--no-write] [--seed N]
+
+Ratio = our time / the baseline's time (lower is better; issue 6's convention).
+Every resolve is the build step a user runs: plain ``hcdf-trust resolve DOC``, which
+reads ``DOC.lock`` (written by the untimed warm-up, so the tree is checked against it
+under trust on first use) and writes it again.
 
 Every command is a fresh ``.venv/bin/hcdf-trust`` process (no shim; ``HCDF_TRUST_CLI``
 overrides the path, e.g. to compare two builds), timed wall
@@ -9,8 +14,9 @@ clock from spawn to exit, median of ``--repeat`` runs after one untimed warm-up.
 Every input file is read once before timing, so both sides hash from the page
 cache (a fair CPU comparison; cold-disk numbers would measure the disk). Trees
 are generated under bench/work/ (git-ignored), deterministically from ``--seed``.
-Prints a Markdown table and writes it to bench/RESULTS.md (and the raw numbers
-to bench/work/results.json).
+Prints a Markdown table and writes it to bench/RESULTS.md and, between the
+``<!-- bench:begin -->`` and ``<!-- bench:end -->`` markers, to the README's
+Performance section (and the raw numbers to bench/work/results.json).
 """
 
 from __future__ import annotations
@@ -36,6 +42,8 @@ from loopback import LoopbackServer
 
 HERE = Path(__file__).resolve().parent
 PROJECT = HERE.parent
+README = PROJECT / "README.md"
+README_BEGIN, README_END = "<!-- bench:begin -->", "<!-- bench:end -->"
 CLI = Path(os.environ.get("HCDF_TRUST_CLI", PROJECT / ".venv" / "bin" / "hcdf-trust"))
 PYTHON = Path(os.environ.get("HCDF_TRUST_PYTHON", PROJECT / ".venv" / "bin" / "python"))
 TIME = "/usr/bin/time"  # GNU time, for a child's own peak RSS
@@ -44,8 +52,10 @@ TIME = "/usr/bin/time"  # GNU time, for a child's own peak RSS
 # neither slows every run by recompiling hcdf_trust nor litters the source tree.
 CHILD_ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
 CHILD_ENV["PYTHONPYCACHEPREFIX"] = str(WORK / "pycache")
-SECTIONS = ("robot", "small", "latency", "memory", "startup")
+SECTIONS = ("robot", "tree", "small", "latency", "memory", "startup")
 
+TREE_FILES = 300
+TREE_SIZE = 1 << 20
 SMALL_FILES = 10_000
 SMALL_SIZE = 4096
 LATENCY_FILES = 200
@@ -103,6 +113,10 @@ class Cmd:
     check: Callable[[Proc], None] | None = None
     rss: bool = False
     env: dict | None = None
+    retry: bool = False  # a failed run is reported in the results and run once more (a known flaky fault)
+
+
+FAILURES: list[str] = []  # runs that failed and were retried (Cmd.retry), for the results' notes
 
 
 def measure(cmds: dict[str, Cmd], *, repeat: int, warmup: int = 1) -> dict[str, list[Proc]]:
@@ -117,6 +131,13 @@ def measure(cmds: dict[str, Cmd], *, repeat: int, warmup: int = 1) -> dict[str, 
             if cmd.setup is not None:
                 cmd.setup()
             proc = spawn(cmd.argv, cwd=cmd.cwd, rss=cmd.rss, env=cmd.env)
+            if proc.rc != 0 and cmd.retry:
+                last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+                FAILURES.append(f"{name}: exit {proc.rc}: {last}")
+                print(f"bench: {name} failed ({last}); running it again", file=sys.stderr)
+                if cmd.setup is not None:
+                    cmd.setup()
+                proc = spawn(cmd.argv, cwd=cmd.cwd, rss=cmd.rss, env=cmd.env)
             if proc.rc != 0:
                 raise SystemExit(
                     f"bench: {' '.join(map(str, cmd.argv))} exited {proc.rc}:\n{proc.stderr[-2000:]}"
@@ -130,6 +151,15 @@ def measure(cmds: dict[str, Cmd], *, repeat: int, warmup: int = 1) -> dict[str, 
 
 def med(runs: list[Proc]) -> float:
     return statistics.median(r.wall for r in runs)
+
+
+def cpu(runs: list[Proc]) -> float:
+    """Median user + system CPU seconds: steadier than wall time on a loaded machine."""
+    return statistics.median(r.cpu for r in runs)
+
+
+def cpu_note(ours: list[Proc], baseline: list[Proc]) -> str:
+    return f"; CPU {cpu(ours) / cpu(baseline):.2f}×"
 
 
 def walls(runs: list[Proc]) -> list[float]:
@@ -164,8 +194,31 @@ def file_url(path: Path) -> str:
 
 
 def resolve_argv(doc: Path, cache: Path, *extra: str) -> list[str | os.PathLike[str]]:
-    # --no-lock: compare hashing with hashing; the lock file write is measured in `startup`.
-    return [CLI, "resolve", doc, "--no-lock", "--cache-dir", cache, *extra]
+    """Plain ``resolve``: DOC.lock is read (after the warm-up has written it) and written."""
+    return [CLI, "resolve", doc, "--cache-dir", cache, *extra]
+
+
+def wrote_lock(doc: Path, summary: str) -> Callable[[Proc], None]:
+    """The summary says ``summary``, and the run wrote DOC.lock (the build step's output)."""
+    lock = doc.with_name(doc.name + ".lock")
+
+    def check(proc: Proc) -> None:
+        expect(summary)(proc)
+        wrote = any(ln.startswith("wrote ") and ln.endswith(lock.name) for ln in proc.stderr.splitlines())
+        if not wrote or not lock.is_file():
+            raise SystemExit(f"bench: the resolve did not write {lock}:\n{proc.stderr[-2000:]}")
+
+    return check
+
+
+def fresh_lock(doc: Path) -> None:
+    """Remove DOC.lock before the first run of a tree (generated trees change between versions)."""
+    doc.with_name(doc.name + ".lock").unlink(missing_ok=True)
+
+
+def times(ours: float, baseline: float) -> str:
+    """Issue 6's ratio: our time / the baseline's (lower is better)."""
+    return f"{ours / baseline:.2f}×"
 
 
 def ensure_flat(name: str, *, seed: int, sizes: list[int]) -> tuple[Path, list]:
@@ -231,29 +284,32 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
     # --offline (which may not open a socket; the server counts any GET).
     local_cache, http_cache = WORK / "cache-local", WORK / "cache-http"
     doc = robot / "robot.hcdf"
+    fresh_lock(doc)
     pinned = f"{info['model_files'] + info['include_files']} pinned"
     with LoopbackServer(robot) as server:
         mirror = ("--allow-http", "--mirror", f"{file_url(robot / 'models')}/={server.url}models/")
         runs = measure(
             {
                 "openssl": Cmd(["openssl", "dgst", "-sha256", *rels], cwd=robot, check=digests_match),
-                "local": Cmd(resolve_argv(doc, local_cache), setup=fresh(local_cache), check=expect(pinned)),
+                "local": Cmd(resolve_argv(doc, local_cache), setup=fresh(local_cache), check=wrote_lock(doc, pinned)),
             },
             repeat=args.repeat,
         )
         hits = server.hits
         cold = measure(
+            # retry: 2,000 fetches on 16 threads fail now and then with EBADF (seen before
+            # issue 6's changes too); the failure is listed in the results, not hidden.
             {"cold": Cmd(resolve_argv(doc, http_cache, *mirror), setup=fresh(http_cache),
-                         check=expect(f"{info['model_files']} fetched"))},
+                         check=wrote_lock(doc, f"{info['model_files']} fetched"), retry=True)},
             repeat=max(1, args.repeat - 1),
         )["cold"]
-        gets = (server.hits - hits) / (len(cold) + 1)
+        gets = (server.hits - hits) / (len(cold) + 1 + sum(f.startswith("cold:") for f in FAILURES))
         hits = server.hits
         warm = measure(
             {
                 "openssl": Cmd(["openssl", "dgst", "-sha256", *rels], cwd=robot, check=digests_match),
                 "warm": Cmd(resolve_argv(doc, http_cache, *mirror, "--offline"),
-                            check=expect(f"{info['model_files']} from cache")),
+                            check=wrote_lock(doc, f"{info['model_files']} from cache")),
             },
             repeat=args.repeat,
         )
@@ -268,9 +324,9 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
             f"resolve, local files ({what}), empty --cache-dir",
             mbps(nbytes, t_local),
             "openssl " + mbps(nbytes, t_ssl),
-            f"{t_ssl / t_local:.2f}×",
-            "≥ 1.3×",
-            t_ssl / t_local >= 1.3,
+            times(t_local, t_ssl) + cpu_note(runs["local"], runs["openssl"]),
+            "≤ 0.6×",
+            t_local / t_ssl <= 0.6,
             {"resolve_s": walls(runs["local"]), "openssl_s": walls(runs["openssl"]), "bytes": nbytes},
         )
     )
@@ -280,7 +336,7 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
             " the server runs on the same 2 cores)",
             mbps(nbytes, t_cold),
             "openssl " + mbps(nbytes, t_ssl),
-            f"{t_ssl / t_cold:.2f}×",
+            times(t_cold, t_ssl),
             "(info)",
             None,
             {"resolve_s": walls(cold)},
@@ -291,10 +347,40 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
             "resolve warm: from that cache, --offline, every blob re-hashed on the way out",
             mbps(nbytes, t_warm),
             "openssl " + mbps(nbytes, t_ssl2),
-            f"{t_ssl2 / t_warm:.2f}×",
-            "≥ 1.3×",
-            t_ssl2 / t_warm >= 1.3,
+            times(t_warm, t_ssl2),
+            "≤ 0.77× (1/1.3)",
+            t_warm / t_ssl2 <= 1 / 1.3,
             {"resolve_s": walls(warm["warm"]), "openssl_s": walls(warm["openssl"])},
+        )
+    )
+
+
+def bench_tree(args: argparse.Namespace, rows: list[Row]) -> None:
+    """300 models of 1 MiB in one document: hashing-bound, so start-up and the lock show."""
+    doc, rels = ensure_flat("tree", seed=args.seed, sizes=[TREE_SIZE] * TREE_FILES)
+    tree = doc.parent
+    warm_page_cache([tree / r for r in rels] + [doc])
+    fresh_lock(doc)
+    cache = WORK / "cache-tree"
+    runs = measure(
+        {
+            "openssl": Cmd(["openssl", "dgst", "-sha256", *rels], cwd=tree),
+            "ours": Cmd(resolve_argv(doc, cache), setup=fresh(cache), check=wrote_lock(doc, f"{TREE_FILES} pinned")),
+        },
+        repeat=args.repeat,
+    )
+    shutil.rmtree(cache, ignore_errors=True)
+    t_ssl, t_ours = med(runs["openssl"]), med(runs["ours"])
+    nbytes = TREE_FILES * TREE_SIZE
+    rows.append(
+        Row(
+            f"resolve {TREE_FILES} models of {TREE_SIZE >> 20} MiB ({nbytes / 1e6:.0f} MB, one document)",
+            mbps(nbytes, t_ours),
+            "openssl " + mbps(nbytes, t_ssl),
+            times(t_ours, t_ssl) + cpu_note(runs["ours"], runs["openssl"]),
+            "≤ 0.8× (goal 0.77×)",
+            t_ours / t_ssl <= 0.8,
+            {"resolve_s": walls(runs["ours"]), "openssl_s": walls(runs["openssl"]), "bytes": nbytes},
         )
     )
 
@@ -303,28 +389,44 @@ def bench_small(args: argparse.Namespace, rows: list[Row]) -> None:
     doc, rels = ensure_flat("small", seed=args.seed, sizes=[SMALL_SIZE] * SMALL_FILES)
     tree = doc.parent
     warm_page_cache([tree / r for r in rels] + [doc])
+    fresh_lock(doc)
     cache = WORK / "cache-small"
+    pinned = f"{SMALL_FILES} pinned"
     runs = measure(
         {
             "find": Cmd(
                 ["bash", "-c", "find models -type f -print0 | xargs -0 openssl dgst -sha256 >/dev/null"],
                 cwd=tree,
             ),
-            "ours": Cmd(resolve_argv(doc, cache), setup=fresh(cache), check=expect(f"{SMALL_FILES} pinned")),
+            "ours": Cmd(resolve_argv(doc, cache), setup=fresh(cache), check=wrote_lock(doc, pinned)),
+            # Informative: the same run without writing the lock (it still reads and checks it).
+            "nolock": Cmd(resolve_argv(doc, cache, "--no-lock"), setup=fresh(cache), check=expect(pinned)),
         },
         repeat=args.repeat,
     )
     shutil.rmtree(cache, ignore_errors=True)
-    t_find, t_ours = med(runs["find"]), med(runs["ours"])
+    t_find, t_ours, t_nolock = med(runs["find"]), med(runs["ours"]), med(runs["nolock"])
     rows.append(
         Row(
             f"resolve {SMALL_FILES:,} files of {SMALL_SIZE // 1024} KiB (one document)",
             f"{t_ours * 1000:.0f} ms",
             f"find \\| xargs openssl: {t_find * 1000:.0f} ms",
-            f"{t_find / t_ours:.2f}×",
-            "≥ 1.0×",
-            t_find / t_ours >= 1.0,
+            times(t_ours, t_find) + cpu_note(runs["ours"], runs["find"]),
+            "≤ 3× (goal 2×)",
+            t_ours / t_find <= 3,
             {"resolve_s": walls(runs["ours"]), "find_s": walls(runs["find"])},
+        )
+    )
+    rows.append(
+        Row(
+            "the same with --no-lock (the lock is still read and checked; writing it costs "
+            f"{(t_ours - t_nolock) * 1000:+.0f} ms)",
+            f"{t_nolock * 1000:.0f} ms",
+            f"find \\| xargs openssl: {t_find * 1000:.0f} ms",
+            times(t_nolock, t_find) + cpu_note(runs["nolock"], runs["find"]),
+            "(info)",
+            None,
+            {"resolve_s": walls(runs["nolock"]), "find_s": walls(runs["find"])},
         )
     )
 
@@ -337,7 +439,7 @@ def bench_latency(args: argparse.Namespace, rows: list[Row]) -> None:
         doc, _ = generate_flat(
             tree, seed=args.seed, sizes=[LATENCY_SIZE] * LATENCY_FILES, uri_prefix=f"{server.url}latency/models/"
         )
-        check = expect(f"{LATENCY_FILES} fetched")
+        check = wrote_lock(doc, f"{LATENCY_FILES} fetched")
         runs = measure(
             {
                 f"jobs{jobs}": Cmd(
@@ -358,9 +460,9 @@ def bench_latency(args: argparse.Namespace, rows: list[Row]) -> None:
             f"+{LATENCY_DELAY * 1000:.0f} ms per response, empty cache",
             f"--jobs 16: {t16 * 1000:.0f} ms",
             f"--jobs 1: {t1 * 1000:.0f} ms",
-            f"{t1 / t16:.1f}×",
-            "≥ 8×",
-            t1 / t16 >= 8,
+            f"{t16 / t1:.3f}× ({t1 / t16:.1f} times faster)",
+            "≤ 0.125× (8 times faster)",
+            t16 / t1 <= 0.125,
             {"jobs16_s": walls(runs["jobs16"]), "jobs1_s": walls(runs["jobs1"])},
         )
     )
@@ -370,13 +472,16 @@ def bench_memory(args: argparse.Namespace, rows: list[Row]) -> None:
     docs = {}
     for label, size in (("big", BIG), ("medium", MEDIUM)):
         doc, rels = ensure_flat(f"mem-{size}", seed=args.seed, sizes=[size])
+        fresh_lock(doc)
         warm_page_cache([doc.parent / r for r in rels])
         docs[label] = doc
     reps = max(1, args.repeat - 1)
     cache = {label: WORK / f"cache-mem-{label}" for label in docs}
     local = measure(
         {
-            label: Cmd(resolve_argv(doc, cache[label]), setup=fresh(cache[label]), check=expect("1 pinned"), rss=True)
+            label: Cmd(
+                resolve_argv(doc, cache[label]), setup=fresh(cache[label]), check=wrote_lock(doc, "1 pinned"), rss=True
+            )
             for label, doc in docs.items()
         },
         repeat=reps,
@@ -390,7 +495,7 @@ def bench_memory(args: argparse.Namespace, rows: list[Row]) -> None:
                         "--mirror", f"{file_url(doc.parent / 'models')}/={server.url}{doc.parent.name}/models/",
                     ),
                     setup=fresh(cache[label]),
-                    check=expect("1 fetched"),
+                    check=wrote_lock(doc, "1 fetched"),
                     rss=True,
                 )
                 for label, doc in docs.items()
@@ -486,37 +591,45 @@ def environment() -> str:
     )
 
 
-def render(rows: list[Row], args: argparse.Namespace, env: str, seconds: float, load: tuple[float, float]) -> str:
+def render(
+    rows: list[Row], args: argparse.Namespace, env: str, seconds: float, load: tuple[float, float],
+    loads: dict[str, tuple[float, float]],
+) -> str:
+    per_section = ", ".join(f"{name} {a:.1f}→{b:.1f}" for name, (a, b) in loads.items())
     out = [
         "# hcdf-trust benchmark results",
         "",
-        f"Machine: {env}. Load average (1 min) at start / end: {load[0]:.2f} / {load[1]:.2f}.",
+        f"Machine: {env}. Load average (1 min) at start / end: {load[0]:.2f} / {load[1]:.2f}; "
+        f"per section: {per_section}.",
         "",
-        "| benchmark | hcdf-trust | baseline | ratio | target | met |",
-        "|---|---|---|---|---|---|",
+        *table(rows),
     ]
-    for r in rows:
-        met = "info" if r.met is None else ("yes" if r.met else "**no**")
-        out.append(f"| {r.name} | {r.ours} | {r.baseline} | {r.ratio} | {r.target} | {met} |")
     out += [
         "",
-        f"How: `make bench` runs `bench/run.py --repeat {args.repeat}` ({seconds:.0f} s here). Every number is the",
-        f"median wall time of {args.repeat} fresh `.venv/bin/hcdf-trust` processes (spawn to exit, interpreter",
-        "start-up included) after one untimed warm-up; a command and its baseline take turns, so load from",
-        f"elsewhere hits both. Start-up rows: median of {args.startup_runs} after two warm-ups. Ratio = our",
-        "throughput / the baseline's (= baseline time / our time); for the fetch row, `--jobs 1` time /",
-        "`--jobs 16` time. Every input is read once before timing, so both sides hash from a warm page cache:",
-        "this compares CPU work, not the disk. Baselines run on the same files: one `openssl dgst -sha256`",
-        "process over all model files (the fastest single-core hasher here), and",
-        "`find models -type f -print0 | xargs -0 openssl dgst -sha256` for the small files. Resolve does",
-        "more than hash: it also reads, pins and parses every include and checks every path; it runs with",
-        "`--no-lock` and the default `--jobs 8`. The loopback server (bench/loopback.py: HTTP/1.1 keep-alive,",
-        "backlog 128, TCP_NODELAY, sendfile) shares the 2 cores with the client. Peak RSS is GNU time's",
-        "`%M` for the resolve process. Children run with cached bytecode (PYTHONPYCACHEPREFIX=bench/work/pycache,",
-        "filled by the warm-ups), as an installed tool does. Trees are generated under bench/work/ from",
-        f"`--seed` ({args.seed}).",
+        f"How: `make bench` runs `bench/run.py --repeat {args.repeat}` ({seconds:.0f} s here). **Ratio = our time /",
+        "the baseline's time, lower is better** (issue 6's convention; until issue 6 this table showed the",
+        "inverse). For the fetch row, `--jobs 16` time / `--jobs 1` time. Every number is the median wall",
+        f"time of {args.repeat} fresh `.venv/bin/hcdf-trust` processes (spawn to exit, interpreter start-up",
+        "included) after one untimed warm-up; a command and its baseline take turns, so load from elsewhere",
+        f"hits both. Start-up rows: median of {args.startup_runs} after two warm-ups. Every resolve is the build",
+        "step a user runs, plain `hcdf-trust resolve DOC` with the default `--jobs`: the warm-up writes",
+        "`DOC.lock`, and every timed run reads it, checks the tree against it (trust on first use: a second",
+        "run over an unchanged tree must pass) and writes it again; only the row that says so runs with",
+        "`--no-lock`. Every input is read once before timing, so both sides hash from a warm page cache: this",
+        "compares CPU work, not the disk; the resolve rows also give the ratio of median CPU time (user +",
+        "system), which a loaded machine disturbs less than wall time. Baselines run on the same files: one",
+        "`openssl dgst -sha256` process over all model files (the fastest single-core hasher here), and",
+        "`find models -type f -print0 | xargs -0 openssl dgst -sha256` for the small files. Resolve does more",
+        "than hash: it parses every document, checks every reference, path and pin, and reads and writes the",
+        "lock. The loopback server (bench/loopback.py: HTTP/1.1 keep-alive, backlog 128, TCP_NODELAY,",
+        "sendfile) shares the 2 cores with the client. Peak RSS is GNU time's `%M` for the resolve process.",
+        "Children run with cached bytecode (PYTHONPYCACHEPREFIX=bench/work/pycache, filled by the warm-ups),",
+        f"as an installed tool does. Trees are generated under bench/work/ from `--seed` ({args.seed}).",
         "",
     ]
+    if FAILURES:
+        out += ["Runs that failed and were run again (a known fault, to be fixed, not a timing):", ""]
+        out += [f"- `{f}`" for f in FAILURES] + [""]
     if max(load) > 0.5:
         out += [
             f"Note: the machine was not idle (load {max(load):.1f}); numbers from a busy 2-core machine",
@@ -526,11 +639,45 @@ def render(rows: list[Row], args: argparse.Namespace, env: str, seconds: float, 
     return "\n".join(out)
 
 
+def table(rows: list[Row]) -> list[str]:
+    out = [
+        "| benchmark | hcdf-trust | baseline | ratio (ours / baseline) | target | met |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        met = "info" if r.met is None else ("yes" if r.met else "**no**")
+        out.append(f"| {r.name} | {r.ours} | {r.baseline} | {r.ratio} | {r.target} | {met} |")
+    return out
+
+
+def readme_section(rows: list[Row], load: tuple[float, float], loads: dict[str, tuple[float, float]]) -> str:
+    """The README's copy of the table (between its markers), with when and under what load."""
+    worst = max([*load, *(b for pair in loads.values() for b in pair)])
+    return "\n".join(
+        [
+            README_BEGIN,
+            f"Last `make bench` here: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, 2 shared cores, "
+            f"1-minute load average up to {worst:.1f} (per section in bench/RESULTS.md).",
+            "",
+            *table(rows),
+            README_END,
+        ]
+    )
+
+
+def update_readme(text: str) -> None:
+    old = README.read_text()
+    start, end = old.find(README_BEGIN), old.find(README_END)
+    if start < 0 or end < start:
+        raise SystemExit(f"bench: {README} has no {README_BEGIN} ... {README_END} markers")
+    README.write_text(old[:start] + text + old[end + len(README_END) :])
+
+
 def wait_for_idle(limit: float, seconds: float) -> None:
     deadline = time.monotonic() + seconds
     while os.getloadavg()[0] > limit and time.monotonic() < deadline:
         print(f"bench: waiting for load {os.getloadavg()[0]:.2f} to fall below {limit}", file=sys.stderr)
-        time.sleep(15)
+        time.sleep(min(15, max(0.0, deadline - time.monotonic())))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -541,7 +688,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--only", default=",".join(SECTIONS), help=f"comma list of {', '.join(SECTIONS)}")
     ap.add_argument("--no-write", action="store_true", help="print the table, leave bench/RESULTS.md alone")
     ap.add_argument("--wait-idle", type=float, default=0, metavar="SECONDS",
-                    help="first wait up to SECONDS for the 1-minute load average to fall below 0.5")
+                    help="before each section, wait up to SECONDS for the 1-minute load average to fall below "
+                    "--idle-load")
+    ap.add_argument("--idle-load", type=float, default=0.5, metavar="LOAD", help="see --wait-idle (default 0.5)")
     args = ap.parse_args(argv)
     if not CLI.exists():
         raise SystemExit(f"bench: {CLI} not found; install the project into .venv first")
@@ -552,24 +701,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not Path(TIME).exists():
         raise SystemExit(f"bench: {TIME} (GNU time) is needed for the peak RSS rows")
     WORK.mkdir(parents=True, exist_ok=True)
-    if args.wait_idle:
-        wait_for_idle(0.5, args.wait_idle)
     load_start = os.getloadavg()[0]
     started = time.perf_counter()
     rows: list[Row] = []
+    loads: dict[str, tuple[float, float]] = {}
     for name in SECTIONS:
         if name in only:
-            t0 = time.perf_counter()
+            if args.wait_idle:
+                wait_for_idle(args.idle_load, args.wait_idle)
+            t0, before = time.perf_counter(), os.getloadavg()[0]
+            first = len(rows)
             globals()[f"bench_{name}"](args, rows)
+            loads[name] = (before, os.getloadavg()[0])
+            for row in rows[first:]:
+                row.raw["load"] = loads[name]
             print(f"bench: {name} done in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     seconds = time.perf_counter() - started
-    text = render(rows, args, environment(), seconds, (load_start, os.getloadavg()[0]))
+    text = render(rows, args, environment(), seconds, (load_start, os.getloadavg()[0]), loads)
     print(text)
     (WORK / "results.json").write_text(
         json.dumps([{**r.__dict__} for r in rows], indent=1, ensure_ascii=False)
     )
     if not args.no_write and set(only) == set(SECTIONS):
         (HERE / "RESULTS.md").write_text(text)
+        update_readme(readme_section(rows, (load_start, os.getloadavg()[0]), loads))
     return 0
 
 

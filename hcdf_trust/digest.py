@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import threading
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from typing import BinaryIO, Protocol
 
@@ -21,6 +22,7 @@ CHUNK = 1 << 20
 SMALL_FILE = 64 << 10
 
 _HEX = frozenset("0123456789abcdef")
+_CANONICAL_PIN = re.compile(rf"[0-9a-f]{{{MIN_WEAK_HEX},{FULL_HEX}}}\Z")
 #: What a malformed ``sha`` should have been, for ``expected`` in its error.
 PIN_FORMAT = f"{FULL_HEX} hex digits (a SHA-256), or {MIN_WEAK_HEX} to {FULL_HEX - 1} for a weak prefix"
 
@@ -61,6 +63,8 @@ def parse_pin(
     """
     if text is None:
         return None
+    if _CANONICAL_PIN.match(text):  # as render and pin write it: nothing to strip or lower
+        return Pin(text)
     value = text.strip().lower()
     if not value:
         return None
@@ -95,6 +99,9 @@ def is_full_sha256(text: str) -> bool:
 class Hashed:
     sha256: str
     size: int
+    # (st_dev, st_ino) of the local file the bytes were read from, when known: lets
+    # output planning compare a destination with this input without another stat.
+    inode: tuple[int, int] | None = field(default=None, compare=False)
 
 
 def hash_bytes(data: bytes) -> Hashed:

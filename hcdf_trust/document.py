@@ -249,8 +249,10 @@ def _walk(
                 f"<{etree.QName(el).localname}> has {shown} ({str(attr)!r}): refused, "
                 "it changes or hides where a reference points",
             )
+    # Most documents have no <comp><extension>: then nothing is opaque (one scan in C).
+    opaque = any(getattr(ext.getparent(), "tag", None) == "comp" for ext in root.iter("extension"))
     for el in root.iter(*_REFERENCE_TAGS):
-        if _opaque(el):
+        if opaque and _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
         try:
             ref = _reference(el, el.tag, source)
@@ -265,6 +267,16 @@ def _unclear(value: str, *, what: str) -> str | None:
     """Why readers could read ``value`` (a location) differently, or None."""
     if value != value.strip(_XML_SPACE):
         return f"{what} {redact(value)!r} has whitespace around it"
+    # Printable ASCII holds no control, format, separator or space character but " "
+    # (the per-character scan below costs more than the rest of the reference).
+    if not (value.isascii() and value.isprintable()):
+        return _unclear_character(value, what=what)
+    if "  " in value:
+        return f"{what} {redact(value)!r} has a run of spaces (a schema-aware reader collapses it)"
+    return None
+
+
+def _unclear_character(value: str, *, what: str) -> str | None:
     for ch in value:
         if ch == " ":
             continue
@@ -289,14 +301,17 @@ def _location(el: etree._Element, tag: str, source: str) -> tuple[str | None, st
     if value is not None and (why := _unclear(value, what=f"<{tag}> {attr}")):
         raise AmbiguousReferenceError(why, file=source, line=sourceline(el))
     # its own text nodes: before the first child and after each (a comment's tail is text too)
-    text = ((el.text or "") + "".join(child.tail or "" for child in el)).strip(_XML_SPACE)
-    if text:
+    text = el.text
+    children = len(el) > 0
+    if children:
+        text = (text or "") + "".join(child.tail or "" for child in el)
+    if text and (text := text.strip(_XML_SPACE)):
         raise AmbiguousReferenceError(
             f"<{tag}> holds text {redact(text)!r}: its reference is its uri or href attribute, never its text",
             file=source,
             line=sourceline(el),
         )
-    for child in el:
+    for child in el if children else ():
         if isinstance(child.tag, str) and etree.QName(child).localname in _REFERENCE_ATTR_NAMES:
             raise AmbiguousReferenceError(
                 f"<{tag}> has a <{etree.QName(child).localname}> child: write the reference as an attribute",
@@ -343,6 +358,10 @@ def _string_value(el: etree._Element, tag: str, source: str) -> str | None:
 
 def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
     line = sourceline(el)
+    if tag == "model":
+        # The schema says uri; the published model repository writes href.
+        uri, attr = _location(el, tag, source)
+        return Reference(Kind.MODEL, line, uri=uri, sha=el.get("sha"), uri_attr=attr, element=el)
     parent = el.getparent()
     if tag == "include":
         uri, attr = _location(el, tag, source)
@@ -356,10 +375,6 @@ def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
             pose=el.get("pose"),
             element=el,
         )
-    if tag == "model":
-        # The schema says uri; the published model repository writes href.
-        uri, attr = _location(el, tag, source)
-        return Reference(Kind.MODEL, line, uri=uri, sha=el.get("sha"), uri_attr=attr, element=el)
     if tag == "mesh":
         # <network><mesh> is a wireless topology, not a file; any mesh with a location is one.
         if not _has_location(el) and (parent is None or parent.tag != "geometry"):

@@ -110,9 +110,10 @@ def hash_local(path: Path | str, root: Path | str, *, file: str | None = None, l
     """Hash a confined local file in constant memory (the hot path for model files)."""
     fd, st = open_checked(path, root, file=file, line=line)
     try:
-        return hash_fd(fd, size=st.st_size)
+        hashed = hash_fd(fd, size=st.st_size)
     finally:
         os.close(fd)
+    return Hashed(hashed.sha256, hashed.size, (st.st_dev, st.st_ino))
 
 
 @functools.lru_cache(maxsize=64)

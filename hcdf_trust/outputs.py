@@ -25,10 +25,9 @@ import secrets
 import stat
 import tempfile
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 from .errors import InputError, display_path, display_place
 from .store import default_cache_dir, fsync_dir
@@ -52,10 +51,10 @@ class _Output:
     shown: str  # the path as the user gave it
 
 
-@dataclass(frozen=True)
-class _Input:
+class _Input(NamedTuple):  # a tuple: 10,000 of them per run
     path: str
     what: str
+    inode: tuple[int, int] | None = None  # (st_dev, st_ino) when the caller knows it
 
 
 class OutputPlan:
@@ -65,41 +64,54 @@ class OutputPlan:
     and a hard link shares the inode), so a spelling with symlinks, ``..`` or another
     link to the same file is caught. Protecting costs no system call: the inputs are
     stat'ed once, and only when a destination already exists (a destination that
-    does not exist cannot be an input). That keeps a 10,000-file tree cheap.
+    does not exist cannot be an input); an input protected with the ``inode`` of the
+    descriptor it was read from is not stat'ed at all, and is also compared by path
+    (it may have been replaced since). That keeps a 10,000-file tree cheap.
     """
 
     def __init__(self) -> None:
         self._inputs: list[_Input] = []
         self._inodes: dict[tuple[int, int], _Input] = {}
+        self._names: dict[str, _Input] = {}  # inputs protected with their inode, by path
         self._statted = 0  # how many of _inputs are in _inodes
         self._trees: list[_Input] = []
         self._outputs: dict[str, _Output] = {}  # realpath -> output
 
     # -- inputs ----------------------------------------------------------------------
 
-    def protect(self, path: str | os.PathLike[str], *, what: str) -> None:
-        """``path`` is an input of this run (``what`` says which, e.g. "the root document")."""
-        self._inputs.append(_Input(os.fspath(path), what))
+    def protect(self, path: str | os.PathLike[str], *, what: str, inode: tuple[int, int] | None = None) -> None:
+        """``path`` is an input of this run (``what`` says which, e.g. "the root document").
+
+        ``inode``: (st_dev, st_ino) of the descriptor it was read from, when the caller has it.
+        """
+        self._inputs.append(_Input(os.fspath(path), what, inode))
 
     def protect_tree(self, path: str | os.PathLike[str], *, what: str) -> None:
         """No output may lie inside the folder ``path`` (e.g. the cache)."""
         self._trees.append(_Input(os.path.realpath(path), what))
 
-    def _input_at(self, st: os.stat_result) -> _Input | None:
-        """The input that is the file ``st`` describes, if any."""
+    def _input_at(self, st: os.stat_result, real: str) -> _Input | None:
+        """The input that is the file ``st`` (at the real path ``real``) describes, if any."""
         for entry in self._inputs[self._statted :]:
-            with contextlib.suppress(OSError, ValueError):
-                ist = os.stat(entry.path)
-                self._inodes.setdefault((ist.st_dev, ist.st_ino), entry)
+            key = entry.inode
+            if key is None:
+                try:
+                    ist = os.stat(entry.path)
+                except (OSError, ValueError):
+                    continue
+                key = (ist.st_dev, ist.st_ino)
+            else:
+                self._names.setdefault(entry.path, entry)
+            self._inodes.setdefault(key, entry)
         self._statted = len(self._inputs)
-        return self._inodes.get((st.st_dev, st.st_ino))
+        return self._inodes.get((st.st_dev, st.st_ino)) or self._names.get(real)
 
     def protected(self, path: str | os.PathLike[str]) -> str | None:
         """What ``path`` is ("the root document", "the cache", ...) when it is a protected
         input or lies inside a protected folder; None otherwise."""
         real = os.path.realpath(path)
         with contextlib.suppress(OSError):
-            hit = self._input_at(os.stat(real))
+            hit = self._input_at(os.stat(real), real)
             if hit is not None:
                 return hit.what
         for tree in self._trees:
@@ -146,7 +158,7 @@ class OutputPlan:
             raise OutputError(f"{flag} {shown}: {exc.strerror}", file=shown) from None
         if st is not None and stat.S_ISDIR(st.st_mode):
             raise OutputError(f"{flag} {shown} is a directory", file=shown)
-        hit = self._input_at(st) if st is not None and not edit else None
+        hit = self._input_at(st, real) if st is not None and not edit else None
         if hit is not None:
             named = display_path(hit.path)
             also = f" ({named})" if named != os.path.normpath(shown) else ""
@@ -249,7 +261,7 @@ def protect_inputs(
     for art in res.artifacts.values():
         if art.location.path is not None:
             what = "an included document" if art.kind.value == "include" else f"a verified {art.kind.value} file"
-            plan.protect(art.location.path, what=what)
+            plan.protect(art.location.path, what=what, inode=art.inode)
     if options is not None and options.ca_bundle:
         plan.protect(options.ca_bundle, what="the CA bundle")
     cache = options.cache_dir if options is not None else None
@@ -335,6 +347,8 @@ def _in_parallel(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
     """
     if len(items) <= 1:
         return [fn(item) for item in items]
+    from concurrent.futures import ThreadPoolExecutor  # ~10 ms of imports a one-file run never needs
+
     with ThreadPoolExecutor(max_workers=min(_FSYNC_THREADS, len(items))) as pool:
         return list(pool.map(fn, items))
 

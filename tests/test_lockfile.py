@@ -299,3 +299,61 @@ def test_lock_urls_match_relpath(tmp_path, path):
     assert rel == Path(os.path.relpath(target, base)).as_posix()
     assert urls.to_lock(url) == rel  # remembered
     assert urls.to_lock("https://h.example/a%20b.glb") == "https://h.example/a%20b.glb"
+
+
+GOOD_SHA = hashlib.sha256(b"x").hexdigest()
+
+
+@pytest.mark.parametrize(
+    "sha, ok",
+    [
+        (GOOD_SHA, True),
+        (GOOD_SHA.upper(), True),  # read, and kept lower case
+        (GOOD_SHA[:63], False),
+        (GOOD_SHA + "0", False),
+        (GOOD_SHA[:62] + " 0", False),  # 64 characters, 63 digits
+        ("ab " * 21 + "a", False),  # digit pairs separated by spaces: fromhex would skip them
+        (GOOD_SHA[:63] + "g", False),
+        (GOOD_SHA[:63] + "\u0663", False),  # a non-ASCII digit
+        (" " + GOOD_SHA[:63], False),
+    ],
+)
+def test_lock_sha256_must_be_64_hex_digits(tmp_path, sha, ok):
+    entry = {"kind": "model", "uri": "m.glb", "url": "m.glb", "sha256": sha, "size": 1, "referenced_from": ["r"]}
+    path = tmp_path / "r.lock"
+    path.write_text(json.dumps({"artifacts": [entry], "lock_version": 2, "root": "r"}))
+    if ok:
+        assert lockfile.load(path).entries["m.glb"].sha256 == GOOD_SHA
+    else:
+        with pytest.raises(lockfile.LockFileError, match="sha256 is not a full digest"):
+            lockfile.load(path)
+
+
+@pytest.mark.parametrize("refs", [[], ["a", "b"]])
+def test_lock_referenced_from_lists_of_names_are_read(tmp_path, refs):
+    entry = {"kind": "model", "uri": "m.glb", "url": "m.glb", "sha256": GOOD_SHA, "size": 1, "referenced_from": refs}
+    path = tmp_path / "r.lock"
+    path.write_text(json.dumps({"artifacts": [entry], "lock_version": 2, "root": "r"}))
+    assert lockfile.load(path).entries["m.glb"].referenced_from == tuple(refs)
+
+
+@pytest.mark.parametrize("refs", ["r", ["r", ""], ["r", 1], [["r"]], [None], {"r": 1}])
+def test_lock_referenced_from_must_be_a_list_of_names(tmp_path, refs):
+    entry = {"kind": "model", "uri": "m.glb", "url": "m.glb", "sha256": GOOD_SHA, "size": 1, "referenced_from": refs}
+    path = tmp_path / "r.lock"
+    path.write_text(json.dumps({"artifacts": [entry], "lock_version": 2, "root": "r"}))
+    with pytest.raises(lockfile.LockFileError, match="referenced_from must be a list"):
+        lockfile.load(path)
+
+
+@pytest.mark.parametrize("drop, add", [("size", None), ("size", "extra"), (None, "extra")])
+def test_lock_artifact_keys_are_exactly_the_six(tmp_path, drop, add):
+    entry = {"kind": "model", "uri": "m.glb", "url": "m.glb", "sha256": GOOD_SHA, "size": 1, "referenced_from": []}
+    if drop:
+        del entry[drop]
+    if add:
+        entry[add] = 1
+    path = tmp_path / "r.lock"
+    path.write_text(json.dumps({"artifacts": [entry], "lock_version": 2, "root": "r"}))
+    with pytest.raises(lockfile.LockFileError, match="expected an object with keys"):
+        lockfile.load(path)

@@ -470,3 +470,20 @@ def test_no_space_left_on_device_writes_nothing(cli, work, full_tmpfs):
     result = run(cli, lock=str(full_tmpfs / "robot.lock"), out=str(full_tmpfs / "robot.flat.hcdf"))
     assert "No space left on device" in assert_refused(result, "cannot write")["message"]
     assert contents(work, full_tmpfs) == before
+
+
+def test_an_input_known_by_its_inode_is_also_compared_by_path(tmp_path):
+    """An input protected with the inode it was read from (no stat at planning time) is
+    still refused by path after it was replaced by another file (a new inode)."""
+    model = tmp_path / "m.glb"
+    model.write_bytes(b"read and verified")
+    st = model.stat()
+    plan = OutputPlan()
+    plan.protect(model, what="a verified model file", inode=(st.st_dev, st.st_ino))
+    replaced = tmp_path / "new.glb"
+    replaced.write_bytes(b"written since")
+    os.replace(replaced, model)
+    assert model.stat().st_ino != st.st_ino
+    with pytest.raises(OutputError, match="is a verified model file"):
+        plan.add(model, b"lock", flag="--lock")
+    assert model.read_bytes() == b"written since"

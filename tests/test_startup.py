@@ -54,3 +54,22 @@ def test_resolver_defaults_are_the_fetchers():
     from hcdf_trust.include import fetch, resolver
 
     assert (resolver.DEFAULT_MAX_BYTES, resolver.DEFAULT_TIMEOUT) == (fetch.DEFAULT_MAX_BYTES, fetch.DEFAULT_TIMEOUT)
+
+
+def test_hashing_threads_import_no_thread_pool(tmp_path):
+    """Files large enough for the hashing threads (resolver.PARALLEL_MIN_BYTES) are hashed on
+    plain threads: concurrent.futures would import logging on every such run."""
+    import hashlib
+
+    from hcdf_trust.include.resolver import PARALLEL_MIN_BYTES
+
+    refs = []
+    for i in range(3):
+        data = bytes([i]) * PARALLEL_MIN_BYTES
+        (tmp_path / f"m{i}.glb").write_bytes(data)
+        refs.append(f'<model uri="m{i}.glb" sha="{hashlib.sha256(data).hexdigest()}"/>')
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(f'<hcdf version="1.0"><comp name="c">{"".join(refs)}</comp></hcdf>')
+    code, modules = _modules_after("resolve", str(doc), "--cache-dir", str(tmp_path / "c"))
+    assert code == 0 and (tmp_path / "robot.hcdf.lock").exists()
+    assert not modules & {"concurrent.futures", "logging"}, sorted(modules & {"concurrent.futures", "logging"})

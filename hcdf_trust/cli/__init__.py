@@ -580,12 +580,13 @@ def _warn(warnings: list[Any]) -> None:
 
 def _summary(res: Any) -> dict[str, int]:
     arts = list(res.artifacts.values())
+    status = [a.pin_status for a in arts]
     return {
         "references": sum(len(a.uses) for a in arts),
         "files": len(arts),
-        "pinned": sum(1 for a in arts if a.pin_status == "full"),
-        "weak": sum(1 for a in arts if a.pin_status == "weak"),
-        "unpinned": sum(1 for a in arts if a.pin_status == "unpinned"),
+        "pinned": status.count("full"),
+        "weak": status.count("weak"),
+        "unpinned": status.count("unpinned"),
         "bytes_verified": sum(a.size or 0 for a in arts),
         "from_cache": sum(1 for a in arts if a.source == "cache"),
         "fetched": sum(1 for a in arts if a.source == "network"),

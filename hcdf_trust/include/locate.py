@@ -11,6 +11,7 @@ actually read (a local path confined to a root, or a remote URL).
 
 from __future__ import annotations
 
+import functools
 import os
 import posixpath
 import re
@@ -26,6 +27,9 @@ from ..localfile import absolute
 REMOTE_SCHEMES = ("https", "http")
 # Unreserved URL characters plus "/": text that means the same as a URL and as a path.
 _PLAIN = re.compile(r"[A-Za-z0-9._~/-]+\Z")
+# ...and already normal as a path: no empty, "." or ".." segment (none starts with ".").
+_NORMAL_SEGMENT = r"[A-Za-z0-9_~-][A-Za-z0-9._~-]*"
+_PLAIN_NORMAL = re.compile(rf"{_NORMAL_SEGMENT}(?:/{_NORMAL_SEGMENT})*\Z")
 
 
 @dataclass(frozen=True)
@@ -174,23 +178,38 @@ class Locator:
         result is exactly what the general path (urljoin, normalise) gives. It saves
         most of the per-reference cost on trees with thousands of files.
         """
-        base = self.base or referrer.url
-        if (
-            not base.startswith("file:///")
-            or self._file_mirrors
-            or text.startswith("/")
-            or text.endswith("/")
-            or not _PLAIN.match(text)
-            or not _PLAIN.match(base, 7)
-        ):
+        folder = self._plain_folder(self.base or referrer.url)
+        if folder is None:
             return None
-        folder = base[7:] if base.endswith("/") else posixpath.dirname(base[7:])
-        path = posixpath.normpath(posixpath.join(folder, text))
+        if _PLAIN_NORMAL.match(text):  # the join is already normal (folder is normal): no normpath
+            path = f"{folder}{text}"
+            return self._local("file://" + path, path, self.root, file=file, line=line, uri=text, is_normal=True)
+        if text.startswith("/") or text.endswith("/") or not _PLAIN.match(text):
+            return None
+        path = posixpath.normpath(folder + text)
         return self._local("file://" + path, path, self.root, file=file, line=line, uri=text)
 
-    @property
-    def _file_mirrors(self) -> bool:
-        return any(prefix.startswith("file:") for prefix, _ in self.mirrors)
+    @functools.cached_property
+    def _plain_folders(self) -> dict[str, str | None]:
+        return {}
+
+    def _plain_folder(self, base: str) -> str | None:
+        """The folder (ending in "/") relative references of ``base`` join, when the fast
+        path applies to it (a plain ``file://`` URL, no local mirror), normalised; else None.
+        Once per referring document."""
+        folders = self._plain_folders
+        if base in folders:
+            return folders[base]
+        folder = None
+        if (
+            base.startswith("file:///")
+            and not any(prefix.startswith("file:") for prefix, _ in self.mirrors)
+            and _PLAIN.match(base, 7)
+        ):
+            folder = posixpath.normpath(base[7:] if base.endswith("/") else posixpath.dirname(base[7:]))
+            folder = folder if folder.endswith("/") else folder + "/"
+        folders[base] = folder
+        return folder
 
     def _apply(self, url: str, *, file: str, line: int | None, uri: str) -> Location:
         parts = urlsplit(url)
@@ -223,10 +242,17 @@ class Locator:
 
     @staticmethod
     def _local(
-        url: str, path: str | Path, root: Path, *, file: str, line: int | None, uri: str | None = None
+        url: str,
+        path: str | Path,
+        root: Path,
+        *,
+        file: str,
+        line: int | None,
+        uri: str | None = None,
+        is_normal: bool = False,
     ) -> Location:
-        # Lexical check here; the symlink check happens on the opened descriptor (fetch.py).
-        normal = os.path.normpath(path)
+        # Lexical check here; the symlink check happens on the opened descriptor (localfile.py).
+        normal = path if is_normal and isinstance(path, str) else os.path.normpath(path)
         root_text = os.fspath(root)
         if normal != root_text and not normal.startswith(root_text.rstrip("/") + "/"):
             shown_root, shown = display_path(root), display_path(normal)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import operator
 import os
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from json.encoder import encode_basestring  # the C escaper json itself uses
@@ -35,7 +34,6 @@ MAX_LOCK_BYTES = 32 << 20
 KINDS = frozenset({"include", "model", "mesh", "stream-profile", "firmware-manifest"})
 _KEYS = frozenset({"kind", "uri", "url", "sha256", "size", "referenced_from"})
 _TOP = frozenset({"artifacts", "lock_version", "root"})
-_SHA = re.compile(r"[0-9a-fA-F]{64}\Z")
 itemgetter = operator.itemgetter("kind", "uri", "url", "sha256", "size", "referenced_from")
 
 
@@ -152,26 +150,49 @@ def _check(doc: object, name: str) -> Lock:
         _bad(name, f"artifacts must be a list, found {_type(items)}")
     entries: dict[str, LockEntry] = {}
     for i, item in enumerate(items):
-        if type(item) is not dict or item.keys() != _KEYS:
+        try:
+            if type(item) is not dict or len(item) != len(_KEYS):
+                raise KeyError
+            kind, uri, url, sha, size, refs = itemgetter(item)  # six keys, all present: exactly _KEYS
+        except KeyError:
             keys = sorted(item) if type(item) is dict else _type(item)
             _bad(name, f"artifact {i}: expected an object with keys {sorted(_KEYS)}, found {keys}")
-        kind, uri, url, sha, size, refs = itemgetter(item)
         if type(url) is not str or not url:
             _bad(name, f"artifact {i}: url must be a non-empty string")
         if type(kind) is not str or kind not in KINDS:
             _bad(name, f"artifact {url}: kind must be one of {sorted(KINDS)}, found {kind!r}")
         if type(uri) is not str or not uri:
             _bad(name, f"artifact {url}: uri must be a non-empty string")
-        if type(sha) is not str or not _SHA.match(sha):
+        if type(sha) is not str or not _is_hex64(sha):
             _bad(name, f"artifact {url}: sha256 is not a full digest (64 hex digits), found {sha!r}")
         if type(size) is not int or size < 0:
             _bad(name, f"artifact {url}: size must be a non-negative integer, found {size!r}")
-        if type(refs) is not list or not all(type(r) is str and r for r in refs):
+        if not _is_names(refs):
             _bad(name, f"artifact {url}: referenced_from must be a list of document paths")
         if url in entries:
             _bad(name, f"artifact {url} is listed twice")
         entries[url] = LockEntry(kind, uri, url, sha.lower(), size, tuple(refs))
     return Lock(root=root, entries=entries)
+
+
+def _is_hex64(text: str) -> bool:
+    """64 hex digits, either case. ``bytes.fromhex`` (C) skips whitespace only between
+    digit pairs, so 64 characters that decode to 32 bytes are 64 digits."""
+    try:
+        return len(text) == 64 and len(bytes.fromhex(text)) == 32
+    except ValueError:
+        return False
+
+
+def _is_names(refs: object) -> bool:
+    """A list of non-empty strings (``str.join`` refuses anything but strings, in C)."""
+    if type(refs) is not list or "" in refs:
+        return False
+    try:
+        "".join(refs)
+    except TypeError:
+        return False
+    return True
 
 
 class _Malformed(ValueError):
