@@ -90,7 +90,7 @@ def test_parse_pin_refuses_other_shapes_naming_them(text):
         parse_pin(text, file="d.hcdf", line=7)
     err = info.value
     assert err.file == "d.hcdf" and err.line == 7 and err.actual == text
-    assert repr(text) in str(err)
+    assert f'sha="{text}"' in str(err)
 
 
 def test_parse_pin_length_message_counts_the_digits():

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
 import resource
 import signal
 import stat
@@ -84,13 +86,6 @@ def test_an_input_protected_through_a_symlink_is_protected_as_its_target(tmp_pat
         plan.add(real, b"x", flag="--out")
 
 
-def test_protecting_a_missing_file_still_protects_its_path(tmp_path):
-    plan = OutputPlan()
-    plan.protect(tmp_path / "later.hcdf", what="an include")
-    with pytest.raises(OutputError, match="an include"):
-        plan.add(tmp_path / "later.hcdf", b"x", flag="--out")
-
-
 def test_the_first_description_of_an_input_is_kept(tmp_path):
     doc = tmp_path / "d.hcdf"
     doc.write_bytes(b"x")
@@ -147,7 +142,7 @@ def test_a_destination_under_a_regular_file_is_refused_at_once(tmp_path):
     (tmp_path / "README.md").write_bytes(b"readme")
     with pytest.raises(OutputError, match="README.md is not a folder"):
         OutputPlan().add(tmp_path / "README.md" / "x", b"x", flag="--out")
-    with pytest.raises(OutputError, match="cannot use folder .*README.md/a: Not a directory"):
+    with pytest.raises(OutputError, match="README.md is not a folder"):
         OutputPlan().add(tmp_path / "README.md" / "a" / "b", b"x", flag="--out")
     assert (tmp_path / "README.md").read_bytes() == b"readme"
 
@@ -156,11 +151,11 @@ def test_a_destination_under_an_unsearchable_folder_is_refused(tmp_path):
     if os.geteuid() == 0:
         # root ignores permissions; a symlink loop gives the same OSError (ELOOP) for stat
         (tmp_path / "loop").symlink_to("loop")
-        dest = tmp_path / "loop" / "x"
+        dest, why = tmp_path / "loop" / "x", os.strerror(errno.ELOOP)
     else:
         (tmp_path / "locked").mkdir(mode=0)
-        dest = tmp_path / "locked" / "sub" / "x"
-    with pytest.raises(OutputError, match="cannot use folder"):
+        dest, why = tmp_path / "locked" / "sub" / "x", os.strerror(errno.EACCES)
+    with pytest.raises(OutputError, match=re.escape(f"--out {dest}: {why}") + "$"):
         OutputPlan().add(dest, b"x", flag="--out")
 
 
@@ -228,7 +223,7 @@ def test_the_mode_is_applied_before_any_byte_is_written(tmp_path):
     assert stat.S_IMODE((tmp_path / "key").stat().st_mode) == 0o600
 
 
-def test_messages_name_the_input_by_its_real_path(tmp_path):
+def test_messages_name_the_input_as_protected_when_the_destination_spells_it_otherwise(tmp_path):
     doc = tmp_path / "robot.hcdf"
     doc.write_bytes(b"x")
     (tmp_path / "alias").symlink_to(doc)
@@ -236,7 +231,7 @@ def test_messages_name_the_input_by_its_real_path(tmp_path):
     plan.protect(tmp_path / "alias", what="the root document")
     with pytest.raises(OutputError) as info:
         plan.add(doc, b"y", flag="--lock")
-    assert f"is the root document ({doc})" in str(info.value)
+    assert f"is the root document ({tmp_path / 'alias'})" in str(info.value)
 
 
 def test_every_refusal_names_the_destination_as_given(tmp_path):
