@@ -702,3 +702,35 @@ def test_jobs_1_fetches_one_at_a_time(https_server, resolve, work, cache):
     doc = write_doc(work, *(model(https_server.url(p), sha(d)) for p, d in files.items()))
     assert resolve(doc, "--jobs", "1").exit_code == 0
     assert https_server.max_in_flight == 1
+
+
+def test_an_error_of_the_body_consumer_is_not_reported_as_a_transport_fault(https_server, tls):
+    """The caller's own failure while it stores the body (its cache file, a descriptor) is an
+    input error that says so, not a fetch error blaming the server."""
+    import errno
+
+    from hcdf_trust.errors import InputError
+
+    url = https_server.add("/c.glb", blob(3000, seed=7))
+    fetcher = HttpFetcher(ca_bundle=str(tls.ca_pem), timeout=5)
+    try:
+        with pytest.raises(InputError) as info:
+            with fetcher.open(url) as chunks:
+                next(chunks)
+                raise OSError(errno.EBADF, "Bad file descriptor")
+    finally:
+        fetcher.close()
+    assert not isinstance(info.value, FetchError)
+    assert "storing the body failed" in info.value.message and url in info.value.message
+
+
+def test_a_connection_reset_while_reading_the_body_is_still_a_fetch_error(https_server, tls):
+    url = https_server.reset("/r.glb", blob(200_000, seed=8), after=1000)
+    fetcher = HttpFetcher(ca_bundle=str(tls.ca_pem), timeout=5)
+    try:
+        with pytest.raises(FetchError):
+            with fetcher.open(url) as chunks:
+                for _ in chunks:
+                    pass
+    finally:
+        fetcher.close()

@@ -114,6 +114,7 @@ class HttpFetcher:
         current = url
         original_scheme = urlsplit(url).scheme.lower()
         self._check_scheme(current, original_scheme, url, file=file, line=line)
+        consuming = False
         for _hop in range(self.max_redirects + 1):
             try:
                 with client.stream("GET", current) as response:
@@ -159,26 +160,19 @@ class HttpFetcher:
                             line=line,
                             url=url,
                         )
+                    consuming = True
                     yield self._body(response, decoder, started, current, url, file, line)
                     return
             except FetchError:
                 raise
-            except httpx.TimeoutException:
-                raise FetchError(
-                    f"{current}: timed out (no data for {self.timeout:g} s)",
-                    file=file,
-                    line=line,
-                    url=url,
-                ) from None
-            except httpx.RemoteProtocolError as exc:
-                raise FetchError(
-                    f"{current}: the server broke the HTTP exchange ({_describe(exc)})",
-                    file=file,
-                    line=line,
-                    url=url,
-                ) from None
             except (httpx.HTTPError, httpx.InvalidURL, ssl.SSLError, OSError) as exc:
-                raise FetchError(f"{current}: {_describe(exc)}", file=file, line=line, url=url) from None
+                if consuming:
+                    # Raised by the caller's handling of the body (its cache file, its
+                    # descriptors): transport faults while reading are converted in _body.
+                    raise InputError(
+                        f"{current}: storing the body failed: {_describe(exc)}", file=file, line=line, url=url
+                    ) from exc
+                raise self._transport_error(exc, httpx, current, url, file, line) from None
         raise FetchError(
             f"{url}: more than {self.max_redirects} redirects (a redirect loop?)",
             file=file,
@@ -211,7 +205,15 @@ class HttpFetcher:
                 url=url,
             )
 
-        for raw in response.iter_raw():
+        httpx = _import_httpx()
+        raws = response.iter_raw()
+        while True:
+            try:
+                raw = next(raws)
+            except StopIteration:
+                break
+            except (httpx.HTTPError, ssl.SSLError, OSError) as exc:
+                raise self._transport_error(exc, httpx, current, url, file, line) from None
             raw_size += len(raw)
             if raw_size > self.max_bytes:
                 raise over()
@@ -233,6 +235,18 @@ class HttpFetcher:
                 yield chunk
         if decoder is not None:
             decoder.finish()
+
+    def _transport_error(
+        self, exc: BaseException, httpx: ModuleType, current: str, url: str, file: str | None, line: int | None
+    ) -> FetchError:
+        """The fetch error for a transport fault raised by httpx, ssl or the socket."""
+        if isinstance(exc, httpx.TimeoutException):
+            text = f"{current}: timed out (no data for {self.timeout:g} s)"
+        elif isinstance(exc, httpx.RemoteProtocolError):
+            text = f"{current}: the server broke the HTTP exchange ({_describe(exc)})"
+        else:
+            text = f"{current}: {_describe(exc)}"
+        return FetchError(text, file=file, line=line, url=url)
 
     def _check_scheme(self, current: str, original: str, url: str, *, file: str | None, line: int | None) -> None:
         scheme = urlsplit(current).scheme.lower()
