@@ -16,7 +16,10 @@ $(STAMP): pyproject.toml .ci/apt-packages
 ## Resolve, lock, flatten and verify the bundled example robot, then resolve and verify
 ## the flattened document itself. It lives in examples/out and references the robot's
 ## files as ../robot/..., so every run that reads it names the folder holding both.
-## Then build and verify its signed OTA release.
+## Then build and verify its signed OTA release, publish and verify a registry holding the
+## robot's extension domain, provision and export one device's MACsec keys, audit the robot
+## and write its SBOM. Every key and passphrase is a throwaway one made in examples/out.
+CORPUS ?= ../shared/corpus
 demo: $(STAMP)
 	rm -rf examples/out
 	$(BIN)/hcdf-trust resolve examples/robot/robot.hcdf --locked --root examples --out examples/out/scout2.flat.hcdf
@@ -27,6 +30,18 @@ demo: $(STAMP)
 	$(BIN)/hcdf-trust ota keygen --type ecdsa-p256 -o examples/out/ota-demo-key.pem
 	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware --key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2
 	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem
+	umask 077 && head -c 24 /dev/urandom | base64 > examples/out/registry.pass && head -c 24 /dev/urandom | base64 > examples/out/macsec.pass
+	$(BIN)/hcdf-trust registry init examples/out/registry --keys examples/out/registry-keys --passphrase-file examples/out/registry.pass
+	$(BIN)/hcdf-trust registry keygen --keys examples/out/ros2-keys -o examples/out/ros2.pub --passphrase-file examples/out/registry.pass
+	$(BIN)/hcdf-trust registry add examples/out/registry --domain org.ros2 --owner "ROS 2" --owner-key examples/out/ros2.pub --version 1.0 --schema $(CORPUS)/hcdformat/extensions/hcdf-ext-ros2.xsd --content $(CORPUS)/hcdformat --keys examples/out/ros2-keys --passphrase-file examples/out/registry.pass
+	$(BIN)/hcdf-trust registry add examples/out/registry --profile $(CORPUS)/hcdformat/examples/profiles/operational.streams.xml --content $(CORPUS)/hcdformat
+	$(BIN)/hcdf-trust registry publish examples/out/registry --keys examples/out/registry-keys --keys examples/out/ros2-keys --content $(CORPUS)/hcdformat --out examples/out/registry-site --passphrase-file examples/out/registry.pass
+	$(BIN)/hcdf-trust registry verify examples/out/registry-site --trusted-root examples/out/registry-site/metadata/1.root.json --cache-dir examples/out/registry-client
+	$(BIN)/hcdf-trust macsec plan examples/robot/robot.hcdf
+	$(BIN)/hcdf-trust macsec generate examples/robot/robot.hcdf --store examples/out/macsec --passphrase-file examples/out/macsec.pass
+	$(BIN)/hcdf-trust macsec export examples/robot/robot.hcdf --store examples/out/macsec --passphrase-file examples/out/macsec.pass --device compute --format iproute2 --out examples/out/macsec-compute
+	$(BIN)/hcdf-trust audit examples/robot/robot.hcdf --policy examples/audit-policy.toml --release examples/out/release --key examples/out/ota-demo-key.pub.pem --store examples/out/macsec --passphrase-file examples/out/macsec.pass
+	$(BIN)/hcdf-trust sbom examples/robot/robot.hcdf --format cyclonedx --release examples/out/release --key examples/out/ota-demo-key.pub.pem -o examples/out/scout2.cdx.json
 
 ## The whole test suite (what CI runs); installs the Debian packages the tests need first.
 test: $(STAMP)

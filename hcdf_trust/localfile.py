@@ -55,7 +55,7 @@ def open_checked(
     fd = _open(path, file=file, line=line, what="file")
     try:
         real = os.readlink(f"/proc/self/fd/{fd}")
-        real_root = _realpath(os.fspath(root))
+        real_root = _realpath(os.path.abspath(root))  # absolute: the cache must not outlive a chdir
         if real != real_root and not real.startswith(real_root.rstrip("/") + "/"):
             shown_root = display_path(real_root)
             raise PathEscapeError(
