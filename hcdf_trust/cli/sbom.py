@@ -83,5 +83,7 @@ def sbom(
         plan.protect_tree(release_dir, what="the release folder")
         plan.protect(key, what="the public key")
     plan.add(out, data, flag="--out")
+    from ..errors import display_path
+
     for path in plan.commit():
-        click.echo(f"wrote {path}", err=True)
+        click.echo(f"wrote {display_path(path)}", err=True)
