@@ -6,10 +6,11 @@ skips ``publish``'s checks) who holds the keys named in each test.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -193,6 +194,38 @@ def build(base: Path, cli: Any) -> Registry:
     reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
     reg.publish()
     return reg
+
+
+@contextlib.contextmanager
+def serve_corpus_registry(base: Path, *, core_schemas: bool = False) -> Iterator[tuple[Registry, Any]]:
+    """The corpus's three domains with schemas and its stream profile (with ``core_schemas``, also
+    the hcdf and hcdf-stream-profile 1.0 schemas), published once and served on 127.0.0.1.
+
+    For module-scoped fixtures, which cannot use the function-scoped ``cli`` fixture.
+    """
+    from click.testing import CliRunner
+
+    from hcdf_trust.cli import main
+    from tests.conftest import CliResult
+    from tests.servers import LoopbackServer
+
+    def cli(*args: Any) -> CliResult:
+        r = CliRunner().invoke(main, [str(a) for a in args], env={"HCDF_TRUST_PASSPHRASE": PASSPHRASE})
+        return CliResult(r.exit_code, r.stdout, r.stderr)
+
+    reg = Registry(base, cli)
+    reg.run("init", reg.src, "--keys", reg.keys)
+    reg.add_domain("org.ros2", "1.0", ROS2_XSD)
+    reg.add_domain("org.gazebosim", "1.0", GAZEBO_XSD)
+    reg.add_domain("org.ieee.1722", "1.0", IEEE_XSD)
+    reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
+    if core_schemas:
+        for name, xsd in (("hcdf", "hcdf.xsd"), ("hcdf-stream-profile", "hcdf-stream-profile.xsd")):
+            reg.run("add", reg.src, "--core", name, "--version", "1.0", "--schema", HCDFORMAT / xsd,
+                    "--content", reg.content)  # fmt: skip
+    reg.publish()
+    with LoopbackServer(root=reg.site) as srv:
+        yield reg, srv
 
 
 def site_json(path: Path) -> dict[str, Any]:

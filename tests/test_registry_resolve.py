@@ -11,8 +11,7 @@ import shutil
 
 import pytest
 
-from tests._registry import GAZEBO_XSD, IEEE_XSD, PASSPHRASE, PROFILE, ROS2_XSD, Registry
-from tests.servers import LoopbackServer
+from tests._registry import PASSPHRASE, PROFILE, serve_corpus_registry
 
 GOOD_TOPIC = '<topic sensor="imu0" name="/imu" type="sensor_msgs/msg/Imu" qos="sensor_data"/>'
 BAD_TOPIC = '<topic sensor="imu0" name="/imu" type="sensor_msgs/msg/Imu" qos="warp_speed"/>'
@@ -26,24 +25,8 @@ def _passphrase(monkeypatch):
 @pytest.fixture(scope="module")
 def published(tmp_path_factory):
     """The corpus's domains and stream profile, published and served on 127.0.0.1."""
-    from click.testing import CliRunner
-
-    from hcdf_trust.cli import main
-    from tests.conftest import CliResult
-
-    def cli(*args):
-        r = CliRunner().invoke(main, [str(a) for a in args], env={"HCDF_TRUST_PASSPHRASE": PASSPHRASE})
-        return CliResult(r.exit_code, r.stdout, r.stderr)
-
-    reg = Registry(tmp_path_factory.mktemp("reg"), cli)
-    reg.run("init", reg.src, "--keys", reg.keys)
-    reg.add_domain("org.ros2", "1.0", ROS2_XSD)
-    reg.add_domain("org.gazebosim", "1.0", GAZEBO_XSD)
-    reg.add_domain("org.ieee.1722", "1.0", IEEE_XSD)
-    reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
-    reg.publish()
-    with LoopbackServer(root=reg.site) as srv:
-        yield reg, srv
+    with serve_corpus_registry(tmp_path_factory.mktemp("reg")) as served:
+        yield served
 
 
 def _robot(tmp_path, *, extension: str = "", profile: bytes | None = None, child: str | None = None):

@@ -6,9 +6,8 @@ import shutil
 
 import pytest
 
-from tests._registry import GAZEBO_XSD, IEEE_XSD, PASSPHRASE, PROFILE, ROS2_XSD, Registry
+from tests._registry import PASSPHRASE, PROFILE, serve_corpus_registry
 from tests.conftest import HCDFORMAT
-from tests.servers import LoopbackServer
 
 
 @pytest.fixture(autouse=True)
@@ -19,28 +18,8 @@ def _passphrase(monkeypatch):
 @pytest.fixture(scope="module")
 def published(tmp_path_factory):
     """A registry with the corpus's domains, profile and core schemas, served on 127.0.0.1."""
-    from click.testing import CliRunner
-
-    from hcdf_trust.cli import main
-    from tests.conftest import CliResult
-
-    def cli(*args):
-        r = CliRunner().invoke(main, [str(a) for a in args], env={"HCDF_TRUST_PASSPHRASE": PASSPHRASE})
-        return CliResult(r.exit_code, r.stdout, r.stderr)
-
-    reg = Registry(tmp_path_factory.mktemp("reg"), cli)
-    reg.run("init", reg.src, "--keys", reg.keys)
-    reg.add_domain("org.ros2", "1.0", ROS2_XSD)
-    reg.add_domain("org.gazebosim", "1.0", GAZEBO_XSD)
-    reg.add_domain("org.ieee.1722", "1.0", IEEE_XSD)
-    reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
-    reg.run("add", reg.src, "--core", "hcdf", "--version", "1.0", "--schema", HCDFORMAT / "hcdf.xsd",
-            "--content", reg.content)  # fmt: skip
-    reg.run("add", reg.src, "--core", "hcdf-stream-profile", "--version", "1.0",
-            "--schema", HCDFORMAT / "hcdf-stream-profile.xsd", "--content", reg.content)  # fmt: skip
-    reg.publish()
-    with LoopbackServer(root=reg.site) as srv:
-        yield reg, srv
+    with serve_corpus_registry(tmp_path_factory.mktemp("reg"), core_schemas=True) as served:
+        yield served
 
 
 def _validate(cli, published, doc, *extra):
