@@ -140,19 +140,27 @@ def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     return Pkcs11Wrapper(module, label, pin_from(pin_file))
 
 
-def _save(store: Any, now: Any, *, inputs: list[str], passphrase_file: str | None, backend: dict[str, Any]) -> None:
-    """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
-    import os
-
-    from ..outputs import OutputPlan
+def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]) -> Any:
+    """An OutputPlan that refuses every input of this run: the verified tree of plan ``p``
+    (documents, artifacts, the cache) and its lock, the passphrase and PIN files."""
+    from ..outputs import OutputPlan, protect_inputs
 
     out = OutputPlan()
-    for path in inputs:
-        out.protect(path, what="an input of this run")
+    if p is not None and p.resolution is not None:
+        protect_inputs(out, p.resolution)
+        out.protect(p.resolution.lock_path, what="the lock file")
     if passphrase_file:
         out.protect(passphrase_file, what="the passphrase file")
     if backend.get("pin_file"):
         out.protect(backend["pin_file"], what="the PIN file")
+    return out
+
+
+def _save(store: Any, now: Any, *, p: Any, passphrase_file: str | None, backend: dict[str, Any]) -> None:
+    """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
+    import os
+
+    out = _output_plan(p, passphrase_file=passphrase_file, backend=backend)
     store.plan_write(out, now=now)
     os.makedirs(store.path.parent, mode=0o700, exist_ok=True)
     out.commit()
@@ -179,7 +187,7 @@ def generate(
         store = KeyStore.open(store_dir, wrapper) if exists else KeyStore.create(store_dir, wrapper)
         created, notices = run(store, p, now=now)
         if store.changed:
-            _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
+            _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
     warnings = [*p.warnings, *notices]
     if as_json:
         emit_json(
@@ -262,7 +270,7 @@ def rotate(
         store = KeyStore.open(store_dir, wrapper)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
         if store.changed:
-            _save(store, now, inputs=p.inputs, passphrase_file=passphrase_file, backend=backend)
+            _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
@@ -288,7 +296,7 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
         store = KeyStore.open(store_dir, wrapper)
         removed = run(store, now=now)
         if store.changed:
-            _save(store, now, inputs=[], passphrase_file=passphrase_file, backend=backend)
+            _save(store, now, p=None, passphrase_file=passphrase_file, backend=backend)
     if as_json:
         emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
         return
@@ -356,7 +364,6 @@ def export(
 
     from ..macsec.export import collect, mesh_keys, render
     from ..macsec.store import KeyStore
-    from ..outputs import OutputPlan
 
     now = _now(now_text)
     from ..macsec.plan import plan
@@ -368,14 +375,8 @@ def export(
     files = render(
         fmt, ports, device=device, wpa_version=wpa_version, notices=notices, age_recipient=age_recipient, mesh=mesh
     )
-    out = OutputPlan()
-    for path in p.inputs:
-        out.protect(path, what="an input of this run")
+    out = _output_plan(p, passphrase_file=passphrase_file, backend=backend)
     out.protect(store.path, what="the key store")
-    if passphrase_file:
-        out.protect(passphrase_file, what="the passphrase file")
-    if backend.get("pin_file"):
-        out.protect(backend["pin_file"], what="the PIN file")
     for name in sorted(files):
         out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
     os.makedirs(out_dir, mode=0o700, exist_ok=True)

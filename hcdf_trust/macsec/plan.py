@@ -222,7 +222,7 @@ class Plan:
     unprotected: list[Element] = field(default_factory=list)
     skipped: list[tuple[Element, str]] = field(default_factory=list)
     warnings: list[Notice] = field(default_factory=list)
-    inputs: list[str] = field(default_factory=list)  # local files read (documents, lock): never an output
+    resolution: Any = None  # the verified tree it was planned from (its inputs are never an output)
 
     def keyed(self) -> list[Association]:
         return [ca for ca in self.associations.values() if ca.keyed]
@@ -255,8 +255,7 @@ def plan(doc_path: str | Path) -> Plan:
         raise ErrorGroup(list(res.errors))
     result = plan_resolution(res.documents, res.includes, res.root_location.url)
     result.warnings[:0] = res.warnings  # already Notice objects
-    paths = [res.root_location.path, str(res.lock_path), *(a.location.path for a in res.artifacts.values())]
-    result.inputs = [p for p in paths if p]
+    result.resolution = res
     return result
 
 
