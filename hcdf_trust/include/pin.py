@@ -232,7 +232,7 @@ def pin_tree(
         return report
 
     # step 4: plan the edited documents and the lock, every other input protected
-    entries = _lock_entries(res, planner)
+    entries = res.lock_entries(edited=planner.new_bytes)
     lock_new = lockfile.render(entries, root=res.lock_url(res.root_location.url))
     report.lock_changes = _lock_diff(lock, {e.url: e.sha256 for e in entries})
     targets = _targets(res, planner, locations, report.errors)
@@ -520,20 +520,6 @@ def _lock_says(pin: Pin, read: str, locked: str | None) -> str:
 
 
 # -- the outputs ---------------------------------------------------------------------
-
-
-def _lock_entries(res: Resolution, planner: _Planner) -> list[lockfile.LockEntry]:
-    """What a plain ``resolve`` locks after the edits: edited includes by their new bytes."""
-    edited = {
-        res.lock_url(url): (planner.digest[url], len(data))
-        for url, data in planner.new_bytes.items()
-        if data != res.documents[url].data
-    }
-    entries = []
-    for entry in res.lock_entries():
-        new = edited.get(entry.url)
-        entries.append(entry if new is None else entry._replace(sha256=new[0], size=new[1]))
-    return entries
 
 
 def _lock_diff(old: dict[str, str], new: dict[str, str]) -> list[LockChange]:

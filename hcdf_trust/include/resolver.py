@@ -161,8 +161,13 @@ class Resolution:
         """``url`` as the lock file writes it (see :class:`LockUrls`)."""
         return self._urls.to_lock(url)
 
-    def lock_entries(self) -> list[lockfile.LockEntry]:
-        """The lock file's entries for every artifact that was hashed."""
+    def lock_entries(self, edited: dict[str, bytes] | None = None) -> list[lockfile.LockEntry]:
+        """The lock file's entries for every artifact that was hashed.
+
+        ``edited`` maps document URLs to new bytes (``pin --write``, ``ota build
+        --update-hcdf``): their entries take the digest and size of those bytes, so the
+        lock is what a plain ``resolve`` writes after the edits.
+        """
         to_lock = self._urls.to_lock
         docs: dict[str, str] = {}  # a document's lock url, once per document
         entries = []
@@ -179,11 +184,20 @@ class Resolution:
             entries.append(
                 lockfile.LockEntry(art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, referenced_from)
             )
+        if edited:
+            changed = {
+                to_lock(url): hash_bytes(data) for url, data in edited.items() if data != self.documents[url].data
+            }
+            entries = [
+                e._replace(sha256=changed[e.url].sha256, size=changed[e.url].size) if e.url in changed else e
+                for e in entries
+            ]
         return entries
 
-    def render_lock(self) -> bytes:
-        """The lock file's bytes for this tree (what :meth:`write_lock` writes)."""
-        return lockfile.render(self.lock_entries(), root=self.lock_url(self.root_location.url))
+    def render_lock(self, edited: dict[str, bytes] | None = None) -> bytes:
+        """The lock file's bytes for this tree (what :meth:`write_lock` writes); ``edited``
+        as for :meth:`lock_entries`."""
+        return lockfile.render(self.lock_entries(edited), root=self.lock_url(self.root_location.url))
 
     def write_lock(self) -> None:
         """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.

@@ -76,7 +76,6 @@ def update_tree(res: Any, edits: list[HashEdit]) -> EditResult:
     Raises:
         InputError: a document to edit is remote, or an edit cannot be made safely.
     """
-    from ..include import lockfile
 
     by_doc: dict[str, list[HashEdit]] = {}
     for e in edits:
@@ -126,21 +125,7 @@ def update_tree(res: Any, edits: list[HashEdit]) -> EditResult:
                 target = _elements(current)[index[e.element]]
                 data = replace_text(current, target, e.new)
         new_bytes[url] = data
-    entries = []
-    changed = {res.lock_url(url): data for url, data in new_bytes.items()}
-    for entry in res.lock_entries():
-        data = changed.get(entry.url)
-        if data is not None:
-            entry = lockfile.LockEntry(
-                kind=entry.kind,
-                uri=entry.uri,
-                url=entry.url,
-                sha256=hashlib.sha256(data).hexdigest(),
-                size=len(data),
-                referenced_from=entry.referenced_from,
-            )
-        entries.append(entry)
-    lock = lockfile.render(entries, root=res.lock_url(res.root_location.url))
+    lock = res.render_lock(edited=new_bytes)
     return EditResult(documents=new_bytes, lock=lock)
 
 
