@@ -225,8 +225,10 @@ class OutputPlan:
                     _discard(backup)
                     raise
                 done.append((current, backup))
-        except OSError as exc:
+        except BaseException as exc:  # an interrupt (Ctrl-C) is rolled back like a full disk
             _roll_back(done, staged, made)
+            if not isinstance(exc, OSError):
+                raise
             assert current is not None
             raise OutputError(
                 f"cannot write {current.flag} {current.shown}: {exc.strerror or exc}", file=current.shown

@@ -61,6 +61,7 @@ class ContentStore:
         self.root = Path(root)
         self._swept = False
         self._sweep_lock = threading.Lock()
+        self._writing: set[str] = set()  # temporary files this process's threads are writing
 
     @property
     def tmp_dir(self) -> Path:
@@ -137,6 +138,13 @@ class ContentStore:
                 os.close(fd)
         return removed
 
+    def abandon(self) -> None:
+        """Remove the temporary files still being written (an interrupted run): their
+        writer threads die with the process and would leave them to the next sweep."""
+        for tmp in list(self._writing):
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
     def _sweep_once(self) -> None:
         with self._sweep_lock:
             if self._swept:
@@ -181,6 +189,7 @@ class ContentStore:
             fd, tmp = self._new_tmp()
         except OSError as exc:
             raise InputError(f"cannot write to the cache {self.tmp_dir}: {exc.strerror}", file=source) from None
+        self._writing.add(tmp)
         try:
             # The file stays open (and locked) until it is renamed or removed.
             with os.fdopen(fd, "wb") as f:
@@ -214,6 +223,8 @@ class ContentStore:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
             raise
+        finally:
+            self._writing.discard(tmp)
 
 
 class _WriteFailed(Exception):

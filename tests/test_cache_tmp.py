@@ -100,6 +100,26 @@ def test_a_killed_download_is_removed_by_the_next_run(cli, tls, tmp_path, small,
     assert len(list((cache / "sha256").rglob("*"))) == 2  # the small blob and its fan-out folder
 
 
+def test_ctrl_c_mid_download_exits_130_at_once_and_leaves_nothing(tls, tmp_path, stalled):
+    """SIGINT while a worker thread waits on a silent server (60 s timeout): the run stops
+    now, not when the worker times out, says so with exit 130 (not 1, an integrity
+    failure), and leaves no partial download and no lock behind."""
+    cache = tmp_path / "c"
+    proc = start(stalled, cache, tls.ca_pem, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        wait_for(lambda: any(p.stat().st_size >= 1 << 20 for p in temp_files(cache)), what="the partial download")
+        interrupted = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert time.monotonic() - interrupted < 5, "the run waited for its worker threads"
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert temp_files(cache) == []
+    assert not (stalled.parent / (stalled.name + ".lock")).exists()
+
+
 def test_killed_downloads_do_not_pile_up(tls, tmp_path, stalled):
     """As in the issue: three killed fetches. Each run removes the one before it."""
     cache = tmp_path / "cache"

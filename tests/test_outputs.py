@@ -339,6 +339,30 @@ def test_a_failed_rename_puts_back_what_was_already_replaced(tmp_path):
     assert os.path.samefile(first, first.parent / "hard")  # the very same file, not a copy
 
 
+def test_an_interrupt_between_two_renames_puts_back_the_first(tmp_path, monkeypatch):
+    """Ctrl-C is not an OSError, and must not leave half of the outputs renamed either."""
+    first, second = tmp_path / "first.json", tmp_path / "new" / "second.json"
+    first.write_bytes(b"old first")
+    plan = OutputPlan()
+    plan.add(first, b"new first", flag="--first")
+    plan.add(second, b"new second", flag="--second")
+    before = contents(tmp_path)
+    real_replace, calls = os.replace, []
+
+    def replace(src, dst):
+        calls.append(dst)
+        if os.fspath(dst) == os.fspath(second):
+            raise KeyboardInterrupt
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        plan.commit()
+    monkeypatch.undo()
+    assert [os.fspath(c) for c in calls[:2]] == [os.fspath(first), os.fspath(second)]  # first renamed, then ^C
+    assert contents(tmp_path) == before  # put back; no temporary file, no new folder left
+
+
 def test_a_failed_commit_removes_the_folders_it_made(tmp_path):
     plan = OutputPlan()
     plan.add(tmp_path / "new" / "deeper" / "x.json", b"x", flag="--x")

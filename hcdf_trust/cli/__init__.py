@@ -244,13 +244,26 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+class _Main(click.Group):
+    """The command group; an interrupt exits 130, as shells report SIGINT, not click's 1
+    ("Aborted!"), which a build script would read as an integrity failure."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            click.echo("interrupted: nothing more was written", err=True)
+            ctx.exit(130)
+
+
+@click.group(cls=_Main, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="hcdf-trust")
 def main() -> None:
     """Verify, lock and flatten everything an HCDF robot description references.
 
     Exit codes: 0 success, 1 integrity failure (digest mismatch, lock drift, bad
-    signature), 2 usage error, 3 input error (missing or malformed file, network).
+    signature), 2 usage error, 3 input error (missing or malformed file, network),
+    130 interrupted (Ctrl-C).
     """
 
 

@@ -307,6 +307,7 @@ class _Run:
             return self._fetcher
 
     def close(self) -> None:
+        self.store.abandon()  # downloads of workers still running when an interrupt stopped us
         if self._fetcher is not None:
             self._fetcher.close()
 
