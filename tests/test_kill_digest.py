@@ -208,3 +208,9 @@ def test_hash_bytes():
     data = os.urandom(77)
     got = hash_bytes(data)
     assert (got.sha256, got.size) == (sha(data), 77)
+
+
+def test_a_malformed_pin_without_a_uri_is_named_by_the_attribute_alone():
+    with pytest.raises(MalformedDigestError) as info:
+        parse_pin("zz-not-hex")
+    assert info.value.message.startswith('sha="zz-not-hex" is not a hex')

@@ -200,3 +200,15 @@ def test_write_lock_names_the_lock_file_when_it_cannot_be_written(tmp_path):
     assert res.ok, res.errors
     with pytest.raises(OutputError, match=r": lock file .*x\.lock: .*afile is not a folder"):
         res.write_lock()
+
+
+def test_strict_names_a_weak_pin_with_every_field(cli, tmp_path):
+    (tmp_path / "m.glb").write_bytes(b"abc")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("m.glb", sha(b"abc")[:16])))
+    r = _resolve(cli, doc, tmp_path / "c", "--strict")
+    assert r.exit_code == 1, r.stdout
+    [err] = r.json["errors"]
+    assert err["code"] == "weak-pin" and Path(err["file"]).name == "robot.hcdf" and err["line"] == 3
+    assert Path(err["url"]).name == "m.glb"
+    assert err["expected"] == "a full 64-digit SHA-256" and err["actual"] == sha(b"abc")[:16]
