@@ -368,7 +368,7 @@ def export(
     now = _now(now_text)
     from ..macsec.plan import plan
 
-    p = plan(doc)
+    p = plan(doc, device=device)  # only the networks that can hold the device's associations
     store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
     ports, notices = collect(p, store, device, now=now)
     mesh = mesh_keys(p, store, device, now=now)

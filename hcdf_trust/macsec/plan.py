@@ -50,7 +50,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from lxml import etree
 
@@ -241,8 +241,12 @@ class Plan:
         }
 
 
-def plan(doc_path: str | Path) -> Plan:
+def plan(doc_path: str | Path, *, device: str | None = None) -> Plan:
     """Resolve and verify ``doc_path`` (locked, offline), then plan its associations.
+
+    With ``device``, only the networks that can hold that device's associations are planned
+    (see :func:`plan_resolution`); when the device is in none of them, the whole description
+    is planned, so the caller's "no such device" message lists every device.
 
     Raises:
         ErrorGroup / HcdfTrustError: the tree fails to resolve or verify (a missing or
@@ -253,7 +257,9 @@ def plan(doc_path: str | Path) -> Plan:
     res = resolve(doc_path, ResolveOptions(locked=True, offline=True, write_cache=False))
     if res.errors:
         raise ErrorGroup(list(res.errors))
-    result = plan_resolution(res.documents, res.includes, res.root_location.url)
+    result = plan_resolution(res.documents, res.includes, res.root_location.url, device=device)
+    if device is not None and not result.for_device(device):
+        result = plan_resolution(res.documents, res.includes, res.root_location.url)
     result.warnings[:0] = res.warnings  # already Notice objects
     result.resolution = res
     return result
@@ -268,6 +274,64 @@ class _Instance:
     names: tuple[str, ...]  # include names from the root down to this instance ("" = no prefix)
     chain: tuple[str, ...]  # document urls from the root down to this instance
     sites: tuple[int, ...] = ()  # which <include> of its parent each level is: tells unnamed copies apart
+
+
+def _written_forms(device: str, names: tuple[str, ...]) -> set[str]:
+    """How a reference to scoped comp ``device`` can be written in an instance with include
+    ``names``: the name with any of those prefixes (outermost first) taken off its front."""
+    forms = {device}
+    for name in names:
+        if name:
+            head = name + SEPARATOR
+            forms |= {f[len(head) :] for f in forms if f.startswith(head)}
+    return forms
+
+
+def _may_share_ids(network: str, names: set[str]) -> bool:
+    """Whether a link or chain of ``network`` can have the id (``kind:NETWORK/NAME``) of one in ``names``."""
+    return any(network == n or network.startswith(n + "/") or n.startswith(network + "/") for n in names)
+
+
+def _network_of(el: etree._Element, root: etree._Element) -> etree._Element:
+    """The ``<network>`` (a child of ``root``) that holds ``el``."""
+    while (parent := el.getparent()) is not None and parent is not root:
+        el = parent
+    return el
+
+
+@dataclass(frozen=True)
+class _Queries:
+    naming: etree.XPath  # networks whose text, or an attribute outside their links, contains $w
+    refs: etree.XPath  # the key-ref and network-key-ref values a network writes (relative to it)
+    all_refs: tuple[etree.XPath, ...]  # the same for every network of a document (from its root)
+
+
+def _compile(step: Any) -> _Queries:
+    net, link, wired, macsec, chain, mesh = (step(t) for t in ("network", "link", "wired", "macsec", "chain", "mesh"))
+    not_link = "*[not(self::link)]" if link == "link" else "*[local-name()!='link']"
+    refs = (f"{link}/{wired}/{macsec}/@key-ref", f"{chain}/{macsec}/@key-ref", f"{mesh}/@network-key-ref")
+    return _Queries(
+        naming=etree.XPath(f"{net}[contains(., $w) or {not_link}//@*[contains(., $w)]]"),
+        refs=etree.XPath(" | ".join(refs)),
+        all_refs=tuple(etree.XPath(f"{net}/{r}") for r in refs),  # three queries: a union sorts 5,000 nodes
+    )
+
+
+# Plain name tests are several times faster in libxml2 than local-name() tests; they are exact
+# only for a document without namespaces (the planner matches its elements in any namespace).
+_PLAIN = _compile(lambda tag: tag)
+_ANY_NAMESPACE = _compile(lambda tag: f"*[local-name()='{tag}']")
+_ASCII_COMPATIBLE = frozenset(("UTF-8", "ASCII", "US-ASCII"))
+
+
+def _queries(doc: Document) -> _Queries:
+    """Plain queries when no element of ``doc`` can be in a namespace: its bytes read as ASCII
+    and declare none (no ``xmlns``, no ``xml:``; most documents hold "xml" only in ``<?xml``)."""
+    data = doc.data
+    if data.find(b"xml", 6) == -1 and data.startswith(b"<?xml") and b"\x00" not in data:
+        return _PLAIN
+    ascii_like = (doc.tree.docinfo.encoding or "").upper() in _ASCII_COMPATIBLE and b"\x00" not in data
+    return _ANY_NAMESPACE if not ascii_like or b"xmlns" in data or b"xml:" in data else _PLAIN
 
 
 def _local(el: Any) -> str | None:
@@ -294,18 +358,33 @@ def plan_resolution(
     documents: dict[str, Document],
     includes: dict[str, list[tuple[Any, str]]],
     root_url: str,
+    *,
+    device: str | None = None,
 ) -> Plan:
     """Plan the associations of a resolved tree (``Resolution.documents`` / ``.includes``).
+
+    ``device`` (a scoped comp name) plans only the networks a reference to that device can
+    be written in, plus every network that writes one of their key-refs or network-key-refs
+    or has their name (so a CA's consistency checks see all its members): the device's
+    associations come out exactly as in the whole plan, other networks are not checked.
 
     Raises:
         ErrorGroup: malformed MACsec attributes or contradictory associations.
     """
-    return _Planner(documents, includes, root_url).run()
+    return _Planner(documents, includes, root_url, device=device).run()
 
 
 class _Planner:
-    def __init__(self, documents: dict[str, Document], includes: dict[str, list[tuple[Any, str]]], root: str) -> None:
+    def __init__(
+        self,
+        documents: dict[str, Document],
+        includes: dict[str, list[tuple[Any, str]]],
+        root: str,
+        *,
+        device: str | None = None,
+    ) -> None:
         self.docs = documents
+        self.device = device
         self.includes = includes
         self.root = root
         self.errors: list[HcdfTrustError] = []
@@ -317,9 +396,13 @@ class _Planner:
         self._override_cache: dict[tuple[tuple[Any, ...], Policy | None], Policy] = {}
 
     def run(self) -> Plan:
-        for inst in self._instances():
+        instances = self._instances()
+        networks = [_children(self.docs[inst.url].root, "network") for inst in instances]
+        if self.device is not None:
+            networks = self._restrict(instances, networks, self.device)
+        for inst, nets in zip(instances, networks, strict=True):
             doc = self.docs[inst.url]
-            for net in _children(doc.root, "network"):
+            for net in nets:
                 self._network(inst, doc, net)
         if self.errors:
             raise ErrorGroup(self.errors)
@@ -344,6 +427,53 @@ class _Planner:
                 line=ca.line,
             )
         )
+
+    # -- restriction to one device ----------------------------------------------------------
+
+    def _restrict(
+        self, instances: list[_Instance], networks: list[list[etree._Element]], device: str
+    ) -> list[list[etree._Element]]:
+        """The networks (per instance, in document order) that can hold ``device``'s associations.
+
+        A device becomes a member only through the text of a link's ``<port>`` and the
+        attributes of a chain's or mesh's elements, written in the form the instance's file
+        uses (:meth:`_device` prefixes it level by level): a network none of whose text holds
+        any written form of the name, nor any attribute outside its links, cannot name it.
+        Matching is by substring (``contains``, evaluated by libxml2): it may keep a network
+        that does not name the device, never the reverse. Then every network that writes one
+        of the kept networks' scoped key-refs or network-key-refs, or whose scoped name could
+        give one of their link or chain ids, is kept too.
+        """
+        keep: list[set[etree._Element]] = []
+        refs: set[str] = set()
+        names: set[str] = set()
+        for inst in instances:
+            doc = self.docs[inst.url]
+            query = _queries(doc)
+            hits: set[etree._Element] = set()
+            for written in _written_forms(device, inst.names):
+                hits.update(cast("list[etree._Element]", query.naming(doc.root, w=written)))
+            keep.append(hits)
+            for net in hits:
+                names.add(self._scoped(inst, net.get("name", "").strip()))
+                for ref in cast("list[str]", query.refs(net)):
+                    if ref.strip():
+                        refs.add(self._scoped(inst, ref.strip()))
+        written_refs: dict[str, list[Any]] = {}
+        for k, inst in enumerate(instances):
+            doc = self.docs[inst.url]
+            if refs:
+                if inst.url not in written_refs:
+                    written_refs[inst.url] = [
+                        a for q in _queries(doc).all_refs for a in cast("list[Any]", q(doc.root))
+                    ]
+                for attr in written_refs[inst.url]:
+                    if attr.strip() and self._scoped(inst, attr.strip()) in refs:
+                        keep[k].add(_network_of(attr.getparent(), doc.root))
+            for net in networks[k]:
+                if net not in keep[k] and _may_share_ids(self._scoped(inst, net.get("name", "").strip()), names):
+                    keep[k].add(net)
+        return [[net for net in nets if net in kept] for nets, kept in zip(networks, keep, strict=True)]
 
     # -- include instances and name scoping ---------------------------------------------
 
