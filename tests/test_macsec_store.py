@@ -162,6 +162,40 @@ def test_tampered_store_is_an_integrity_error(env):
     assert r.exit_code == 1 and "changed outside" in r.stderr
 
 
+def test_every_byte_is_authenticated(env):
+    # the MAC covers the file's bytes, not a re-serialisation: a change json.loads cannot see
+    # (a space, a reordered key) is refused like a changed time
+    _doc_path, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    path = store / STORE_NAME
+    good = path.read_bytes()
+    at = good.index(b'"created":"2026-01-01T00:00:00Z"')
+    changes = [
+        good[:at] + b'"created": "2026-01-01T00:00:00Z"' + good[at + 32 :],  # one space: same JSON
+        good.replace(b'"cipher":"gcm-aes-128","generations"', b'"generations"', 1).replace(
+            b'"key_bytes":16,', b'"key_bytes":16,"cipher":"gcm-aes-128",', 1
+        ),
+        good[:at] + b'"created":"2026-01-01T00:00:01Z"' + good[at + 32 :],
+        good.replace(b'{"mac":"', b'{ "mac":"', 1),
+        good + b"\n",
+    ]
+    for data in changes:
+        assert data != good and json.loads(data)
+        path.write_bytes(data)
+        r = run("status")
+        assert r.exit_code == 1 and "changed outside" in r.stderr, r.stderr
+    path.write_bytes(good)
+    assert run("status").exit_code == 0
+
+
+def test_a_version_1_store_is_refused_with_a_reason(env):
+    _doc_path, store, run = env
+    store.mkdir()
+    (store / STORE_NAME).write_text(json.dumps({"format": "hcdf-trust-macsec-store", "version": 1, "mac": "00"}))
+    r = run("status")
+    assert r.exit_code == 3 and "format version 1 is not read" in r.stderr and "macsec generate" in r.stderr
+
+
 def test_a_ciphertext_moved_to_another_association_does_not_decrypt(env):
     _doc_path, store, run = env
     assert run("generate").exit_code == 0
@@ -178,10 +212,11 @@ def test_a_ciphertext_moved_to_another_association_does_not_decrypt(env):
         b"",
         b"[]",
         b"[" * 100_000 + b"]" * 100_000,
+        b'{"format": "hcdf-trust-macsec-store", "version": 3}',
         b'{"format": "hcdf-trust-macsec-store", "version": 2}',
-        b'{"format": "hcdf-trust-macsec-store", "version": 1, "store_id": "x", "wrap": {"method": "scrypt", '
+        b'{"format": "hcdf-trust-macsec-store", "version": 2, "store_id": "x", "wrap": {"method": "scrypt", '
         b'"n": 1073741824, "r": 8, "p": 1, "salt": "", "nonce": "", "wrapped_key": ""}}',
-        b'{"format": "hcdf-trust-macsec-store", "version": 1, "store_id": "x", "wrap": {"method": "pkcs99"}}',
+        b'{"format": "hcdf-trust-macsec-store", "version": 2, "store_id": "x", "wrap": {"method": "pkcs99"}}',
     ],
 )
 def test_hostile_store_files(env, content):

@@ -1,22 +1,24 @@
 """The MACsec key store: one file, every key encrypted on its own, written all or nothing.
 
 Layout of ``DIR/macsec-keys.json`` (:data:`STORE_NAME`, mode 0600, format version
-:data:`FORMAT_VERSION`)::
+:data:`FORMAT_VERSION`), one JSON object, the MAC first::
 
-    {"format": "hcdf-trust-macsec-store", "version": 1, "store_id": HEX,
-     "wrap": {"method": "scrypt" | "pkcs11", ...},       # the wrapped 256-bit data key
-     "associations": {CA_ID: {"kind", "cipher", "key_bytes", "source": {"file", "line"},
-                              "generations": [{"generation", "ckn", "created", "activation",
-                                               "expiry", "state", "nonce", "ciphertext"}]}},
-     "mac": HEX}
+    {"mac":HEX,"associations":{CA_ID:{"cipher","generations":[{"activation","ciphertext",
+         "ckn","created","expiry","generation","nonce","state"}],"key_bytes","kind",
+         "source":{"file","line"}}},
+     "format":"hcdf-trust-macsec-store","store_id":HEX,"version":2,
+     "wrap":{"method":"scrypt" | "pkcs11" | "tpm",...}}        # the wrapped 256-bit data key
 
 * Each key (CAK or mesh network key) is AES-256-GCM encrypted under the data key with a
   fresh nonce and, as associated data, the store id, CA id, generation and CKN: an entry
   moved to another CA or generation does not decrypt. Adding or rotating one key encrypts
   that key only; nothing else is re-encrypted or re-derived.
-* ``mac`` is HMAC-SHA256 (a key derived from the data key) over all metadata (times,
-  states, CKNs, ciphertexts): an edited activation time or a dropped generation is an
-  integrity error (exit 1).
+* ``mac`` is HMAC-SHA256 (a key derived from the data key) over the exact bytes of the
+  rest of the file — the compact, key-sorted JSON object without ``mac`` that follows it
+  (``{`` + the bytes after ``"mac":HEX,``), so it is checked without re-serialising
+  anything: any changed byte (an activation time, a dropped generation, a reformatted
+  file) is an integrity error (exit 1). Version 1 (a MAC over a re-serialisation) is
+  refused with a message saying so.
 * CKNs are 16 random octets, unique across the store: only the first 16 octets of a CKN
   reach the 802.1X KDF.
 * The file is read through :func:`hcdf_trust.localfile.read_input` (bounded, regular file
@@ -36,6 +38,7 @@ import hashlib
 import hmac
 import json
 import os
+import re
 import stat
 import time
 from collections.abc import Iterator, MutableMapping
@@ -56,7 +59,7 @@ LOCK_WAIT_SEC = 30.0
 BLOB_KINDS = ("eap-tls-ca", "eap-tls-cert")
 MAX_BLOB_BYTES = 64 << 10
 FORMAT = "hcdf-trust-macsec-store"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 MAX_STORE_BYTES = 512 << 20
 CKN_BYTES = 16
 
@@ -278,6 +281,14 @@ class KeyStore:
             raise KeyStoreFormatError("the key store is not valid JSON", file=source) from None
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise KeyStoreFormatError("not an hcdf-trust MACsec key store", file=source, expected=FORMAT)
+        if doc.get("version") == 1:
+            raise KeyStoreFormatError(
+                "key store format version 1 is not read by this hcdf-trust (version 2 authenticates the "
+                "file's bytes): make a new store with `macsec generate --store NEW_DIR` and export the devices again",
+                file=source,
+                expected=str(FORMAT_VERSION),
+                actual="1",
+            )
         if doc.get("version") != FORMAT_VERSION:
             raise KeyStoreFormatError(
                 "unknown key store format version",
@@ -296,8 +307,7 @@ class KeyStore:
                 actual=wrapper.method,
             )
         dek = wrapper.unwrap(wrap, _wrap_aad(store_id), source=source)
-        mac = doc.get("mac")
-        if not isinstance(mac, str) or not hmac.compare_digest(mac, _mac(dek, doc)):
+        if not _mac_matches(dek, raw, doc.get("mac")):
             raise KeyStoreIntegrityError(
                 "the key store's metadata does not match its MAC: it was changed outside hcdf-trust", file=source
             )
@@ -375,7 +385,7 @@ class KeyStore:
     # -- write -----------------------------------------------------------------------------
 
     def serialize(self, now: datetime) -> bytes:
-        doc: dict[str, Any] = {
+        body: dict[str, Any] = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
             "store_id": self.store_id,
@@ -391,9 +401,9 @@ class KeyStore:
                 for e in sorted(self.entries.values(), key=lambda e: e.ca_id)
             },
         }
-        doc["mac"] = _mac(self._dek, doc)
         # compact: json's C encoder (indent= falls back to the pure-Python one)
-        return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode() + b"\n"
+        data = json.dumps(body, sort_keys=True, separators=(",", ":")).encode()
+        return b'{"mac":"' + _mac(self._dek, data).encode() + b'",' + data[1:] + b"\n"
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
@@ -404,12 +414,22 @@ def _wrap_aad(store_id: str) -> bytes:
     return json.dumps([FORMAT, FORMAT_VERSION, store_id]).encode()
 
 
-def _mac(dek: bytes, doc: dict[str, Any]) -> str:
-    body = {k: v for k, v in doc.items() if k != "mac"}
+def _mac(dek: bytes, body: bytes) -> str:
+    """HMAC-SHA256 of a serialised body (the store without its ``mac``), under a key derived from the data key."""
     mac_key = hmac.new(dek, b"hcdf-trust macsec store mac", hashlib.sha256).digest()
-    return hmac.new(
-        mac_key, json.dumps(body, sort_keys=True, separators=(",", ":")).encode(), hashlib.sha256
-    ).hexdigest()
+    return hmac.new(mac_key, body, hashlib.sha256).hexdigest()
+
+
+_MAC_FIRST = re.compile(rb'\{"mac":"([0-9a-f]{64})",')
+
+
+def _mac_matches(dek: bytes, raw: bytes, parsed_mac: Any) -> bool:
+    """Whether ``raw`` is ``{"mac":HEX,`` + a body whose MAC is HEX (one final newline allowed)."""
+    head = _MAC_FIRST.match(raw)
+    if head is None or parsed_mac != head.group(1).decode():
+        return False
+    body = b"{" + raw[head.end() :].removesuffix(b"\n")
+    return hmac.compare_digest(head.group(1).decode(), _mac(dek, body))
 
 
 def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:
