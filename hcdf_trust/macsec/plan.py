@@ -48,6 +48,7 @@ Conflicts and warnings
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -306,9 +307,13 @@ class _Queries:
     all_refs: tuple[etree.XPath, ...]  # the same for every network of a document (from its root)
 
 
-def _compile(step: Any) -> _Queries:
-    net, link, wired, macsec, chain, mesh = (step(t) for t in ("network", "link", "wired", "macsec", "chain", "mesh"))
-    not_link = "*[not(self::link)]" if link == "link" else "*[local-name()!='link']"
+@functools.cache
+def _compile(plain: bool) -> _Queries:
+    """The queries with plain name tests, or with ``local-name()`` tests (any namespace)."""
+    net, link, wired, macsec, chain, mesh = (
+        t if plain else f"*[local-name()='{t}']" for t in ("network", "link", "wired", "macsec", "chain", "mesh")
+    )
+    not_link = "*[not(self::link)]" if plain else "*[local-name()!='link']"
     refs = (f"{link}/{wired}/{macsec}/@key-ref", f"{chain}/{macsec}/@key-ref", f"{mesh}/@network-key-ref")
     return _Queries(
         naming=etree.XPath(f"{net}[contains(., $w) or {not_link}//@*[contains(., $w)]]"),
@@ -317,21 +322,19 @@ def _compile(step: Any) -> _Queries:
     )
 
 
-# Plain name tests are several times faster in libxml2 than local-name() tests; they are exact
-# only for a document without namespaces (the planner matches its elements in any namespace).
-_PLAIN = _compile(lambda tag: tag)
-_ANY_NAMESPACE = _compile(lambda tag: f"*[local-name()='{tag}']")
 _ASCII_COMPATIBLE = frozenset(("UTF-8", "ASCII", "US-ASCII"))
 
 
 def _queries(doc: Document) -> _Queries:
-    """Plain queries when no element of ``doc`` can be in a namespace: its bytes read as ASCII
-    and declare none (no ``xmlns``, no ``xml:``; most documents hold "xml" only in ``<?xml``)."""
+    """Plain name tests (several times faster in libxml2) when no element of ``doc`` can be in
+    a namespace: its bytes read as ASCII and declare none (no ``xmlns``, no ``xml:``; most
+    documents hold "xml" only in ``<?xml``). Otherwise ``local-name()`` tests, since the
+    planner takes its elements in any namespace."""
     data = doc.data
     if data.find(b"xml", 6) == -1 and data.startswith(b"<?xml") and b"\x00" not in data:
-        return _PLAIN
+        return _compile(True)
     ascii_like = (doc.tree.docinfo.encoding or "").upper() in _ASCII_COMPATIBLE and b"\x00" not in data
-    return _ANY_NAMESPACE if not ascii_like or b"xmlns" in data or b"xml:" in data else _PLAIN
+    return _compile(ascii_like and b"xmlns" not in data and b"xml:" not in data)
 
 
 def _local(el: Any) -> str | None:
