@@ -122,6 +122,22 @@ def test_wrong_passphrase_is_exit_3_and_changes_nothing(env, tmp_path):
     assert (store / STORE_NAME).read_bytes() == before
 
 
+def test_a_failing_description_is_reported_before_a_wrong_passphrase(env, tmp_path):
+    # status and export open the store while the description is verified: the description's
+    # error still comes first, as when the store is opened afterwards
+    doc, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    wrong = tmp_path / "wrong"
+    wrong.write_text("Tr0ub4dor&3\n")
+    doc.write_text(doc.read_text().replace('policy="must-secure"', 'policy="bogus"'))
+    for verb, args in [("status", ()), ("export", ("--device", "a", "--format", "json", "--out", tmp_path / "o"))]:
+        for passphrase in (wrong, tmp_path / "missing"):
+            r = run(verb, *args, passphrase=passphrase)
+            assert r.exit_code == 3 and "<macsec policy> is not one of" in r.stderr, (verb, r.stderr)
+            assert "passphrase" not in r.stderr and STORE_NAME not in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_passphrase_sources(env, cli, monkeypatch):
     doc, store, _run = env
     monkeypatch.delenv("HCDF_TRUST_MACSEC_PASSPHRASE", raising=False)

@@ -212,11 +212,12 @@ def status(
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
     from ..macsec.plan import plan
     from ..macsec.rotation import status as run
-    from ..macsec.store import KeyStore
+    from ..macsec.store import Background, KeyStore
 
     now = _now(now_text)
+    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     p = plan(doc)
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
+    store = opening.result()
     st = run(store, p, now=now)
     if as_json:
         emit_json({"ok": True, **st.to_dict()})
@@ -363,13 +364,14 @@ def export(
     import os
 
     from ..macsec.export import collect, mesh_keys, render
-    from ..macsec.store import KeyStore
+    from ..macsec.store import Background, KeyStore
 
     now = _now(now_text)
     from ..macsec.plan import plan
 
+    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     p = plan(doc, device=device)  # only the networks that can hold the device's associations
-    store = KeyStore.open(store_dir, _wrapper(passphrase_file, backend))
+    store = opening.result()
     ports, notices = collect(p, store, device, now=now)
     mesh = mesh_keys(p, store, device, now=now)
     files = render(

@@ -40,8 +40,9 @@ import json
 import os
 import re
 import stat
+import threading
 import time
-from collections.abc import Iterator, MutableMapping
+from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -223,6 +224,35 @@ class Entries(MutableMapping[str, Entry]):
 
     def __contains__(self, ca_id: object) -> bool:
         return ca_id in self._parsed or ca_id in self._raw
+
+
+class Background:
+    """Run ``fn`` in a thread at once; :meth:`result` waits for it and returns or raises what it did.
+
+    Opening a store is mostly scrypt and hashing, which release the GIL, so it overlaps with
+    resolving and verifying the description. Nothing changes in what is checked or in which
+    error comes first: the caller asks for the store only once the description is verified
+    and planned (a description error is reported as when the store is opened afterwards),
+    and no key is decrypted before that.
+    """
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._value: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(fn,), name="hcdf-trust-open-store", daemon=True)
+        self._thread.start()
+
+    def _run(self, fn: Callable[[], Any]) -> None:
+        try:
+            self._value = fn()
+        except BaseException as exc:  # re-raised in the caller's thread by result()
+            self._error = exc
+
+    def result(self) -> Any:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
