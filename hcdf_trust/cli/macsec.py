@@ -196,8 +196,8 @@ def generate(
         return
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
-    for ca_id in created:
-        click.echo(f"created {ca_id} generation 1")
+    if created:  # one write for 10,000 lines
+        click.echo("\n".join(f"created {ca_id} generation 1" for ca_id in created))
     click.echo(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do", err=True)
 
 

@@ -404,6 +404,7 @@ class _Planner:
         self.plan = Plan(document=documents[root].source)
         self._defined: dict[str, frozenset[str]] = {}
         self._comps: dict[str, dict[str, etree._Element]] = {}
+        self._query_set: dict[str, _Queries] = {}
         # scoped key-ref -> (instance identity, file, element) where it was first written
         self._key_scope: dict[str, tuple[str, str, etree._Element]] = {}
         self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
@@ -463,7 +464,7 @@ class _Planner:
         names: set[str] = set()
         for inst in instances:
             doc = self.docs[inst.url]
-            query = _queries(doc)
+            query = self._queries(inst.url)
             hits: set[etree._Element] = set()
             for written in _written_forms(device, inst.names):
                 hits.update(cast("list[etree._Element]", query.naming(doc.root, w=written)))
@@ -479,7 +480,7 @@ class _Planner:
             if refs:
                 if inst.url not in written_refs:
                     written_refs[inst.url] = [
-                        a for q in _queries(doc).all_refs for a in cast("list[Any]", q(doc.root))
+                        a for q in self._queries(inst.url).all_refs for a in cast("list[Any]", q(doc.root))
                     ]
                 for attr in written_refs[inst.url]:
                     if attr.strip() and self._scoped(inst, attr.strip()) in refs:
@@ -526,6 +527,11 @@ class _Planner:
                 names.update(f"{prefix}{SEPARATOR}{n}" if prefix else n for n in inner)
         self._defined[url] = frozenset(names)
         return self._defined[url]
+
+    def _queries(self, url: str) -> _Queries:
+        if url not in self._query_set:
+            self._query_set[url] = _queries(self.docs[url])
+        return self._query_set[url]
 
     def _own_comps(self, url: str) -> dict[str, etree._Element]:
         if url not in self._comps:
