@@ -249,3 +249,10 @@ def test_a_namespaced_document_is_matched_in_any_namespace(tmp_path):
     part = plan_resolution({"u": doc}, {}, "u", device="a")
     assert part.associations["key-ref:k"].to_dict() == full.associations["key-ref:k"].to_dict()
     assert set(part.associations["key-ref:k"].members) == {"a", "b", "c"}
+
+
+def test_the_plan_scopes_names_with_the_flattener_separator():
+    from hcdf_trust.include import flatten
+    from hcdf_trust.macsec import plan as planner
+
+    assert planner.SEPARATOR == flatten.SEPARATOR

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from hcdf_trust.macsec.backends import PassphraseWrapper
-from hcdf_trust.macsec.store import STORE_NAME, KeyStore, KeyStoreIntegrityError
+from hcdf_trust.macsec.store import STORE_NAME, Entries, KeyStore, KeyStoreIntegrityError
 
-from ._macsec import comp, hcdf, link, port, tree
+from ._macsec import comp, hcdf, link, port, store_lines, tree, write_store_lines
 
 PROJECT = Path(__file__).resolve().parents[1]
 T0 = "2026-01-01T00:00:00Z"
@@ -170,10 +170,9 @@ def test_tampered_store_is_an_integrity_error(env):
     _doc_path, store, run = env
     assert run("generate", "--now", T0).exit_code == 0
     path = store / STORE_NAME
-    doc = json.loads(path.read_text())
-    gen = doc["associations"]["key-ref:k0"]["generations"][0]
-    gen["activation"] = "2030-01-01T00:00:00Z"
-    path.write_text(json.dumps(doc))
+    head, assocs = store_lines(path)
+    assocs["key-ref:k0"]["generations"][0]["activation"] = "2030-01-01T00:00:00Z"
+    write_store_lines(path, head, assocs)
     r = run("status")
     assert r.exit_code == 1 and "changed outside" in r.stderr
 
@@ -196,12 +195,23 @@ def test_every_byte_is_authenticated(env):
         good + b"\n",
     ]
     for data in changes:
-        assert data != good and json.loads(data)
+        assert data != good and all(json.loads(line) for line in data.splitlines() if line)
         path.write_bytes(data)
         r = run("status")
         assert r.exit_code == 1 and "changed outside" in r.stderr, r.stderr
     path.write_bytes(good)
     assert run("status").exit_code == 0
+
+
+def test_open_parses_only_the_associations_used(env):
+    _doc_path, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    ks = _open(store)
+    entries = ks.entries
+    assert isinstance(entries, Entries) and len(entries) == 6 and not entries._parsed  # 5 links, 1 mesh
+    entry = entries["key-ref:k1"]
+    assert list(entries._parsed) == ["key-ref:k1"] and ks.key(entry, entry.generations[0])
+    assert "mesh-key:mesh" in entries and len(entries._parsed) == 1
 
 
 def test_a_version_1_store_is_refused_with_a_reason(env):
@@ -257,7 +267,7 @@ def test_fifo_store_is_refused_at_once(env):
 
 
 def _entries(store: Path) -> dict[str, dict]:
-    return json.loads((store / STORE_NAME).read_text())["associations"]
+    return store_lines(store / STORE_NAME)[1]
 
 
 def test_rotate_overlap_retire_lifecycle(env):

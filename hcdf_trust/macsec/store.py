@@ -1,22 +1,25 @@
 """The MACsec key store: one file, every key encrypted on its own, written all or nothing.
 
 Layout of ``DIR/macsec-keys.json`` (:data:`STORE_NAME`, mode 0600, format version
-:data:`FORMAT_VERSION`), one JSON object, the MAC first::
+:data:`FORMAT_VERSION`): JSON Lines, compact and key-sorted, a header then one line per
+association, sorted by CA id::
 
-    {"mac":HEX,"associations":{CA_ID:{"cipher","generations":[{"activation","ciphertext",
-         "ckn","created","expiry","generation","nonce","state"}],"key_bytes","kind",
-         "source":{"file","line"}}},
-     "format":"hcdf-trust-macsec-store","store_id":HEX,"version":2,
+    {"mac":HEX,"format":"hcdf-trust-macsec-store","store_id":HEX,"version":2,
      "wrap":{"method":"scrypt" | "pkcs11" | "tpm",...}}        # the wrapped 256-bit data key
+    [CA_ID,{"cipher","generations":[{"activation","ciphertext","ckn","created","expiry",
+            "generation","nonce","state"}],"key_bytes","kind","source":{"file","line"}}]
+    ...
+
+Opening reads the header and indexes the lines by CA id; an association's line is parsed
+only when it is used (an export touches a handful of 10,000).
 
 * Each key (CAK or mesh network key) is AES-256-GCM encrypted under the data key with a
   fresh nonce and, as associated data, the store id, CA id, generation and CKN: an entry
   moved to another CA or generation does not decrypt. Adding or rotating one key encrypts
   that key only; nothing else is re-encrypted or re-derived.
 * ``mac`` is HMAC-SHA256 (a key derived from the data key) over the exact bytes of the
-  rest of the file — the compact, key-sorted JSON object without ``mac`` that follows it
-  (``{`` + the bytes after ``"mac":HEX,``), so it is checked without re-serialising
-  anything: any changed byte (an activation time, a dropped generation, a reformatted
+  rest of the file (``{`` + every byte after ``{"mac":HEX,``), so it is checked without
+  re-serialising anything: any changed byte (an activation time, a dropped generation, a reformatted
   file) is an integrity error (exit 1). Version 1 (a MAC over a re-serialisation) is
   refused with a message saying so.
 * CKNs are 16 random octets, unique across the store: only the first 16 octets of a CKN
@@ -196,7 +199,7 @@ class Entries(MutableMapping[str, Entry]):
     An export touches a handful of a large store's entries; everything else stays raw.
     """
 
-    def __init__(self, raw: dict[str, Any], *, source: str) -> None:
+    def __init__(self, raw: dict[str, str], *, source: str) -> None:
         self._raw = raw
         self._parsed: dict[str, Entry] = {}
         self._source = source
@@ -206,7 +209,9 @@ class Entries(MutableMapping[str, Entry]):
         if entry is None:
             if ca_id not in self._raw:
                 raise KeyError(ca_id)
-            entry = self._parsed[ca_id] = _entry(ca_id, self._raw.pop(ca_id), source=self._source)
+            entry = self._parsed[ca_id] = _entry(
+                ca_id, _line(ca_id, self._raw.pop(ca_id), self._source), source=self._source
+            )
         return entry
 
     def __setitem__(self, ca_id: str, entry: Entry) -> None:
@@ -307,10 +312,11 @@ class KeyStore:
         path = cls.file_in(folder)
         source = str(path)
         raw = read_input(path, limit=MAX_STORE_BYTES, what="key store")
+        header, _, lines = raw.partition(b"\n")
         try:
-            doc = json.loads(raw)
+            doc = json.loads(header)
         except (ValueError, RecursionError):
-            raise KeyStoreFormatError("the key store is not valid JSON", file=source) from None
+            raise KeyStoreFormatError("the key store does not start with a JSON header", file=source) from None
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise KeyStoreFormatError("not an hcdf-trust MACsec key store", file=source, expected=FORMAT)
         if doc.get("version") == 1:
@@ -344,10 +350,7 @@ class KeyStore:
                 "the key store's metadata does not match its MAC: it was changed outside hcdf-trust", file=source
             )
         store = cls(path, store_id=store_id, wrap=wrap, dek=dek)
-        assocs = doc.get("associations")
-        if not isinstance(assocs, dict):
-            raise KeyStoreFormatError("the key store has no associations object", file=source)
-        store.entries = Entries(assocs, source=source)
+        store.entries = Entries(_index(lines, source=source), source=source)
         return store
 
     # -- keys --------------------------------------------------------------------------------
@@ -417,25 +420,21 @@ class KeyStore:
     # -- write -----------------------------------------------------------------------------
 
     def serialize(self, now: datetime) -> bytes:
-        body: dict[str, Any] = {
-            "format": FORMAT,
-            "version": FORMAT_VERSION,
-            "store_id": self.store_id,
-            "wrap": self.wrap,
-            "associations": {
-                e.ca_id: {
-                    "kind": e.kind,
-                    "cipher": e.cipher,
-                    "key_bytes": e.key_bytes,
-                    "source": {"file": e.source_file, "line": e.source_line},
-                    "generations": [g.to_json(now) for g in e.generations],
-                }
-                for e in sorted(self.entries.values(), key=lambda e: e.ca_id)
-            },
-        }
+        head = {"format": FORMAT, "version": FORMAT_VERSION, "store_id": self.store_id, "wrap": self.wrap}
         # compact: json's C encoder (indent= falls back to the pure-Python one)
-        data = json.dumps(body, sort_keys=True, separators=(",", ":")).encode()
-        return b'{"mac":"' + _mac(self._dek, data).encode() + b'",' + data[1:] + b"\n"
+        encode = json.JSONEncoder(sort_keys=True, separators=(",", ":")).encode
+        lines = [encode(head)]
+        for e in sorted(self.entries.values(), key=lambda e: e.ca_id):
+            entry = {
+                "kind": e.kind,
+                "cipher": e.cipher,
+                "key_bytes": e.key_bytes,
+                "source": {"file": e.source_file, "line": e.source_line},
+                "generations": [g.to_json(now) for g in e.generations],
+            }
+            lines.append(encode([e.ca_id, entry]))
+        body = ("\n".join(lines) + "\n").encode()
+        return b'{"mac":"' + _mac(self._dek, body).encode() + b'",' + body[1:]
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
@@ -460,8 +459,41 @@ def _mac_matches(dek: bytes, raw: bytes, parsed_mac: Any) -> bool:
     head = _MAC_FIRST.match(raw)
     if head is None or parsed_mac != head.group(1).decode():
         return False
-    body = b"{" + raw[head.end() :].removesuffix(b"\n")
-    return hmac.compare_digest(head.group(1).decode(), _mac(dek, body))
+    return hmac.compare_digest(head.group(1).decode(), _mac(dek, b"{" + raw[head.end() :]))
+
+
+_ID = json.JSONDecoder()
+
+
+def _index(lines: bytes, *, source: str) -> dict[str, str]:
+    """CA id -> its (still unparsed) line, for the association lines after the header."""
+    try:
+        text = lines.decode()
+    except UnicodeDecodeError:
+        raise KeyStoreFormatError("the key store is not UTF-8", file=source) from None
+    if not text.endswith("\n") and text:
+        raise KeyStoreFormatError("the key store does not end with a newline", file=source)
+    out: dict[str, str] = {}
+    for number, line in enumerate(text[:-1].split("\n") if text else [], start=2):
+        try:
+            ca_id = _ID.raw_decode(line, 1)[0] if line.startswith('["') else None
+        except ValueError:
+            ca_id = None
+        if not isinstance(ca_id, str) or ca_id in out:
+            raise KeyStoreFormatError(f"line {number} of the key store is not an association", file=source)
+        out[ca_id] = line
+    return out
+
+
+def _line(ca_id: str, line: str, source: str) -> Any:
+    """The association object of one ``[CA_ID, {...}]`` line."""
+    try:
+        item = json.loads(line)
+    except (ValueError, RecursionError):
+        item = None
+    if not isinstance(item, list) or len(item) != 2 or item[0] != ca_id:
+        raise KeyStoreFormatError(f"association {ca_id!r} is malformed", file=source)
+    return item[1]
 
 
 def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:
