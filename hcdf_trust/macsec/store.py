@@ -19,9 +19,9 @@ only when it is used (an export touches a handful of 10,000).
   that key only; nothing else is re-encrypted or re-derived.
 * ``mac`` is HMAC-SHA256 (a key derived from the data key) over the exact bytes of the
   rest of the file (``{`` + every byte after ``{"mac":HEX,``), so it is checked without
-  re-serialising anything: any changed byte (an activation time, a dropped generation, a reformatted
-  file) is an integrity error (exit 1). Version 1 (a MAC over a re-serialisation) is
-  refused with a message saying so.
+  re-serialising anything: any changed byte (an activation time, a dropped generation, a
+  reformatted line) is an integrity error (exit 1). Version 1 (one JSON object, its MAC
+  over a re-serialisation) is refused with a message saying so.
 * CKNs are 16 random octets, unique across the store: only the first 16 octets of a CKN
   reach the 802.1X KDF.
 * The file is read through :func:`hcdf_trust.localfile.read_input` (bounded, regular file
@@ -455,7 +455,7 @@ _MAC_FIRST = re.compile(rb'\{"mac":"([0-9a-f]{64})",')
 
 
 def _mac_matches(dek: bytes, raw: bytes, parsed_mac: Any) -> bool:
-    """Whether ``raw`` is ``{"mac":HEX,`` + a body whose MAC is HEX (one final newline allowed)."""
+    """Whether ``raw`` is ``{"mac":HEX,`` followed by the rest of a body (``{`` + that rest) whose MAC is HEX."""
     head = _MAC_FIRST.match(raw)
     if head is None or parsed_mac != head.group(1).decode():
         return False
