@@ -138,6 +138,17 @@ def test_a_failing_description_is_reported_before_a_wrong_passphrase(env, tmp_pa
     assert not (tmp_path / "o").exists()
 
 
+def test_generate_for_a_failing_description_makes_no_store(env, tmp_path):
+    # the new store's data key is wrapped while the description is verified: nothing is written
+    doc, store, run = env
+    doc.write_text(doc.read_text().replace('policy="must-secure"', 'policy="bogus"'))
+    r = run("generate")
+    assert r.exit_code == 3 and "<macsec policy> is not one of" in r.stderr
+    assert not (store / STORE_NAME).exists()
+    r = run("generate", passphrase=tmp_path / "missing")
+    assert r.exit_code == 3 and "<macsec policy> is not one of" in r.stderr and "passphrase" not in r.stderr
+
+
 def test_passphrase_sources(env, cli, monkeypatch):
     doc, store, _run = env
     monkeypatch.delenv("HCDF_TRUST_MACSEC_PASSPHRASE", raising=False)

@@ -177,14 +177,21 @@ def generate(
     """Create every missing key DOC's associations need (running it again changes nothing)."""
     from ..macsec.plan import plan
     from ..macsec.rotation import generate as run
-    from ..macsec.store import KeyStore, locked
+    from ..macsec.store import Background, KeyStore, locked
 
     now = _now(now_text)
+    fresh = None
+    if not KeyStore.exists(store_dir) and not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
+        # A new store's data key is wrapped (scrypt, a pure computation) while the description
+        # is verified; if a store exists once the lock is held, it is opened and this one dropped.
+        fresh = Background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
     p = plan(doc)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
-        exists = KeyStore.exists(store_dir)
-        store = KeyStore.open(store_dir, wrapper) if exists else KeyStore.create(store_dir, wrapper)
+        if KeyStore.exists(store_dir):
+            store = KeyStore.open(store_dir, wrapper)
+        else:
+            store = fresh.result() if fresh is not None else KeyStore.create(store_dir, wrapper)
         created, notices = run(store, p, now=now)
         if store.changed:
             _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
