@@ -464,12 +464,15 @@ class _Planner:
         keep: list[set[etree._Element]] = []
         refs: set[str] = set()
         names: set[str] = set()
+        naming: dict[tuple[str, str], list[etree._Element]] = {}  # a file included many times is searched once
         for inst in instances:
             doc = self.docs[inst.url]
             query = self._queries(inst.url)
             hits: set[etree._Element] = set()
             for written in _written_forms(device, inst.names):
-                hits.update(cast("list[etree._Element]", query.naming(doc.root, w=written)))
+                if (inst.url, written) not in naming:
+                    naming[inst.url, written] = cast("list[etree._Element]", query.naming(doc.root, w=written))
+                hits.update(naming[inst.url, written])
             keep.append(hits)
             for net in hits:
                 names.add(self._scoped(inst, net.get("name", "").strip()))
