@@ -189,7 +189,9 @@ class Association:
         return max(self.port_speeds_mbps.values(), default=None)
 
     def add_member(self, device: str, port: str | None) -> None:
-        member = self.members.setdefault(device, Member(device))
+        member = self.members.get(device)
+        if member is None:
+            member = self.members[device] = Member(device)
         if port and port not in member.ports:
             member.ports.append(port)
 
