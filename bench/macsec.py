@@ -75,8 +75,9 @@ def timed(args: list[str], env: dict[str, str]) -> float:
 
 
 def ciphertexts(store: Path) -> dict[str, list[str]]:
-    doc = json.loads((store / "macsec-keys.json").read_text())
-    return {ca: [g["ciphertext"] for g in e["generations"]] for ca, e in doc["associations"].items()}
+    """CA id -> its generations' ciphertexts (the store is JSON Lines: a header, then [CA_ID, entry] lines)."""
+    lines = (store / "macsec-keys.json").read_text().splitlines()[1:]
+    return {ca: [g["ciphertext"] for g in e["generations"]] for ca, e in map(json.loads, lines)}
 
 
 def main() -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 from hcdf_trust.include.resolver import ResolveOptions, resolve
 
@@ -55,3 +57,16 @@ def link(name: str, a: str, b: str, macsec: str = "") -> str:
 
 def hcdf(*body: str) -> str:
     return '<?xml version="1.0"?>\n<hcdf version="1.0" name="t">\n' + "\n".join(body) + "\n</hcdf>\n"
+
+
+def store_lines(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A key store file read without checking it: its header and CA id -> association (JSON Lines)."""
+    head, *lines = path.read_text().splitlines()
+    return json.loads(head), dict(json.loads(line) for line in lines)
+
+
+def write_store_lines(path: Path, head: dict[str, Any], assocs: dict[str, Any]) -> None:
+    """Write a header and associations back in the store's layout (the MAC is left as it was)."""
+    dump = lambda v: json.dumps(v, sort_keys=True, separators=(",", ":"))  # noqa: E731
+    body = [dump(head), *(dump([ca, a]) for ca, a in sorted(assocs.items()))]
+    path.write_text("\n".join(body) + "\n")

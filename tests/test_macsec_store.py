@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from hcdf_trust.macsec.backends import PassphraseWrapper
-from hcdf_trust.macsec.store import STORE_NAME, KeyStore, KeyStoreIntegrityError
+from hcdf_trust.macsec.store import STORE_NAME, Entries, KeyStore, KeyStoreIntegrityError
 
-from ._macsec import comp, hcdf, link, port, tree
+from ._macsec import comp, hcdf, link, port, store_lines, tree, write_store_lines
 
 PROJECT = Path(__file__).resolve().parents[1]
 T0 = "2026-01-01T00:00:00Z"
@@ -122,6 +122,33 @@ def test_wrong_passphrase_is_exit_3_and_changes_nothing(env, tmp_path):
     assert (store / STORE_NAME).read_bytes() == before
 
 
+def test_a_failing_description_is_reported_before_a_wrong_passphrase(env, tmp_path):
+    # status and export open the store while the description is verified: the description's
+    # error still comes first, as when the store is opened afterwards
+    doc, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    wrong = tmp_path / "wrong"
+    wrong.write_text("Tr0ub4dor&3\n")
+    doc.write_text(doc.read_text().replace('policy="must-secure"', 'policy="bogus"'))
+    for verb, args in [("status", ()), ("export", ("--device", "a", "--format", "json", "--out", tmp_path / "o"))]:
+        for passphrase in (wrong, tmp_path / "missing"):
+            r = run(verb, *args, passphrase=passphrase)
+            assert r.exit_code == 3 and "<macsec policy> is not one of" in r.stderr, (verb, r.stderr)
+            assert "passphrase" not in r.stderr and STORE_NAME not in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_generate_for_a_failing_description_makes_no_store(env, tmp_path):
+    # the new store's data key is wrapped while the description is verified: nothing is written
+    doc, store, run = env
+    doc.write_text(doc.read_text().replace('policy="must-secure"', 'policy="bogus"'))
+    r = run("generate")
+    assert r.exit_code == 3 and "<macsec policy> is not one of" in r.stderr
+    assert not (store / STORE_NAME).exists()
+    r = run("generate", passphrase=tmp_path / "missing")
+    assert r.exit_code == 3 and "<macsec policy> is not one of" in r.stderr and "passphrase" not in r.stderr
+
+
 def test_passphrase_sources(env, cli, monkeypatch):
     doc, store, _run = env
     monkeypatch.delenv("HCDF_TRUST_MACSEC_PASSPHRASE", raising=False)
@@ -154,12 +181,56 @@ def test_tampered_store_is_an_integrity_error(env):
     _doc_path, store, run = env
     assert run("generate", "--now", T0).exit_code == 0
     path = store / STORE_NAME
-    doc = json.loads(path.read_text())
-    gen = doc["associations"]["key-ref:k0"]["generations"][0]
-    gen["activation"] = "2030-01-01T00:00:00Z"
-    path.write_text(json.dumps(doc))
+    head, assocs = store_lines(path)
+    assocs["key-ref:k0"]["generations"][0]["activation"] = "2030-01-01T00:00:00Z"
+    write_store_lines(path, head, assocs)
     r = run("status")
     assert r.exit_code == 1 and "changed outside" in r.stderr
+
+
+def test_every_byte_is_authenticated(env):
+    # the MAC covers the file's bytes, not a re-serialisation: a change json.loads cannot see
+    # (a space, a reordered key) is refused like a changed time
+    _doc_path, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    path = store / STORE_NAME
+    good = path.read_bytes()
+    at = good.index(b'"created":"2026-01-01T00:00:00Z"')
+    changes = [
+        good[:at] + b'"created": "2026-01-01T00:00:00Z"' + good[at + 32 :],  # one space: same JSON
+        good.replace(b'"cipher":"gcm-aes-128","generations"', b'"generations"', 1).replace(
+            b'"key_bytes":16,', b'"key_bytes":16,"cipher":"gcm-aes-128",', 1
+        ),
+        good[:at] + b'"created":"2026-01-01T00:00:01Z"' + good[at + 32 :],
+        good.replace(b'{"mac":"', b'{ "mac":"', 1),
+        good + b"\n",
+    ]
+    for data in changes:
+        assert data != good and all(json.loads(line) for line in data.splitlines() if line)
+        path.write_bytes(data)
+        r = run("status")
+        assert r.exit_code == 1 and "changed outside" in r.stderr, r.stderr
+    path.write_bytes(good)
+    assert run("status").exit_code == 0
+
+
+def test_open_parses_only_the_associations_used(env):
+    _doc_path, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    ks = _open(store)
+    entries = ks.entries
+    assert isinstance(entries, Entries) and len(entries) == 6 and not entries._parsed  # 5 links, 1 mesh
+    entry = entries["key-ref:k1"]
+    assert list(entries._parsed) == ["key-ref:k1"] and ks.key(entry, entry.generations[0])
+    assert "mesh-key:mesh" in entries and len(entries._parsed) == 1
+
+
+def test_a_version_1_store_is_refused_with_a_reason(env):
+    _doc_path, store, run = env
+    store.mkdir()
+    (store / STORE_NAME).write_text(json.dumps({"format": "hcdf-trust-macsec-store", "version": 1, "mac": "00"}))
+    r = run("status")
+    assert r.exit_code == 3 and "format version 1 is not read" in r.stderr and "macsec generate" in r.stderr
 
 
 def test_a_ciphertext_moved_to_another_association_does_not_decrypt(env):
@@ -178,10 +249,11 @@ def test_a_ciphertext_moved_to_another_association_does_not_decrypt(env):
         b"",
         b"[]",
         b"[" * 100_000 + b"]" * 100_000,
+        b'{"format": "hcdf-trust-macsec-store", "version": 3}',
         b'{"format": "hcdf-trust-macsec-store", "version": 2}',
-        b'{"format": "hcdf-trust-macsec-store", "version": 1, "store_id": "x", "wrap": {"method": "scrypt", '
+        b'{"format": "hcdf-trust-macsec-store", "version": 2, "store_id": "x", "wrap": {"method": "scrypt", '
         b'"n": 1073741824, "r": 8, "p": 1, "salt": "", "nonce": "", "wrapped_key": ""}}',
-        b'{"format": "hcdf-trust-macsec-store", "version": 1, "store_id": "x", "wrap": {"method": "pkcs99"}}',
+        b'{"format": "hcdf-trust-macsec-store", "version": 2, "store_id": "x", "wrap": {"method": "pkcs99"}}',
     ],
 )
 def test_hostile_store_files(env, content):
@@ -206,7 +278,7 @@ def test_fifo_store_is_refused_at_once(env):
 
 
 def _entries(store: Path) -> dict[str, dict]:
-    return json.loads((store / STORE_NAME).read_text())["associations"]
+    return store_lines(store / STORE_NAME)[1]
 
 
 def test_rotate_overlap_retire_lifecycle(env):

@@ -71,7 +71,7 @@ def test_demo_chain_then_one_tampered_artifact_per_stage(cli, tmp_path, monkeypa
     # one byte of the MACsec key store: status and export
     keys = out / "macsec" / "macsec-keys.json"
     text = keys.read_text()
-    value = json.loads(text)
+    value = [json.loads(line) for line in text.splitlines()[1:]]  # JSON Lines: a header, then the associations
     ciphertext = _first_ciphertext(value)
     at = text.index(ciphertext) + len(ciphertext) // 2
     _flip(keys, at)

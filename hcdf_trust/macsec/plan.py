@@ -48,17 +48,20 @@ Conflicts and warnings
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple, cast
 
 from lxml import etree
 
 from ..document import Document
 from ..errors import ErrorGroup, HcdfTrustError, InputError, Notice
-from ..include.flatten import SEPARATOR
 from ..xml import sourceline
 
+# The include prefix separator, as hcdf_trust.include.flatten.SEPARATOR (a test checks they agree);
+# not imported from there, so that planning does not load the flattener.
+SEPARATOR = "_"
 POLICIES = ("must-secure", "should-secure", "integrity-only", "disabled")
 CIPHERS = ("gcm-aes-128", "gcm-aes-256", "gcm-aes-xpn-128", "gcm-aes-xpn-256")
 KEY_AGREEMENTS = ("psk", "eap-tls")
@@ -186,7 +189,9 @@ class Association:
         return max(self.port_speeds_mbps.values(), default=None)
 
     def add_member(self, device: str, port: str | None) -> None:
-        member = self.members.setdefault(device, Member(device))
+        member = self.members.get(device)
+        if member is None:
+            member = self.members[device] = Member(device)
         if port and port not in member.ports:
             member.ports.append(port)
 
@@ -241,8 +246,12 @@ class Plan:
         }
 
 
-def plan(doc_path: str | Path) -> Plan:
+def plan(doc_path: str | Path, *, device: str | None = None) -> Plan:
     """Resolve and verify ``doc_path`` (locked, offline), then plan its associations.
+
+    With ``device``, only the networks that can hold that device's associations are planned
+    (see :func:`plan_resolution`); when the device is in none of them, the whole description
+    is planned, so the caller's "no such device" message lists every device.
 
     Raises:
         ErrorGroup / HcdfTrustError: the tree fails to resolve or verify (a missing or
@@ -253,7 +262,9 @@ def plan(doc_path: str | Path) -> Plan:
     res = resolve(doc_path, ResolveOptions(locked=True, offline=True, write_cache=False))
     if res.errors:
         raise ErrorGroup(list(res.errors))
-    result = plan_resolution(res.documents, res.includes, res.root_location.url)
+    result = plan_resolution(res.documents, res.includes, res.root_location.url, device=device)
+    if device is not None and not result.for_device(device):
+        result = plan_resolution(res.documents, res.includes, res.root_location.url)
     result.warnings[:0] = res.warnings  # already Notice objects
     result.resolution = res
     return result
@@ -268,6 +279,76 @@ class _Instance:
     names: tuple[str, ...]  # include names from the root down to this instance ("" = no prefix)
     chain: tuple[str, ...]  # document urls from the root down to this instance
     sites: tuple[int, ...] = ()  # which <include> of its parent each level is: tells unnamed copies apart
+
+    @functools.cached_property
+    def scope(self) -> str:
+        """The include names joined (flatten's prefix), "" for the root document."""
+        return SEPARATOR.join(n for n in self.names if n)
+
+    @functools.cached_property
+    def identity(self) -> str:
+        """Tells two include instances apart, even two copies of one file included without a name."""
+        return repr((self.chain, self.sites))
+
+
+def _written_forms(device: str, names: tuple[str, ...]) -> set[str]:
+    """How a reference to scoped comp ``device`` can be written in an instance with include
+    ``names``: the name with any of those prefixes (outermost first) taken off its front."""
+    forms = {device}
+    for name in names:
+        if name:
+            head = name + SEPARATOR
+            forms |= {f[len(head) :] for f in forms if f.startswith(head)}
+    return forms
+
+
+def _may_share_ids(network: str, names: set[str]) -> bool:
+    """Whether a link or chain of ``network`` can have the id (``kind:NETWORK/NAME``) of one in ``names``."""
+    return any(network == n or network.startswith(n + "/") or n.startswith(network + "/") for n in names)
+
+
+def _network_of(el: etree._Element, root: etree._Element) -> etree._Element:
+    """The ``<network>`` (a child of ``root``) that holds ``el``."""
+    while (parent := el.getparent()) is not None and parent is not root:
+        el = parent
+    return el
+
+
+@dataclass(frozen=True)
+class _Queries:
+    naming: etree.XPath  # networks whose text, or an attribute outside their links, contains $w
+    refs: etree.XPath  # the key-ref and network-key-ref values a network writes (relative to it)
+    all_refs: tuple[etree.XPath, ...]  # the same for every network of a document (from its root)
+
+
+@functools.cache
+def _compile(plain: bool) -> _Queries:
+    """The queries with plain name tests, or with ``local-name()`` tests (any namespace)."""
+    net, link, wired, macsec, chain, mesh = (
+        t if plain else f"*[local-name()='{t}']" for t in ("network", "link", "wired", "macsec", "chain", "mesh")
+    )
+    not_link = "*[not(self::link)]" if plain else "*[local-name()!='link']"
+    refs = (f"{link}/{wired}/{macsec}/@key-ref", f"{chain}/{macsec}/@key-ref", f"{mesh}/@network-key-ref")
+    return _Queries(
+        naming=etree.XPath(f"{net}[contains(., $w) or {not_link}//@*[contains(., $w)]]"),
+        refs=etree.XPath(" | ".join(refs)),
+        all_refs=tuple(etree.XPath(f"{net}/{r}") for r in refs),  # three queries: a union sorts 5,000 nodes
+    )
+
+
+_ASCII_COMPATIBLE = frozenset(("UTF-8", "ASCII", "US-ASCII"))
+
+
+def _queries(doc: Document) -> _Queries:
+    """Plain name tests (several times faster in libxml2) when no element of ``doc`` can be in
+    a namespace: its bytes read as ASCII and declare none (no ``xmlns``, no ``xml:``; most
+    documents hold "xml" only in ``<?xml``). Otherwise ``local-name()`` tests, since the
+    planner takes its elements in any namespace."""
+    data = doc.data
+    if data.find(b"xml", 6) == -1 and data.startswith(b"<?xml") and b"\x00" not in data:
+        return _compile(True)
+    ascii_like = (doc.tree.docinfo.encoding or "").upper() in _ASCII_COMPATIBLE and b"\x00" not in data
+    return _compile(ascii_like and b"xmlns" not in data and b"xml:" not in data)
 
 
 def _local(el: Any) -> str | None:
@@ -294,32 +375,53 @@ def plan_resolution(
     documents: dict[str, Document],
     includes: dict[str, list[tuple[Any, str]]],
     root_url: str,
+    *,
+    device: str | None = None,
 ) -> Plan:
     """Plan the associations of a resolved tree (``Resolution.documents`` / ``.includes``).
+
+    ``device`` (a scoped comp name) plans only the networks a reference to that device can
+    be written in, plus every network that writes one of their key-refs or network-key-refs
+    or has their name (so a CA's consistency checks see all its members): the device's
+    associations come out exactly as in the whole plan, other networks are not checked.
 
     Raises:
         ErrorGroup: malformed MACsec attributes or contradictory associations.
     """
-    return _Planner(documents, includes, root_url).run()
+    return _Planner(documents, includes, root_url, device=device).run()
 
 
 class _Planner:
-    def __init__(self, documents: dict[str, Document], includes: dict[str, list[tuple[Any, str]]], root: str) -> None:
+    def __init__(
+        self,
+        documents: dict[str, Document],
+        includes: dict[str, list[tuple[Any, str]]],
+        root: str,
+        *,
+        device: str | None = None,
+    ) -> None:
         self.docs = documents
+        self.device = device
         self.includes = includes
         self.root = root
         self.errors: list[HcdfTrustError] = []
         self.plan = Plan(document=documents[root].source)
         self._defined: dict[str, frozenset[str]] = {}
         self._comps: dict[str, dict[str, etree._Element]] = {}
-        self._key_scope: dict[str, tuple[str, str]] = {}  # scoped key-ref -> (instance, where first written)
+        self._query_set: dict[str, _Queries] = {}
+        # scoped key-ref -> (instance identity, file, element) where it was first written
+        self._key_scope: dict[str, tuple[str, str, etree._Element]] = {}
         self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
         self._override_cache: dict[tuple[tuple[Any, ...], Policy | None], Policy] = {}
 
     def run(self) -> Plan:
-        for inst in self._instances():
+        instances = self._instances()
+        networks = [_children(self.docs[inst.url].root, "network") for inst in instances]
+        if self.device is not None:
+            networks = self._restrict(instances, networks, self.device)
+        for inst, nets in zip(instances, networks, strict=True):
             doc = self.docs[inst.url]
-            for net in _children(doc.root, "network"):
+            for net in nets:
                 self._network(inst, doc, net)
         if self.errors:
             raise ErrorGroup(self.errors)
@@ -344,6 +446,56 @@ class _Planner:
                 line=ca.line,
             )
         )
+
+    # -- restriction to one device ----------------------------------------------------------
+
+    def _restrict(
+        self, instances: list[_Instance], networks: list[list[etree._Element]], device: str
+    ) -> list[list[etree._Element]]:
+        """The networks (per instance, in document order) that can hold ``device``'s associations.
+
+        A device becomes a member only through the text of a link's ``<port>`` and the
+        attributes of a chain's or mesh's elements, written in the form the instance's file
+        uses (:meth:`_device` prefixes it level by level): a network none of whose text holds
+        any written form of the name, nor any attribute outside its links, cannot name it.
+        Matching is by substring (``contains``, evaluated by libxml2): it may keep a network
+        that does not name the device, never the reverse. Then every network that writes one
+        of the kept networks' scoped key-refs or network-key-refs, or whose scoped name could
+        give one of their link or chain ids, is kept too.
+        """
+        keep: list[set[etree._Element]] = []
+        refs: set[str] = set()
+        names: set[str] = set()
+        naming: dict[tuple[str, str], list[etree._Element]] = {}  # a file included many times is searched once
+        for inst in instances:
+            doc = self.docs[inst.url]
+            query = self._queries(inst.url)
+            hits: set[etree._Element] = set()
+            for written in _written_forms(device, inst.names):
+                if (inst.url, written) not in naming:
+                    naming[inst.url, written] = cast("list[etree._Element]", query.naming(doc.root, w=written))
+                hits.update(naming[inst.url, written])
+            keep.append(hits)
+            for net in hits:
+                names.add(self._scoped(inst, net.get("name", "").strip()))
+                for ref in cast("list[str]", query.refs(net)):
+                    if ref.strip():
+                        refs.add(self._scoped(inst, ref.strip()))
+        written_refs: dict[str, list[Any]] = {}
+        for k, inst in enumerate(instances):
+            doc = self.docs[inst.url]
+            if refs:
+                if inst.url not in written_refs:
+                    written_refs[inst.url] = [
+                        a for q in self._queries(inst.url).all_refs for a in cast("list[Any]", q(doc.root))
+                    ]
+                for attr in written_refs[inst.url]:
+                    if attr.strip() and self._scoped(inst, attr.strip()) in refs:
+                        keep[k].add(_network_of(attr.getparent(), doc.root))
+            for net in networks[k]:
+                if net not in keep[k] and _may_share_ids(self._scoped(inst, net.get("name", "").strip()), names):
+                    keep[k].add(net)
+        return [[net for net in nets if net in kept] for nets, kept in zip(networks, keep, strict=True)]
 
     # -- include instances and name scoping ---------------------------------------------
 
@@ -383,6 +535,11 @@ class _Planner:
         self._defined[url] = frozenset(names)
         return self._defined[url]
 
+    def _queries(self, url: str) -> _Queries:
+        if url not in self._query_set:
+            self._query_set[url] = _queries(self.docs[url])
+        return self._query_set[url]
+
     def _own_comps(self, url: str) -> dict[str, etree._Element]:
         if url not in self._comps:
             root = self.docs[url].root
@@ -392,7 +549,8 @@ class _Planner:
     @staticmethod
     def _scoped(inst: _Instance, name: str) -> str:
         """A name the instance's own file defines: every include name, outermost first."""
-        return SEPARATOR.join([*(n for n in inst.names if n), name])
+        scope = inst.scope
+        return f"{scope}{SEPARATOR}{name}" if scope else name
 
     def _device(self, inst: _Instance, name: str) -> str:
         """A comp reference written in the instance's file, renamed level by level as flatten does."""
@@ -477,7 +635,7 @@ class _Planner:
             name=self._scoped(inst, el.get("name", "").strip()),
             file=doc.source,
             line=sourceline(el),
-            scope=SEPARATOR.join(n for n in inst.names if n),
+            scope=inst.scope,
         )
 
     def _policy(self, doc: Document, el: etree._Element, base: Policy | None, *, network_level: bool) -> Policy | None:
@@ -569,26 +727,24 @@ class _Planner:
 
     def _link(self, inst: _Instance, doc: Document, net: str, link: etree._Element, default: Policy | None) -> None:
         element = self._element(inst, doc, "link", net, link)
-        wired = _children(link, "wired")
-        if not wired:
+        wired = next(link.iterchildren("{*}wired"), None)
+        if wired is None:
             self.plan.skipped.append((element, "a wireless link has no MACsec"))
             return
-        parts = _by_tag(wired[0])
-        ports = [(p.text or "").strip() for p in parts.get("port", ())]
         endpoints: list[tuple[str, str, _PortRef]] = []
-        for text in ports:
-            device, _, port = text.partition("/")
+        for el in wired.iterchildren("{*}port"):
+            device, _, port = (el.text or "").strip().partition("/")
             endpoints.append((self._device(inst, device), port, self._port(self._find_comp(inst, device), port)))
         types = {p.type for *_, p in endpoints if p is not None}
         if types and types != {"ethernet"}:
             self.plan.skipped.append((element, f"not an Ethernet link (port type {', '.join(sorted(types))})"))
             return
-        overrides = parts.get("macsec", [])
-        policy, key_ref = self._override(doc, overrides[0] if overrides else None, default)
+        override = next(wired.iterchildren("{*}macsec"), None)
+        policy, key_ref = self._override(doc, override, default)
         if policy is None:
             self.plan.unprotected.append(element)
             return
-        ca = self._association(inst, doc, element, policy, key_ref, overrides[0] if overrides else link)
+        ca = self._association(inst, doc, element, policy, key_ref, link if override is None else override)
         if ca is None:
             return
         for device, port, port_ref in endpoints:
@@ -666,14 +822,13 @@ class _Planner:
             ca.elements.append(element)
             return ca
         scoped = self._scoped(inst, key_ref)
-        here = f"{doc.source}:{sourceline(where)}"
-        instance = repr((inst.chain, inst.sites))
-        first = self._key_scope.setdefault(scoped, (instance, here))
-        if first[0] != instance:
+        first = self._key_scope.setdefault(scoped, (inst.identity, doc.source, where))
+        if first[0] != inst.identity:
+            here = f"{doc.source}:{sourceline(where)}"
             self.errors.append(
                 MacsecPlanError(
-                    f"key-ref {scoped!r} is written by two include instances ({first[1]} and {here}): "
-                    f"they would share a CAK; give each <include> a name",
+                    f"key-ref {scoped!r} is written by two include instances ({first[1]}:{sourceline(first[2])} "
+                    f"and {here}): they would share a CAK; give each <include> a name",
                     file=doc.source,
                     line=sourceline(where),
                 )
@@ -747,9 +902,8 @@ class _Planner:
             )
 
 
-@dataclass(frozen=True)
-class _PortInfo:
-    """What the plan needs of one ``<port>`` definition, read once."""
+class _PortInfo(NamedTuple):
+    """What the plan needs of one ``<port>`` definition, read once (a tuple: 20,000 ports are made fast)."""
 
     file: str
     line: int | None
@@ -762,6 +916,14 @@ class _PortInfo:
 _PortRef = _PortInfo | None
 
 
+def _named(tag: Any, name: str) -> bool:
+    """Whether an element's ``tag`` is ``name`` in no namespace or any (False for comments and PIs)."""
+    return tag == name or (isinstance(tag, str) and tag.endswith("}" + name))
+
+
+_SPEEDS = ("speed", "speed-tx", "speed-rx")
+
+
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
     """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass."""
     out: dict[str, _PortInfo] = {}
@@ -771,24 +933,24 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
             continue
         ciphers: list[str] = []
         speed: float | None = None
-        for caps in el:
-            if _local(caps) != "capabilities":
+        for caps in el:  # plain iteration and tag tests: faster in lxml than filtered iterators
+            if not _named(caps.tag, "capabilities"):
                 continue
             for item in caps:
-                tag = _local(item)
-                if tag == "macsec":
-                    ciphers.extend((c.text or "").strip() for c in item if _local(c) == "cipher")
-                elif tag in ("speed", "speed-tx", "speed-rx"):
-                    mbps = _mbps(item)
+                local = _local(item)
+                if local == "macsec":
+                    ciphers.extend((c.text or "").strip() for c in item if _named(c.tag, "cipher"))
+                elif local in _SPEEDS:
+                    mbps = _mbps(item.text, item.get("unit"))
                     if mbps is not None:
                         speed = max(speed or 0.0, mbps)
         out[name] = _PortInfo(
-            file=file,
-            line=sourceline(el),
-            type=(el.get("type") or "").strip().lower(),
-            iface=(el.get("iface") or "").strip() or name,
-            speed_mbps=speed,
-            ciphers=tuple(ciphers),
+            file,
+            sourceline(el),
+            (el.get("type") or "").strip().lower(),
+            (el.get("iface") or "").strip() or name,
+            speed,
+            tuple(ciphers),
         )
     return out
 
@@ -796,13 +958,14 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
 _UNITS = {"bps": 1e-6, "kbps": 1e-3, "mbps": 1.0, "gbps": 1e3, "tbps": 1e6}
 
 
-def _mbps(el: etree._Element) -> float | None:
-    """A ``<speed unit>`` value in Mb/s (default unit Mbps); None when unreadable."""
+@functools.lru_cache(maxsize=1024)  # a description writes a handful of distinct speeds, many times
+def _mbps(text: str | None, unit: str | None) -> float | None:
+    """A ``<speed unit>`` value (element text, ``unit`` attribute) in Mb/s (default unit Mbps); None when unreadable."""
     try:
-        value = float((el.text or "").strip())
+        value = float((text or "").strip())
     except ValueError:
         return None
-    factor = _UNITS.get((el.get("unit") or "Mbps").strip().lower())
+    factor = _UNITS.get((unit or "Mbps").strip().lower())
     if factor is None or value != value or value <= 0 or value == float("inf"):
         return None
     return value * factor

@@ -1,22 +1,27 @@
 """The MACsec key store: one file, every key encrypted on its own, written all or nothing.
 
 Layout of ``DIR/macsec-keys.json`` (:data:`STORE_NAME`, mode 0600, format version
-:data:`FORMAT_VERSION`)::
+:data:`FORMAT_VERSION`): JSON Lines, compact and key-sorted, a header then one line per
+association, sorted by CA id::
 
-    {"format": "hcdf-trust-macsec-store", "version": 1, "store_id": HEX,
-     "wrap": {"method": "scrypt" | "pkcs11", ...},       # the wrapped 256-bit data key
-     "associations": {CA_ID: {"kind", "cipher", "key_bytes", "source": {"file", "line"},
-                              "generations": [{"generation", "ckn", "created", "activation",
-                                               "expiry", "state", "nonce", "ciphertext"}]}},
-     "mac": HEX}
+    {"mac":HEX,"format":"hcdf-trust-macsec-store","store_id":HEX,"version":2,
+     "wrap":{"method":"scrypt" | "pkcs11" | "tpm",...}}        # the wrapped 256-bit data key
+    [CA_ID,{"cipher","generations":[{"activation","ciphertext","ckn","created","expiry",
+            "generation","nonce","state"}],"key_bytes","kind","source":{"file","line"}}]
+    ...
+
+Opening reads the header and indexes the lines by CA id; an association's line is parsed
+only when it is used (an export touches a handful of 10,000).
 
 * Each key (CAK or mesh network key) is AES-256-GCM encrypted under the data key with a
   fresh nonce and, as associated data, the store id, CA id, generation and CKN: an entry
   moved to another CA or generation does not decrypt. Adding or rotating one key encrypts
   that key only; nothing else is re-encrypted or re-derived.
-* ``mac`` is HMAC-SHA256 (a key derived from the data key) over all metadata (times,
-  states, CKNs, ciphertexts): an edited activation time or a dropped generation is an
-  integrity error (exit 1).
+* ``mac`` is HMAC-SHA256 (a key derived from the data key) over the exact bytes of the
+  rest of the file (``{`` + every byte after ``{"mac":HEX,``), so it is checked without
+  re-serialising anything: any changed byte (an activation time, a dropped generation, a
+  reformatted line) is an integrity error (exit 1). Version 1 (one JSON object, its MAC
+  over a re-serialisation) is refused with a message saying so.
 * CKNs are 16 random octets, unique across the store: only the first 16 octets of a CKN
   reach the 802.1X KDF.
 * The file is read through :func:`hcdf_trust.localfile.read_input` (bounded, regular file
@@ -32,13 +37,16 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import hashlib
 import hmac
 import json
 import os
+import re
 import stat
+import threading
 import time
-from collections.abc import Iterator, MutableMapping
+from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -56,7 +64,7 @@ LOCK_WAIT_SEC = 30.0
 BLOB_KINDS = ("eap-tls-ca", "eap-tls-cert")
 MAX_BLOB_BYTES = 64 << 10
 FORMAT = "hcdf-trust-macsec-store"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 MAX_STORE_BYTES = 512 << 20
 CKN_BYTES = 16
 
@@ -116,6 +124,7 @@ def now_utc() -> datetime:
     return datetime.now(UTC).replace(microsecond=0)
 
 
+@functools.lru_cache(maxsize=4096)  # a store holds few distinct times (a generate run stamps one)
 def fmt_time(t: datetime) -> str:
     return t.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
@@ -190,7 +199,7 @@ class Entries(MutableMapping[str, Entry]):
     An export touches a handful of a large store's entries; everything else stays raw.
     """
 
-    def __init__(self, raw: dict[str, Any], *, source: str) -> None:
+    def __init__(self, raw: dict[str, str], *, source: str) -> None:
         self._raw = raw
         self._parsed: dict[str, Entry] = {}
         self._source = source
@@ -200,7 +209,9 @@ class Entries(MutableMapping[str, Entry]):
         if entry is None:
             if ca_id not in self._raw:
                 raise KeyError(ca_id)
-            entry = self._parsed[ca_id] = _entry(ca_id, self._raw.pop(ca_id), source=self._source)
+            entry = self._parsed[ca_id] = _entry(
+                ca_id, _line(ca_id, self._raw.pop(ca_id), self._source), source=self._source
+            )
         return entry
 
     def __setitem__(self, ca_id: str, entry: Entry) -> None:
@@ -220,6 +231,35 @@ class Entries(MutableMapping[str, Entry]):
 
     def __contains__(self, ca_id: object) -> bool:
         return ca_id in self._parsed or ca_id in self._raw
+
+
+class Background:
+    """Run ``fn`` in a thread at once; :meth:`result` waits for it and returns or raises what it did.
+
+    Opening a store is mostly scrypt and hashing, which release the GIL, so it overlaps with
+    resolving and verifying the description. Nothing changes in what is checked or in which
+    error comes first: the caller asks for the store only once the description is verified
+    and planned (a description error is reported as when the store is opened afterwards),
+    and no key is decrypted before that.
+    """
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._value: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(fn,), name="hcdf-trust-open-store", daemon=True)
+        self._thread.start()
+
+    def _run(self, fn: Callable[[], Any]) -> None:
+        try:
+            self._value = fn()
+        except BaseException as exc:  # re-raised in the caller's thread by result()
+            self._error = exc
+
+    def result(self) -> Any:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
@@ -272,12 +312,21 @@ class KeyStore:
         path = cls.file_in(folder)
         source = str(path)
         raw = read_input(path, limit=MAX_STORE_BYTES, what="key store")
+        header, _, lines = raw.partition(b"\n")
         try:
-            doc = json.loads(raw)
+            doc = json.loads(header)
         except (ValueError, RecursionError):
-            raise KeyStoreFormatError("the key store is not valid JSON", file=source) from None
+            raise KeyStoreFormatError("the key store does not start with a JSON header", file=source) from None
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise KeyStoreFormatError("not an hcdf-trust MACsec key store", file=source, expected=FORMAT)
+        if doc.get("version") == 1:
+            raise KeyStoreFormatError(
+                "key store format version 1 is not read by this hcdf-trust (version 2 authenticates the "
+                "file's bytes): make a new store with `macsec generate --store NEW_DIR` and export the devices again",
+                file=source,
+                expected=str(FORMAT_VERSION),
+                actual="1",
+            )
         if doc.get("version") != FORMAT_VERSION:
             raise KeyStoreFormatError(
                 "unknown key store format version",
@@ -296,16 +345,12 @@ class KeyStore:
                 actual=wrapper.method,
             )
         dek = wrapper.unwrap(wrap, _wrap_aad(store_id), source=source)
-        mac = doc.get("mac")
-        if not isinstance(mac, str) or not hmac.compare_digest(mac, _mac(dek, doc)):
+        if not _mac_matches(dek, raw, doc.get("mac")):
             raise KeyStoreIntegrityError(
                 "the key store's metadata does not match its MAC: it was changed outside hcdf-trust", file=source
             )
         store = cls(path, store_id=store_id, wrap=wrap, dek=dek)
-        assocs = doc.get("associations")
-        if not isinstance(assocs, dict):
-            raise KeyStoreFormatError("the key store has no associations object", file=source)
-        store.entries = Entries(assocs, source=source)
+        store.entries = Entries(_index(lines, source=source), source=source)
         return store
 
     # -- keys --------------------------------------------------------------------------------
@@ -375,25 +420,21 @@ class KeyStore:
     # -- write -----------------------------------------------------------------------------
 
     def serialize(self, now: datetime) -> bytes:
-        doc: dict[str, Any] = {
-            "format": FORMAT,
-            "version": FORMAT_VERSION,
-            "store_id": self.store_id,
-            "wrap": self.wrap,
-            "associations": {
-                e.ca_id: {
-                    "kind": e.kind,
-                    "cipher": e.cipher,
-                    "key_bytes": e.key_bytes,
-                    "source": {"file": e.source_file, "line": e.source_line},
-                    "generations": [g.to_json(now) for g in e.generations],
-                }
-                for e in sorted(self.entries.values(), key=lambda e: e.ca_id)
-            },
-        }
-        doc["mac"] = _mac(self._dek, doc)
+        head = {"format": FORMAT, "version": FORMAT_VERSION, "store_id": self.store_id, "wrap": self.wrap}
         # compact: json's C encoder (indent= falls back to the pure-Python one)
-        return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode() + b"\n"
+        encode = json.JSONEncoder(sort_keys=True, separators=(",", ":")).encode
+        lines = [encode(head)]
+        for e in sorted(self.entries.values(), key=lambda e: e.ca_id):
+            entry = {
+                "kind": e.kind,
+                "cipher": e.cipher,
+                "key_bytes": e.key_bytes,
+                "source": {"file": e.source_file, "line": e.source_line},
+                "generations": [g.to_json(now) for g in e.generations],
+            }
+            lines.append(encode([e.ca_id, entry]))
+        body = ("\n".join(lines) + "\n").encode()
+        return b'{"mac":"' + _mac(self._dek, body).encode() + b'",' + body[1:]
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
@@ -404,12 +445,55 @@ def _wrap_aad(store_id: str) -> bytes:
     return json.dumps([FORMAT, FORMAT_VERSION, store_id]).encode()
 
 
-def _mac(dek: bytes, doc: dict[str, Any]) -> str:
-    body = {k: v for k, v in doc.items() if k != "mac"}
+def _mac(dek: bytes, body: bytes) -> str:
+    """HMAC-SHA256 of a serialised body (the store without its ``mac``), under a key derived from the data key."""
     mac_key = hmac.new(dek, b"hcdf-trust macsec store mac", hashlib.sha256).digest()
-    return hmac.new(
-        mac_key, json.dumps(body, sort_keys=True, separators=(",", ":")).encode(), hashlib.sha256
-    ).hexdigest()
+    return hmac.new(mac_key, body, hashlib.sha256).hexdigest()
+
+
+_MAC_FIRST = re.compile(rb'\{"mac":"([0-9a-f]{64})",')
+
+
+def _mac_matches(dek: bytes, raw: bytes, parsed_mac: Any) -> bool:
+    """Whether ``raw`` is ``{"mac":HEX,`` followed by the rest of a body (``{`` + that rest) whose MAC is HEX."""
+    head = _MAC_FIRST.match(raw)
+    if head is None or parsed_mac != head.group(1).decode():
+        return False
+    return hmac.compare_digest(head.group(1).decode(), _mac(dek, b"{" + raw[head.end() :]))
+
+
+_ID = json.JSONDecoder()
+
+
+def _index(lines: bytes, *, source: str) -> dict[str, str]:
+    """CA id -> its (still unparsed) line, for the association lines after the header."""
+    try:
+        text = lines.decode()
+    except UnicodeDecodeError:
+        raise KeyStoreFormatError("the key store is not UTF-8", file=source) from None
+    if not text.endswith("\n") and text:
+        raise KeyStoreFormatError("the key store does not end with a newline", file=source)
+    out: dict[str, str] = {}
+    for number, line in enumerate(text[:-1].split("\n") if text else [], start=2):
+        try:
+            ca_id = _ID.raw_decode(line, 1)[0] if line.startswith('["') else None
+        except ValueError:
+            ca_id = None
+        if not isinstance(ca_id, str) or ca_id in out:
+            raise KeyStoreFormatError(f"line {number} of the key store is not an association", file=source)
+        out[ca_id] = line
+    return out
+
+
+def _line(ca_id: str, line: str, source: str) -> Any:
+    """The association object of one ``[CA_ID, {...}]`` line."""
+    try:
+        item = json.loads(line)
+    except (ValueError, RecursionError):
+        item = None
+    if not isinstance(item, list) or len(item) != 2 or item[0] != ca_id:
+        raise KeyStoreFormatError(f"association {ca_id!r} is malformed", file=source)
+    return item[1]
 
 
 def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:

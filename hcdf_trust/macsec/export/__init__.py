@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from datetime import datetime
 
 from ...errors import InputError, Notice
-from .. import eaptls
 from ..kdf import kdf
 from ..plan import PN_WARN_MBPS, Association, Plan, is_xpn, pn_lifetime_seconds
 from ..store import Entry, Generation, KeyStore
@@ -150,6 +149,8 @@ def collect(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> tuple
         assert ca.policy is not None
         eap = None
         if ca.policy.key_agreement == "eap-tls":
+            from .. import eaptls  # cryptography.x509: only for eap-tls associations
+
             eap = _eap(store, ca, device, now)
             entry, keys = store.entries[eaptls.cert_id(eap.network, device)], []
         else:
@@ -206,6 +207,8 @@ def mesh_keys(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> lis
 
 
 def _eap(store: KeyStore, ca: Association, device: str, now: datetime) -> Eap:
+    from .. import eaptls
+
     network = ca.elements[0].network
     parts = []
     for entry_id in (eaptls.ca_id(network), eaptls.cert_id(network, device)):
