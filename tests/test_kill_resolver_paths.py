@@ -212,3 +212,15 @@ def test_strict_names_a_weak_pin_with_every_field(cli, tmp_path):
     assert err["code"] == "weak-pin" and Path(err["file"]).name == "robot.hcdf" and err["line"] == 3
     assert Path(err["url"]).name == "m.glb"
     assert err["expected"] == "a full 64-digit SHA-256" and err["actual"] == sha(b"abc")[:16]
+
+
+def test_update_of_an_unknown_name_says_what_it_expected(cli, tmp_path):
+    (tmp_path / "m.glb").write_bytes(b"abc")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("m.glb")))
+    assert _resolve(cli, doc, tmp_path / "c").exit_code == 0
+    r = _resolve(cli, doc, tmp_path / "c", "--update", "nope.glb")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert err["expected"] == "a uri as written in a document, or a url of the lock file"
+    assert err["actual"] == "nope.glb" and Path(err["file"]).name == "robot.hcdf.lock"
