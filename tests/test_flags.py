@@ -274,19 +274,20 @@ def test_a_malformed_url_is_an_input_error(cli, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "args",
+    ("args", "named"),
     [
-        ("--base", f"https://user:{SECRET}@models.example/"),
-        ("--mirror", f"https://models.example/=https://user:{SECRET}@mirror.example/"),
-        ("--mirror", f"https://user:{SECRET}@models.example/=mirror"),
+        (("--base", f"https://user:{SECRET}@models.example/"), "--base"),
+        (("--mirror", f"https://models.example/=https://user:{SECRET}@mirror.example/"), "--mirror target"),
+        (("--mirror", f"https://user:{SECRET}@models.example/=mirror"), "--mirror prefix"),
     ],
 )
-def test_a_flag_with_credentials_is_refused(cli, robot, args):
+def test_a_flag_with_credentials_is_refused(cli, robot, args, named):
     Path("mirror").mkdir()
     result = resolve(cli, robot, *args, "--json")
     assert result.exit_code == 3, result.stdout + result.stderr
     [error] = result.json["errors"]
     assert error["code"] == "url-credentials" and "***@" in error["message"]
+    assert error["message"].startswith(f"{named} https://"), error["message"]  # says which flag
     _assert_no_secret(result)
 
 
