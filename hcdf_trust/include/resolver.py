@@ -48,7 +48,7 @@ from ..errors import (
     UnpinnedError,
     WeakPinError,
 )
-from ..localfile import absolute, hash_local, open_local, read_bounded
+from ..localfile import ConfinedFolders, absolute, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
@@ -281,6 +281,7 @@ class _Run:
         self.on_start = on_start
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
+        self.folders = ConfinedFolders()
         self._fetcher: HttpFetcher | None = None
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
@@ -307,6 +308,7 @@ class _Run:
             return self._fetcher
 
     def close(self) -> None:
+        self.folders.close()
         if self._fetcher is not None:
             self._fetcher.close()
 
@@ -559,7 +561,7 @@ class _Run:
                     data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
-                hashed = hash_local(loc.path, root, file=file, line=line)
+                hashed = self.folders.hash(loc.path, root, file=file, line=line)
             self._record(art, hashed, "file" if art.url.startswith("file://") else "mirror")
             return data
         assert loc.remote is not None
