@@ -7,6 +7,7 @@ need them, so ``--help`` and an offline ``verify`` start fast.
 from __future__ import annotations
 
 import functools
+import gc
 import json
 import math
 import os
@@ -246,12 +247,19 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="hcdf-trust")
-def main() -> None:
+@click.pass_context
+def main(ctx: click.Context) -> None:
     """Verify, lock and flatten everything an HCDF robot description references.
 
     Exit codes: 0 success, 1 integrity failure (digest mismatch, lock drift, bad
     signature), 2 usage error, 3 input error (missing or malformed file, network).
     """
+    # A run builds a few objects per reference and keeps them to its end: the cyclic
+    # collector would rescan them over and over and free nothing (60 ms of a 10,000-file
+    # resolve). Off for the one command; reference counting still frees as it goes.
+    if gc.isenabled():
+        gc.disable()
+        ctx.call_on_close(gc.enable)
 
 
 @main.command()
