@@ -100,3 +100,11 @@ def test_in_process_callers_are_not_ended(tmp_path):
     assert r.exit_code == 0
     r = CliRunner().invoke(main, ["verify", str(tmp_path / "none.hcdf")])
     assert r.exit_code == 3
+
+
+def test_main_called_with_arguments_returns_by_system_exit(tmp_path):
+    """An embedder's main([...]) raises SystemExit as click does: only main() ends the process."""
+    code = "import sys\nfrom hcdf_trust.cli import main\ntry:\n    main(['--version'])\nexcept SystemExit as e:\n"
+    code += "    print('returned', e.code)\n"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "returned 0" in r.stdout, r

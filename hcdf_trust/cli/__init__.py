@@ -258,14 +258,17 @@ def keep_until_exit(obj: object) -> None:
 
 
 class _Main(click.Group):
-    """The ``hcdf-trust`` group. As the console script, it ends the process with
-    ``os._exit`` once the command is done, its output flushed and its atexit handlers
-    run: tearing the interpreter down frees every module and object one by one
-    (~20 ms, more after a large tree) and changes nothing a user can see. With another
-    thread still alive, or output that cannot be flushed, the process exits as usual."""
+    """The ``hcdf-trust`` group. As the console script (``main()``, arguments from
+    ``sys.argv``), it ends the process with ``os._exit`` once the command is done, its
+    output flushed and its atexit handlers run: tearing the interpreter down frees every
+    module and object one by one (~20 ms, more after a large tree) and changes nothing
+    a user can see. With another thread still alive, or output that cannot be flushed,
+    the process exits as usual; ``main(args)`` and ``main.main()`` always return or raise."""
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         global _KEPT
+        if args or kwargs:
+            return self.main(*args, **kwargs)
         _KEPT = []
         try:
             return self.main(*args, **kwargs)
