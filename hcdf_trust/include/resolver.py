@@ -121,7 +121,7 @@ class Artifact:
     source: str | None = None  # file | mirror | cache | network
     error: HcdfTrustError | None = None
     inode: tuple[int, int] | None = None  # (st_dev, st_ino) of the local file hashed, when known
-
+    lock_url: str | None = field(default=None, repr=False, compare=False)  # set by the run (Resolution.lock_url)
 
     @property
     def url(self) -> str:
@@ -182,9 +182,9 @@ class Resolution:
                     ref = docs[use.doc_url] = to_lock(use.doc_url)
                 refs.add(ref)
             referenced_from = tuple(refs) if len(refs) == 1 else tuple(sorted(refs))
-            entries.append(
-                lockfile.LockEntry(art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, referenced_from)
-            )
+            url = art.lock_url or to_lock(art.location.url)
+            # kind._value_: Enum's .value is a Python-level descriptor, 10,000 calls here
+            entries.append(lockfile.LockEntry(art.kind._value_, art.uri, url, art.sha256, art.size, referenced_from))
         if edited:
             changed = {
                 to_lock(url): hash_bytes(data) for url, data in edited.items() if data != self.documents[url].data
@@ -416,7 +416,12 @@ class _Run:
         return (loc.path, os.fspath(loc.root or os.path.dirname(loc.path))) in self._prefetch.paths
 
     def _entry(self, art: Artifact) -> lockfile.LockEntry | None:
-        return self.lock.get(self._to_lock(art.url)) if self.lock else None
+        if not self.lock:
+            return None
+        key = art.lock_url
+        if key is None:
+            key = art.lock_url = self._to_lock(art.location.url)
+        return self.lock.get(key)
 
     def _is_updating(self, art: Artifact) -> bool:
         """Does ``--update`` re-pin this artifact? (All, or named by its lock url or a uri as written.)"""
