@@ -108,3 +108,16 @@ def test_main_called_with_arguments_returns_by_system_exit(tmp_path):
     code += "    print('returned', e.code)\n"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "returned 0" in r.stdout, r
+
+
+def test_a_resolve_imports_no_other_verb_group(tmp_path):
+    doc = _tree(tmp_path, 1)
+    code = (
+        "import sys\nfrom hcdf_trust.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit as e:\n"
+        "    print(e.code, sorted(m for m in sys.modules if m.startswith('hcdf_trust.cli.')))\n"
+    )
+    args = ["resolve", str(doc), "--cache-dir", str(tmp_path / "c")]
+    r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "0 []", r
+    r = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True, text=True, timeout=60)
+    assert "hcdf_trust.cli.ota" in r.stdout and "ota " in r.stdout  # --help lists every group (and loads them)
