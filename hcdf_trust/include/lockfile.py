@@ -36,6 +36,7 @@ KINDS = frozenset({"include", "model", "mesh", "stream-profile", "firmware-manif
 _KEYS = frozenset({"kind", "uri", "url", "sha256", "size", "referenced_from"})
 _TOP = frozenset({"artifacts", "lock_version", "root"})
 itemgetter = operator.itemgetter("kind", "uri", "url", "sha256", "size", "referenced_from")
+_BY_URL = operator.attrgetter("url", "kind")  # render's order (in C: 10,000 entries)
 
 
 def default_path(doc: str | os.PathLike[str]) -> Path:
@@ -80,7 +81,7 @@ def render(entries: list[LockEntry], *, root: str) -> bytes:
     ensure_ascii=False)``, built from json's own C string escaper (the indenting
     encoder is pure Python: 10,000 entries cost more than resolving them).
     """
-    lines = [_entry_json(e) for e in sorted(entries, key=lambda e: (e.url, e.kind))]
+    lines = [_entry_json(e) for e in sorted(entries, key=_BY_URL)]
     body = ",\n".join(lines)
     artifacts = f"[\n{body}\n]" if lines else "[]"
     text = f'{{"artifacts": {artifacts},\n"lock_version": {LOCK_VERSION},\n"root": {encode_basestring(root)}}}\n'

@@ -477,7 +477,7 @@ class _Run:
         source, doc_url, artifacts, locate = doc.source, doc_loc.url, res.artifacts, self.locator.locate
         for ref in doc.references():
             kind = ref.kind
-            if not kind.fetchable:
+            if kind in _NOT_FETCHED:
                 res.others.append((source, ref))
                 continue
             try:
@@ -849,6 +849,10 @@ def check_artifact(
             else:
                 warnings.append(where("weak-pin", f"{use.ref.uri} has a weak pin ({bits} bits): sha256 {sha}"))
     return errors, warnings
+
+
+# Kind.fetchable is a Python-level property; `in` on a tuple compares by identity first.
+_NOT_FETCHED = tuple(kind for kind in Kind if not kind.fetchable)
 
 
 class _Workers:
