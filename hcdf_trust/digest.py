@@ -183,21 +183,23 @@ def read_small(fd: int, size: int) -> bytes:
     return b"".join(parts)
 
 
-def hash_fd(fd: int, *, size: int | None = None) -> Hashed:
+def hash_fd(fd: int, *, size: int | None = None, inode: tuple[int, int] | None = None) -> Hashed:
     """Hash an open file descriptor from its current position to end of file.
 
     Reads straight from ``fd`` (no duplicate descriptor, no file object): small
     files in one read, larger ones with ``readv`` into this thread's buffer. Both
     the reads and the hash updates run without the GIL, so threads hash in parallel.
+    ``inode`` is recorded in the result (see :class:`Hashed`).
     """
     if size is None:
         size = os.fstat(fd).st_size
     if size <= SMALL_FILE:
-        return hash_bytes(read_small(fd, size))
+        data = read_small(fd, size)
+        return Hashed(hashlib.sha256(data).hexdigest(), len(data), inode)
     h = hashlib.sha256()
     view = _buffer()
     size = 0
     while n := os.readv(fd, [view]):
         size += n
         h.update(view[:n])
-    return Hashed(h.hexdigest(), size)
+    return Hashed(h.hexdigest(), size, inode)

@@ -11,13 +11,19 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
 import os
 import stat
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 from .digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
 from .errors import InputError, NotFoundError, PathEscapeError, display_path
+
+# O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
+# reads from a regular file, the only kind we go on to read.
+_FLAGS = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC
 
 
 def open_regular(
@@ -55,9 +61,8 @@ def open_checked(
     fd = _open(path, file=file, line=line, what="file")
     try:
         real = os.readlink(f"/proc/self/fd/{fd}")
-        real_root = _realpath(os.path.abspath(root))  # absolute: the cache must not outlive a chdir
-        if real != real_root and not real.startswith(real_root.rstrip("/") + "/"):
-            shown_root = display_path(real_root)
+        if not _inside(real, root):
+            shown_root = display_path(_realpath(os.path.abspath(root)))
             raise PathEscapeError(
                 f"{display_path(path)} resolves to {display_path(real)}, outside the root {shown_root} "
                 "(symlink escape)",
@@ -74,9 +79,7 @@ def open_checked(
 
 def _open(path: Path | str, *, file: str | None, line: int | None, what: str) -> int:
     try:
-        # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
-        # reads from a regular file, the only kind we go on to read.
-        return os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        return os.open(path, _FLAGS)
     except FileNotFoundError:
         raise NotFoundError(f"{display_path(path)}: no such {what}", file=file, line=line, url=str(path)) from None
     except OSError as exc:  # ELOOP (a symlink loop), EACCES, ENOTDIR, ...
@@ -110,10 +113,98 @@ def hash_local(path: Path | str, root: Path | str, *, file: str | None = None, l
     """Hash a confined local file in constant memory (the hot path for model files)."""
     fd, st = open_checked(path, root, file=file, line=line)
     try:
-        hashed = hash_fd(fd, size=st.st_size)
+        return hash_fd(fd, size=st.st_size, inode=(st.st_dev, st.st_ino))
     finally:
         os.close(fd)
-    return Hashed(hashed.sha256, hashed.size, (st.st_dev, st.st_ino))
+
+
+class ConfinedFolders:
+    """:func:`open_checked` for many files of a few folders, with a quarter of its system calls.
+
+    The first file of a folder opens the folder (``O_PATH``) and checks the real path of
+    that descriptor against the root, once; each of its files is then opened relative
+    to the descriptor with ``O_NOFOLLOW``, so it is an entry of the very folder that
+    was checked and not a link: as strict as the check on each file's descriptor, with
+    no path looked up twice. Anything else (a file that is a symlink, a folder outside
+    the root or that cannot be opened, a missing file) goes through :func:`open_checked`,
+    which follows links that stay inside and names what it refuses. Thread-safe;
+    :meth:`close` once the run's files are all read.
+    """
+
+    # Folders kept open per run; the files of further folders take open_checked's path.
+    MAX_FOLDERS = 128
+
+    def __init__(self) -> None:
+        self._folders: dict[tuple[str, str], int | None] = {}  # (folder, root) -> descriptor
+        self._lock = threading.Lock()
+
+    def open(
+        self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None
+    ) -> tuple[int, os.stat_result]:
+        """:func:`open_checked` (same result, same errors)."""
+        folder, sep, name = path.rpartition("/")
+        dirfd = self._folder(folder or "/", root) if sep and name not in ("", ".", "..") else None
+        if dirfd is not None:
+            try:
+                fd = os.open(name, _FLAGS | os.O_NOFOLLOW, dir_fd=dirfd)
+            except OSError:
+                pass  # ELOOP (a symlink), ENOENT, ...: open_checked follows it or names the error
+            else:
+                st = os.fstat(fd)
+                if stat.S_ISREG(st.st_mode):
+                    return fd, st
+                try:
+                    _regular(fd, path, file=file, line=line)  # raises, naming what it is
+                finally:
+                    os.close(fd)
+        return open_checked(path, root, file=file, line=line)
+
+    def hash(self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
+        """:func:`hash_local` through :meth:`open`."""
+        fd, st = self.open(path, root, file=file, line=line)
+        try:
+            size = st.st_size
+            if size <= SMALL_FILE:  # hash_fd's small-file path, inline: 10,000 files a run
+                data = read_small(fd, size)
+                return Hashed(hashlib.sha256(data).hexdigest(), len(data), (st.st_dev, st.st_ino))
+            return hash_fd(fd, size=size, inode=(st.st_dev, st.st_ino))
+        finally:
+            os.close(fd)
+
+    def _folder(self, folder: str, root: Path | str) -> int | None:
+        """A descriptor of ``folder`` when its real path lies inside ``root``; else None."""
+        key = (folder, os.fspath(root))
+        try:
+            return self._folders[key]
+        except KeyError:
+            pass
+        with self._lock:
+            if key in self._folders or len(self._folders) >= self.MAX_FOLDERS:
+                return self._folders.get(key)
+            dirfd: int | None = None
+            try:
+                dirfd = os.open(folder, os.O_PATH | os.O_DIRECTORY | os.O_CLOEXEC)
+                inside = _inside(os.readlink(f"/proc/self/fd/{dirfd}"), root)
+            except OSError:
+                inside = False
+            if dirfd is not None and not inside:
+                os.close(dirfd)
+                dirfd = None
+            self._folders[key] = dirfd
+            return dirfd
+
+    def close(self) -> None:
+        with self._lock:
+            for dirfd in self._folders.values():
+                if dirfd is not None:
+                    os.close(dirfd)
+            self._folders.clear()
+
+
+def _inside(real: str, root: Path | str) -> bool:
+    """Is the real path ``real`` the root or below it (by the root's real path)?"""
+    real_root = _realpath(os.path.abspath(root))  # absolute: the cache must not outlive a chdir
+    return real == real_root or real.startswith(real_root.rstrip("/") + "/")
 
 
 @functools.lru_cache(maxsize=64)

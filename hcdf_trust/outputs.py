@@ -260,9 +260,13 @@ def protect_inputs(
         plan.protect(doc, what="the root document")
     if res.root_location.path is not None:
         plan.protect(res.root_location.path, what="the root document")
+    names: dict[str, str] = {}  # what each kind of artifact is called, once per kind (10,000 artifacts)
     for art in res.artifacts.values():
         if art.location.path is not None:
-            what = "an included document" if art.kind.value == "include" else f"a verified {art.kind.value} file"
+            kind = art.kind._value_  # Enum's .value is a Python-level descriptor
+            what = names.get(kind)
+            if what is None:
+                what = names[kind] = "an included document" if kind == "include" else f"a verified {kind} file"
             plan.protect(art.location.path, what=what, inode=art.inode)
     if options is not None and options.ca_bundle:
         plan.protect(options.ca_bundle, what="the CA bundle")

@@ -48,11 +48,12 @@ from ..errors import (
     UnpinnedError,
     WeakPinError,
 )
-from ..localfile import absolute, hash_local, open_local, read_bounded
+from ..localfile import ConfinedFolders, absolute, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
-from . import lockfile
+from . import lockfile, prefetch
 from .locate import Location, Locator, display_path, explain_missing, file_url
+from .prefetch import PARALLEL_MIN_BYTES, Prefetch
 
 if TYPE_CHECKING:
     from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
@@ -62,9 +63,8 @@ DEFAULT_MAX_DEPTH = 16
 DEFAULT_MAX_BYTES = 4 << 30
 DEFAULT_TIMEOUT = 30.0
 DEFAULT_JOBS = 16
-# Local files and cached blobs at least this large are hashed on a thread per core;
-# smaller ones in the resolving thread (see _Run._plan).
-PARALLEL_MIN_BYTES = 256 << 10
+# Local files and cached blobs at least PARALLEL_MIN_BYTES large (prefetch.py) are hashed
+# on a thread per core; smaller ones in the resolving thread (see _Run._plan).
 try:
     _CORES = max(1, len(os.sched_getaffinity(0)))
 except AttributeError:  # not on Linux
@@ -120,7 +120,7 @@ class Artifact:
     source: str | None = None  # file | mirror | cache | network
     error: HcdfTrustError | None = None
     inode: tuple[int, int] | None = None  # (st_dev, st_ino) of the local file hashed, when known
-
+    lock_url: str | None = field(default=None, repr=False, compare=False)  # set by the run (Resolution.lock_url)
 
     @property
     def url(self) -> str:
@@ -181,9 +181,9 @@ class Resolution:
                     ref = docs[use.doc_url] = to_lock(use.doc_url)
                 refs.add(ref)
             referenced_from = tuple(refs) if len(refs) == 1 else tuple(sorted(refs))
-            entries.append(
-                lockfile.LockEntry(art.kind.value, art.uri, to_lock(art.url), art.sha256, art.size, referenced_from)
-            )
+            url = art.lock_url or to_lock(art.location.url)
+            # kind._value_: Enum's .value is a Python-level descriptor, 10,000 calls here
+            entries.append(lockfile.LockEntry(art.kind._value_, art.uri, url, art.sha256, art.size, referenced_from))
         if edited:
             changed = {
                 to_lock(url): hash_bytes(data) for url, data in edited.items() if data != self.documents[url].data
@@ -281,6 +281,9 @@ class _Run:
         self.on_start = on_start
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
+        self.folders = ConfinedFolders()
+        self._prefetch: Prefetch | None = None
+        self._switch = sys.getswitchinterval()
         self._fetcher: HttpFetcher | None = None
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
@@ -308,6 +311,11 @@ class _Run:
 
     def close(self) -> None:
         self.store.abandon()  # downloads of workers still running when an interrupt stopped us
+        prefetch.take_early("", "")  # one started for a run that never read its lock: stopped
+        if self._prefetch is not None:
+            self._prefetch.stop()
+            sys.setswitchinterval(self._switch)
+        self.folders.close()
         if self._fetcher is not None:
             self._fetcher.close()
 
@@ -331,6 +339,7 @@ class _Run:
         try:
             self._load_lock(res)
             lock_error = None
+            self._start_prefetch(lock_path, locator.root)
         except HcdfTrustError as exc:
             # Reported after the walk, which writes nothing (the cache only takes content
             # that matches its pins): a "lock" that is really one of the tree's inputs
@@ -385,8 +394,34 @@ class _Run:
         names = set(self.o.update)
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
 
+    def _start_prefetch(self, lock_path: Path, root: Path) -> None:
+        """Hash the lock's large local files during the walk (prefetch.py), or adopt the
+        prefetch the console script started for this lock and root."""
+        early = prefetch.take_early(lock_path, root)
+        threads = min(self.o.jobs, _CORES)
+        if not self.lock or threads <= 1 or (early is None and not prefetch.idle_core(threads)):
+            if early is not None:
+                early.stop()
+            return
+        jobs = prefetch.lock_jobs(self.lock, lock_path.parent, os.fspath(root))
+        if early is not None or jobs:
+            sys.setswitchinterval(min(self._switch, prefetch.SWITCH_INTERVAL))
+            self._prefetch = early or prefetch.Prefetch(jobs, threads=threads)
+
+    def _prefetched(self, art: Artifact) -> bool:
+        """Is the prefetch hashing this artifact's file (under the root :meth:`_obtain` uses)?"""
+        loc = art.location
+        if self._prefetch is None or loc.path is None:
+            return False
+        return (loc.path, os.fspath(loc.root or os.path.dirname(loc.path))) in self._prefetch.paths
+
     def _entry(self, art: Artifact) -> lockfile.LockEntry | None:
-        return self.lock.get(self._to_lock(art.url)) if self.lock else None
+        if not self.lock:
+            return None
+        key = art.lock_url
+        if key is None:
+            key = art.lock_url = self._to_lock(art.location.url)
+        return self.lock.get(key)
 
     def _is_updating(self, art: Artifact) -> bool:
         """Does ``--update`` re-pin this artifact? (All, or named by its lock url or a uri as written.)"""
@@ -443,7 +478,7 @@ class _Run:
         source, doc_url, artifacts, locate = doc.source, doc_loc.url, res.artifacts, self.locator.locate
         for ref in doc.references():
             kind = ref.kind
-            if not kind.fetchable:
+            if kind in _NOT_FETCHED:
                 res.others.append((source, ref))
                 continue
             try:
@@ -471,17 +506,21 @@ class _Run:
         if self.on_start:
             self.on_start(len(artifacts))
         inline, cpu, net = self._plan(artifacts)
+        # Large files the prefetch threads are hashing: taken here once the rest is under way.
+        prefetched = [] if keep or self._prefetch is None else [a for a in cpu if self._prefetched(a)]
+        if prefetched:
+            cpu = [a for a in cpu if not self._prefetched(a)]
         pools: list[_Workers] = []
         # Hashing threads drop the GIL for each 1 MiB read and update, then wait for it
         # while this thread runs Python for small files; at the default 5 ms switch
         # interval they idle most of that wait. 0.5 ms: 1.07 GB robot 0.59 s -> 0.53 s.
         switch = sys.getswitchinterval()
-        sys.setswitchinterval(min(switch, 0.0005))
+        sys.setswitchinterval(min(switch, prefetch.SWITCH_INTERVAL))
         try:
             for work, workers in ((net, self.o.jobs), (cpu, min(self.o.jobs, _CORES))):
                 if work:
                     pools.append(_Workers(functools.partial(self._obtain_one, keep=keep), work, workers))
-            for art in inline:
+            for art in inline + prefetched:
                 self._obtain_one(art, keep)
         finally:
             for pool in pools:
@@ -560,7 +599,8 @@ class _Run:
                     data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
-                hashed = hash_local(loc.path, root, file=file, line=line)
+                done = self._prefetch.result(loc.path, root) if self._prefetch is not None else None
+                hashed = done or self.folders.hash(loc.path, root, file=file, line=line)
             self._record(art, hashed, "file" if art.url.startswith("file://") else "mirror")
             return data
         assert loc.remote is not None
@@ -810,6 +850,10 @@ def check_artifact(
             else:
                 warnings.append(where("weak-pin", f"{use.ref.uri} has a weak pin ({bits} bits): sha256 {sha}"))
     return errors, warnings
+
+
+# Kind.fetchable is a Python-level property; `in` on a tuple compares by identity first.
+_NOT_FETCHED = tuple(kind for kind in Kind if not kind.fetchable)
 
 
 class _Workers:
