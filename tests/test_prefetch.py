@@ -36,12 +36,6 @@ def _tree(tmp_path: Path) -> Path:
     return doc
 
 
-@pytest.fixture(autouse=True)
-def idle(monkeypatch):
-    """As on an idle machine (the prefetch is skipped while every core is busy)."""
-    monkeypatch.setattr(prefetch_module, "idle_core", lambda threads: threads > 1)
-
-
 @pytest.fixture
 def taken(monkeypatch):
     """Every Prefetch.result the resolver asked for: (path, whether it had a result)."""
@@ -124,11 +118,16 @@ def test_prefetch_results_follow_confined_folders(tmp_path):
     root = tmp_path / "robot"
     root.mkdir()
     (root / "a.glb").write_bytes(b"a" * 10)
+    (root / "fifo").parent.mkdir(exist_ok=True)
     os.mkfifo(root / "fifo")
     (tmp_path / "out.glb").write_bytes(b"o")
-    jobs = [(10, str(root / "a.glb"), str(root)), (1, str(root / "fifo"), str(root))]
-    jobs.append((1, str(tmp_path / "out.glb"), str(root)))
-    pre = Prefetch(jobs, threads=2)
+    folders = ConfinedFolders()
+    jobs = [
+        (10, str(root / "a.glb"), str(root)),
+        (1, str(root / "fifo"), str(root)),
+        (1, str(tmp_path / "out.glb"), str(root)),
+    ]
+    pre = Prefetch(folders, jobs, threads=2)
     try:
         got = pre.result(str(root / "a.glb"), root)
         assert got is not None and got.sha256 == sha(b"a" * 10)
@@ -138,10 +137,11 @@ def test_prefetch_results_follow_confined_folders(tmp_path):
         assert pre.result(str(root / "none.glb"), root) is None
     finally:
         pre.stop()
+        folders.close()
 
 
 def test_stop_lets_no_thread_run_past_it(tmp_path, monkeypatch):
-    """stop() closes the prefetch's folder descriptors: no thread may still use them."""
+    """The run closes its folder descriptors after stop(): no prefetch thread may still use them."""
     started, release = threading.Event(), threading.Event()
     real = ConfinedFolders.hash
 
@@ -152,83 +152,13 @@ def test_stop_lets_no_thread_run_past_it(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ConfinedFolders, "hash", slow)
     (tmp_path / "a").write_bytes(b"a")
-    pre = Prefetch([(1, str(tmp_path / "a"), str(tmp_path))] * 50, threads=2)
+    folders = ConfinedFolders()
+    pre = Prefetch(folders, [(1, str(tmp_path / "a"), str(tmp_path))] * 50, threads=2)
     assert started.wait(5)
     threading.Timer(0.2, release.set).start()
     pre.stop()
     assert not any(t.is_alive() for t in pre._threads)
-
-
-def test_a_busy_machine_gets_no_prefetch(tmp_path, monkeypatch, taken):
-    monkeypatch.setattr(prefetch_module, "idle_core", lambda threads: False)
-    doc = _tree(tmp_path)
-    resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c"))).write_lock()
-    assert resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c"))).ok and not taken
-
-
-@pytest.mark.parametrize(
-    ("argv", "started"),
-    [
-        (["hcdf-trust", "resolve", "DOC"], True),
-        (["/x/bin/hcdf-trust", "resolve", "DOC", "--cache-dir", "C", "--offline", "--json"], True),
-        (["hcdf-trust", "verify", "--cache-dir", "C", "DOC"], True),
-        (["python", "resolve", "DOC"], False),  # not the console script (pytest, python -m, embedders)
-        (["hcdf-trust", "pin", "DOC"], False),
-        (["hcdf-trust", "resolve", "DOC", "--lock", "other.lock"], False),  # another lock
-        (["hcdf-trust", "resolve", "DOC", "--root", "/"], False),  # another root
-        (["hcdf-trust", "resolve", "DOC", "--jobs", "1"], False),
-        (["hcdf-trust", "resolve", "DOC", "DOC"], False),
-        (["hcdf-trust", "resolve"], False),
-    ],
-)
-def test_start_early_only_for_a_plain_command_line(tmp_path, monkeypatch, argv, started):
-    doc = _tree(tmp_path)
-    resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c"))).write_lock()
-    monkeypatch.chdir(doc.parent)
-    prefetch_module.start_early(["robot.hcdf" if a == "DOC" else a for a in argv])
-    early = prefetch_module._early
-    try:
-        assert (early is not None) == started
-        if started:
-            assert early[:2] == (str(doc.with_name("robot.hcdf.lock")), str(doc.parent))
-            assert {Path(p).name for p, _ in early[2].paths} == {"big0.glb", "big1.glb", "big2.glb"}
-    finally:
-        assert prefetch_module.take_early("", "") is None and prefetch_module._early is None
-
-
-def test_the_resolver_adopts_the_early_prefetch_of_its_lock_and_root(tmp_path, monkeypatch, taken):
-    doc = _tree(tmp_path)
-    resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c"))).write_lock()
-    monkeypatch.chdir(doc.parent)
-    prefetch_module.start_early(["hcdf-trust", "resolve", "robot.hcdf"])
-    early = prefetch_module._early[2]
-    res = resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c")))
-    assert res.ok and prefetch_module._early is None
-    assert sorted(name for name, hit in taken if hit) == ["big0.glb", "big1.glb", "big2.glb"]
-    assert early._stop  # stopped with the run
-    # another root: the early prefetch is not used, and stopped
-    prefetch_module.start_early(["hcdf-trust", "resolve", "robot.hcdf"])
-    other = prefetch_module._early[2]
-    res = resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c"), root=str(tmp_path)))
-    assert res.ok and other._stop and prefetch_module._early is None
-
-
-def test_a_console_resolve_gives_the_same_lock_with_the_early_prefetch(tmp_path):
-    import subprocess
-    import sys
-
-    doc = _tree(tmp_path)
-    resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c"))).write_lock()
-    lock = doc.with_name("robot.hcdf.lock")
-    before = lock.read_bytes()
-    code = (
-        "import sys\nimport hcdf_trust.include.prefetch as p\np.idle_core = lambda threads: threads > 1\n"
-        "sys.argv = ['hcdf-trust', 'resolve', sys.argv[1], '--cache-dir', sys.argv[2]]\n"
-        "from hcdf_trust.cli import main\nassert p._early is not None\nmain()\n"
-    )
-    r = subprocess.run([sys.executable, "-c", code, str(doc), str(tmp_path / "c")], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert lock.read_bytes() == before
+    folders.close()
 
 
 def test_the_prefetch_module_needs_no_thread_pool():

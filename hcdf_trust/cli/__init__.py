@@ -6,10 +6,6 @@ need them, so ``--help`` and an offline ``verify`` start fast.
 
 from __future__ import annotations
 
-# isort: off
-from . import _early  # noqa: F401 -- first: a resolve starts hashing before click is imported
-# isort: on
-
 import functools
 import gc
 import json

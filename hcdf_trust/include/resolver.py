@@ -51,9 +51,9 @@ from ..errors import (
 from ..localfile import ConfinedFolders, absolute, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
-from . import lockfile, prefetch
+from . import lockfile
 from .locate import Location, Locator, display_path, explain_missing, file_url
-from .prefetch import PARALLEL_MIN_BYTES, Prefetch
+from .prefetch import Prefetch
 
 if TYPE_CHECKING:
     from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
@@ -63,8 +63,9 @@ DEFAULT_MAX_DEPTH = 16
 DEFAULT_MAX_BYTES = 4 << 30
 DEFAULT_TIMEOUT = 30.0
 DEFAULT_JOBS = 16
-# Local files and cached blobs at least PARALLEL_MIN_BYTES large (prefetch.py) are hashed
-# on a thread per core; smaller ones in the resolving thread (see _Run._plan).
+# Local files and cached blobs at least this large are hashed on a thread per core;
+# smaller ones in the resolving thread (see _Run._plan).
+PARALLEL_MIN_BYTES = 256 << 10
 try:
     _CORES = max(1, len(os.sched_getaffinity(0)))
 except AttributeError:  # not on Linux
@@ -311,9 +312,8 @@ class _Run:
 
     def close(self) -> None:
         self.store.abandon()  # downloads of workers still running when an interrupt stopped us
-        prefetch.take_early("", "")  # one started for a run that never read its lock: stopped
         if self._prefetch is not None:
-            self._prefetch.stop()
+            self._prefetch.stop()  # before its folders' descriptors are closed
             sys.setswitchinterval(self._switch)
         self.folders.close()
         if self._fetcher is not None:
@@ -339,7 +339,7 @@ class _Run:
         try:
             self._load_lock(res)
             lock_error = None
-            self._start_prefetch(lock_path, locator.root)
+            self._start_prefetch(lock_path.parent, locator.root)
         except HcdfTrustError as exc:
             # Reported after the walk, which writes nothing (the cache only takes content
             # that matches its pins): a "lock" that is really one of the tree's inputs
@@ -394,19 +394,20 @@ class _Run:
         names = set(self.o.update)
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
 
-    def _start_prefetch(self, lock_path: Path, root: Path) -> None:
-        """Hash the lock's large local files during the walk (prefetch.py), or adopt the
-        prefetch the console script started for this lock and root."""
-        early = prefetch.take_early(lock_path, root)
-        threads = min(self.o.jobs, _CORES)
-        if not self.lock or threads <= 1 or (early is None and not prefetch.idle_core(threads)):
-            if early is not None:
-                early.stop()
+    def _start_prefetch(self, lock_dir: Path, root: Path) -> None:
+        """Start hashing the lock's large local files during the walk (see prefetch.py)."""
+        if self.o.jobs <= 1 or not self.lock:
             return
-        jobs = prefetch.lock_jobs(self.lock, lock_path.parent, os.fspath(root))
-        if early is not None or jobs:
-            sys.setswitchinterval(min(self._switch, prefetch.SWITCH_INTERVAL))
-            self._prefetch = early or prefetch.Prefetch(jobs, threads=threads)
+        jobs = [
+            (e.size, os.path.normpath(os.path.join(lock_dir, e.url)), os.fspath(root))
+            for e in self.lock.values()
+            if e.size >= PARALLEL_MIN_BYTES and e.kind != Kind.INCLUDE.value and "://" not in e.url
+        ]
+        if jobs:
+            # The walk holds the GIL between the hashing threads' reads and updates: hand it
+            # over every 0.5 ms, not every 5 (see _fetch).
+            sys.setswitchinterval(min(self._switch, 0.0005))
+            self._prefetch = Prefetch(self.folders, jobs, threads=min(self.o.jobs, _CORES))
 
     def _prefetched(self, art: Artifact) -> bool:
         """Is the prefetch hashing this artifact's file (under the root :meth:`_obtain` uses)?"""
@@ -515,7 +516,7 @@ class _Run:
         # while this thread runs Python for small files; at the default 5 ms switch
         # interval they idle most of that wait. 0.5 ms: 1.07 GB robot 0.59 s -> 0.53 s.
         switch = sys.getswitchinterval()
-        sys.setswitchinterval(min(switch, prefetch.SWITCH_INTERVAL))
+        sys.setswitchinterval(min(switch, 0.0005))
         try:
             for work, workers in ((net, self.o.jobs), (cpu, min(self.o.jobs, _CORES))):
                 if work:
