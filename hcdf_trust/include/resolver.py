@@ -53,7 +53,6 @@ from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
 from .locate import Location, Locator, display_path, explain_missing, file_url
-from .prefetch import Prefetch
 
 if TYPE_CHECKING:
     from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
@@ -283,8 +282,6 @@ class _Run:
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
         self.folders = ConfinedFolders()
-        self._prefetch: Prefetch | None = None
-        self._switch = sys.getswitchinterval()
         self._fetcher: HttpFetcher | None = None
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
@@ -312,9 +309,6 @@ class _Run:
 
     def close(self) -> None:
         self.store.abandon()  # downloads of workers still running when an interrupt stopped us
-        if self._prefetch is not None:
-            self._prefetch.stop()  # before its folders' descriptors are closed
-            sys.setswitchinterval(self._switch)
         self.folders.close()
         if self._fetcher is not None:
             self._fetcher.close()
@@ -339,7 +333,6 @@ class _Run:
         try:
             self._load_lock(res)
             lock_error = None
-            self._start_prefetch(lock_path.parent, locator.root)
         except HcdfTrustError as exc:
             # Reported after the walk, which writes nothing (the cache only takes content
             # that matches its pins): a "lock" that is really one of the tree's inputs
@@ -393,28 +386,6 @@ class _Run:
         self.lock = lock.entries
         names = set(self.o.update)
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
-
-    def _start_prefetch(self, lock_dir: Path, root: Path) -> None:
-        """Start hashing the lock's large local files during the walk (see prefetch.py)."""
-        if self.o.jobs <= 1 or not self.lock:
-            return
-        jobs = [
-            (e.size, os.path.normpath(os.path.join(lock_dir, e.url)), os.fspath(root))
-            for e in self.lock.values()
-            if e.size >= PARALLEL_MIN_BYTES and e.kind != Kind.INCLUDE.value and "://" not in e.url
-        ]
-        if jobs:
-            # The walk holds the GIL between the hashing threads' reads and updates: hand it
-            # over every 0.5 ms, not every 5 (see _fetch).
-            sys.setswitchinterval(min(self._switch, 0.0005))
-            self._prefetch = Prefetch(self.folders, jobs, threads=min(self.o.jobs, _CORES))
-
-    def _prefetched(self, art: Artifact) -> bool:
-        """Is the prefetch hashing this artifact's file (under the root :meth:`_obtain` uses)?"""
-        loc = art.location
-        if self._prefetch is None or loc.path is None:
-            return False
-        return (loc.path, os.fspath(loc.root or os.path.dirname(loc.path))) in self._prefetch.paths
 
     def _entry(self, art: Artifact) -> lockfile.LockEntry | None:
         if not self.lock:
@@ -507,10 +478,6 @@ class _Run:
         if self.on_start:
             self.on_start(len(artifacts))
         inline, cpu, net = self._plan(artifacts)
-        # Large files the prefetch threads are hashing: taken here once the rest is under way.
-        prefetched = [] if keep or self._prefetch is None else [a for a in cpu if self._prefetched(a)]
-        if prefetched:
-            cpu = [a for a in cpu if not self._prefetched(a)]
         pools: list[_Workers] = []
         # Hashing threads drop the GIL for each 1 MiB read and update, then wait for it
         # while this thread runs Python for small files; at the default 5 ms switch
@@ -521,7 +488,7 @@ class _Run:
             for work, workers in ((net, self.o.jobs), (cpu, min(self.o.jobs, _CORES))):
                 if work:
                     pools.append(_Workers(functools.partial(self._obtain_one, keep=keep), work, workers))
-            for art in inline + prefetched:
+            for art in inline:
                 self._obtain_one(art, keep)
         finally:
             for pool in pools:
@@ -600,8 +567,7 @@ class _Run:
                     data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
-                done = self._prefetch.result(loc.path, root) if self._prefetch is not None else None
-                hashed = done or self.folders.hash(loc.path, root, file=file, line=line)
+                hashed = self.folders.hash(loc.path, root, file=file, line=line)
             self._record(art, hashed, "file" if art.url.startswith("file://") else "mirror")
             return data
         assert loc.remote is not None
