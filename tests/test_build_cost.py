@@ -37,6 +37,17 @@ def test_the_cyclic_collector_is_off_during_a_command_and_back_on_after(tmp_path
     assert seen == [False, False, False]
 
 
+def test_the_collector_stays_on_for_the_verbs_driving_tuf_and_imgtool(monkeypatch):
+    calls = []
+    monkeypatch.setattr(gc, "disable", lambda: calls.append("off"))
+    for verb in ("ota", "registry"):
+        r = CliRunner().invoke(main, [verb, "--help"], catch_exceptions=False)
+        assert r.exit_code == 0, r.output
+    assert calls == []
+    assert CliRunner().invoke(main, ["macsec", "--help"]).exit_code == 0
+    assert calls == ["off"]
+
+
 # -- the console script leaves without tearing the interpreter down -----------------------
 
 _RUN = r"""

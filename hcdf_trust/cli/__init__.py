@@ -338,8 +338,9 @@ def main(ctx: click.Context) -> None:
     # collector would rescan them over and over and free nothing (60 ms of a 10,000-file
     # resolve). Off for the one command; reference counting still frees as it goes.
     # In-process callers get it back; a console-script run ends with it off (turned on,
-    # its first collection would scan every object of the run once more).
-    if gc.isenabled():
+    # its first collection would scan every object of the run once more). Not for the
+    # verbs that drive python-tuf, imgtool and cwt: their object graphs are not ours to vouch for.
+    if gc.isenabled() and ctx.invoked_subcommand not in ("ota", "registry"):
         gc.disable()
         if _KEPT is None:
             ctx.call_on_close(gc.enable)
