@@ -222,3 +222,19 @@ def test_segments_starting_with_x_survive_normalisation_and_mirrors(tmp_path):
     assert remote.locate("https://h.example/m/Xa.glb", doc, file="d", line=1).remote == "https://c.example/x/Xa.glb"
     local = Locator.create(root=tmp_path, mirrors=[("https://h.example/m/", str(tmp_path / "mir"))])
     assert local.locate("https://h.example/m/Xa.glb", doc, file="d", line=1).path == str(tmp_path / "mir" / "Xa.glb")
+
+
+def test_a_missing_parent_relative_reference_gets_no_site_root_hint(cli, tmp_path):
+    """`../x.glb` is relative to its document on purpose: no --base hint, even when a
+    folder above holds a file of that name."""
+    site = tmp_path / "site"
+    (site / "robots").mkdir(parents=True)
+    (site / "nothere").mkdir()
+    (tmp_path / "nothere").mkdir()
+    (tmp_path / "nothere" / "x.glb").write_bytes(b"x")  # a folder above holds ../nothere/x.glb
+    doc = site / "robots" / "robot.hcdf"
+    doc.write_text(hcdf(model("../nothere/x.glb")))
+    r = cli("resolve", doc, "--json", "--cache-dir", tmp_path / "c", "--no-lock", "--root", site)
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert err["code"] == "not-found" and "--base" not in err["message"], err["message"]

@@ -224,3 +224,15 @@ def test_update_of_an_unknown_name_says_what_it_expected(cli, tmp_path):
     [err] = r.json["errors"]
     assert err["expected"] == "a uri as written in a document, or a url of the lock file"
     assert err["actual"] == "nope.glb" and Path(err["file"]).name == "robot.hcdf.lock"
+
+
+def test_two_distinct_include_cycles_are_both_reported(cli, tmp_path):
+    for a, b in (("a", "a2"), ("b", "b2")):
+        (tmp_path / f"{a}.hcdf").write_text(hcdf(include(f"{b}.hcdf", name="x"), name=a))
+        (tmp_path / f"{b}.hcdf").write_text(hcdf(include(f"{a}.hcdf", name="y"), name=b))
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(include("a.hcdf", name="a") + "\n" + include("b.hcdf", name="b")))
+    r = _resolve(cli, doc, tmp_path / "c", "--no-lock")
+    assert r.exit_code != 0, r.stdout
+    cycles = sorted(e["message"] for e in r.json["errors"] if e["code"] == "include-cycle")
+    assert len(cycles) == 2 and "a2.hcdf" in cycles[0] and "b2.hcdf" in cycles[1], cycles

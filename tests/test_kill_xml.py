@@ -108,3 +108,9 @@ def test_sourceline():
     tree = parse_bytes(b"<hcdf>\n\n<a/>\n</hcdf>", source="s")
     assert sourceline(tree.getroot()[0]) == 3
     assert sourceline(etree.Element("x")) is None
+
+
+def test_a_doctype_is_refused_on_line_1():
+    with pytest.raises(XmlError) as info:
+        parse_bytes(b'<!DOCTYPE hcdf>\n<hcdf version="1.0" name="t"/>', source="robot.hcdf")
+    assert info.value.line == 1 and info.value.file == "robot.hcdf"
