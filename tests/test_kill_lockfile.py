@@ -216,3 +216,18 @@ def test_the_lock_keeps_non_ascii_names_readable(tmp_path, cli):
     assert cli("resolve", doc, "--json", "--cache-dir", tmp_path / "c").exit_code == 0
     text = (tmp_path / "robot.hcdf.lock").read_bytes().decode("utf-8")
     assert '"uri": "modèle.glb"' in text
+
+
+@pytest.mark.parametrize(
+    ("body", "found"),
+    [("[]", "a list"), ('"x"', "a string"), ("true", "a boolean"), ("7", "an integer"), ("null", "null")],
+)
+def test_a_lock_that_is_not_an_object_says_what_it_is(cli, tmp_path, body, found):
+    (tmp_path / "m.glb").write_bytes(b"m")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("m.glb")))
+    (tmp_path / "robot.hcdf.lock").write_text(body + "\n")
+    r = cli("verify", doc, "--json")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert err["code"] == "lock-file" and f"expected a JSON object, found {found}" in err["message"], err

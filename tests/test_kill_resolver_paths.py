@@ -236,3 +236,15 @@ def test_two_distinct_include_cycles_are_both_reported(cli, tmp_path):
     assert r.exit_code != 0, r.stdout
     cycles = sorted(e["message"] for e in r.json["errors"] if e["code"] == "include-cycle")
     assert len(cycles) == 2 and "a2.hcdf" in cycles[0] and "b2.hcdf" in cycles[1], cycles
+
+
+@pytest.mark.parametrize("name", ["sub/real.hcdf", "sub\\\\real.hcdf", "..", "."])
+def test_a_link_stub_is_never_followed_out_of_its_folder(cli, tmp_path, name):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "m.glb").write_bytes(b"m")
+    (tmp_path / "sub" / "real.hcdf").write_text(hcdf(model("../m.glb")))
+    stub = tmp_path / "robot.hcdf"
+    stub.write_text(name.replace("\\\\", "\\") + "\n")
+    r = _resolve(cli, stub, tmp_path / "c", "--no-lock")
+    assert r.exit_code == 3, r.stdout  # the stub itself is the document: not XML
+    assert r.json["errors"][0]["code"] in ("xml", "not-hcdf"), r.json["errors"]
