@@ -231,3 +231,15 @@ def test_a_lock_that_is_not_an_object_says_what_it_is(cli, tmp_path, body, found
     assert r.exit_code == 3, r.stdout
     [err] = r.json["errors"]
     assert err["code"] == "lock-file" and f"expected a JSON object, found {found}" in err["message"], err
+
+
+def test_the_lock_of_another_root_names_both_and_the_rule(cli, tmp_path):
+    (tmp_path / "m.glb").write_bytes(b"m")
+    for name in ("a.hcdf", "b.hcdf"):
+        (tmp_path / name).write_text(hcdf(model("m.glb")))
+    assert cli("resolve", tmp_path / "a.hcdf", "--lock", tmp_path / "shared.lock").exit_code == 0
+    r = cli("verify", tmp_path / "b.hcdf", "--lock", tmp_path / "shared.lock", "--json")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert (err["expected"], err["actual"]) == ("b.hcdf", "a.hcdf")
+    assert err["message"].endswith("(each root document has its own lock: <DOC>.lock, or pass --lock)")

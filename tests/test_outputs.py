@@ -511,3 +511,18 @@ def test_an_input_known_by_its_inode_is_also_compared_by_path(tmp_path):
     with pytest.raises(OutputError, match="is a verified model file"):
         plan.add(model, b"lock", flag="--lock")
     assert model.read_bytes() == b"written since"
+
+
+def test_a_rolled_back_symlink_destination_is_a_symlink_again(tmp_path):
+    """The backup is a link to the symlink itself, not to the file it names."""
+    (tmp_path / "target.json").write_text("old")
+    link = tmp_path / "link.json"
+    link.symlink_to("target.json")
+    plan = OutputPlan()
+    plan.add(link, b"new", flag="--x")
+    plan.add(tmp_path / "b" / "c.json", b"y", flag="--y")
+    (tmp_path / "b" / "c.json" / "z").mkdir(parents=True)  # the second rename fails
+    with pytest.raises(OutputError):
+        plan.commit()
+    assert link.is_symlink() and os.readlink(link) == "target.json"
+    assert (tmp_path / "target.json").read_text() == "old"
