@@ -312,6 +312,7 @@ def test_connection_reset_mid_body_is_a_network_error(serve, resolve, work, cach
     assert result.exit_code == 3, result.stdout
     (err,) = result.json["errors"]
     assert err["code"] == "fetch"
+    assert err["file"].endswith("robot.hcdf") and isinstance(err["line"], int)  # names the reference
     assert cache_blobs(cache) == {}
     assert not (work / "robot.hcdf.lock").exists()
 

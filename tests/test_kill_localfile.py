@@ -279,3 +279,19 @@ def test_default_words_name_a_file(tmp_path):
         open_regular(tmp_path)
     with pytest.raises(InputError, match=f"{tmp_path} is a directory"):
         open_checked(tmp_path, tmp_path)
+
+
+def test_absolute_resolves_link_dotdot_as_the_kernel_does(tmp_path):
+    from hcdf_trust.localfile import absolute
+
+    (tmp_path / "real" / "deep").mkdir(parents=True)
+    (tmp_path / "real" / "x.hcdf").write_text("x")
+    (tmp_path / "link").symlink_to(tmp_path / "real" / "deep")
+    given = str(tmp_path / "link" / ".." / "x.hcdf")
+    fd = os.open(given, os.O_RDONLY)  # the kernel's answer
+    try:
+        kernel = os.readlink(f"/proc/self/fd/{fd}")
+    finally:
+        os.close(fd)
+    assert absolute(given) == kernel == str(tmp_path / "real" / "x.hcdf")
+    assert os.path.abspath(given) != kernel  # the lexical answer names another file

@@ -243,3 +243,18 @@ def test_the_lock_of_another_root_names_both_and_the_rule(cli, tmp_path):
     [err] = r.json["errors"]
     assert (err["expected"], err["actual"]) == ("b.hcdf", "a.hcdf")
     assert err["message"].endswith("(each root document has its own lock: <DOC>.lock, or pass --lock)")
+
+
+def test_a_negative_size_in_the_lock_is_named(cli, tmp_path):
+    (tmp_path / "m.glb").write_bytes(b"m")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("m.glb")))
+    assert cli("resolve", doc).exit_code == 0
+    lock = tmp_path / "robot.hcdf.lock"
+    data = json.loads(lock.read_text())
+    data["artifacts"][0]["size"] = -1
+    lock.write_text(json.dumps(data))
+    r = cli("verify", doc, "--json")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert "size must be a non-negative integer, found -1" in err["message"], err

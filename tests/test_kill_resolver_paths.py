@@ -32,6 +32,7 @@ def test_a_lock_flag_naming_the_document_is_refused_and_names_the_lock(cli, tmp_
     assert r.exit_code == 3, r.stdout
     [err] = r.json["errors"]
     assert err["code"] == "output" and err["file"] is not None and Path(err["file"]).name == "robot.hcdf"
+    assert "is the root document: refusing to overwrite an input" in err["message"]
     assert doc.read_bytes() == before
 
 
@@ -248,3 +249,21 @@ def test_a_link_stub_is_never_followed_out_of_its_folder(cli, tmp_path, name):
     r = _resolve(cli, stub, tmp_path / "c", "--no-lock")
     assert r.exit_code == 3, r.stdout  # the stub itself is the document: not XML
     assert r.json["errors"][0]["code"] in ("xml", "not-hcdf"), r.json["errors"]
+
+
+def test_a_link_stub_that_is_not_utf8_is_just_not_a_document(cli, tmp_path):
+    stub = tmp_path / "robot.hcdf"
+    stub.write_bytes(b"\xff\xfe-not-a-name\n")
+    r = _resolve(cli, stub, tmp_path / "c", "--no-lock")
+    assert r.exit_code == 3, r.stdout
+    assert r.json["errors"][0]["code"] in ("xml", "not-hcdf")
+
+
+@pytest.mark.parametrize("uri", ["ftp://h/x.glb", "data:,x", "mailto:x@h"])
+def test_a_reference_of_another_scheme_says_what_is_allowed(cli, tmp_path, uri):
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model(uri)))
+    r = _resolve(cli, doc, tmp_path / "c", "--no-lock")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert err["expected"] == "a relative path or an https URL", err
