@@ -258,3 +258,19 @@ def test_a_negative_size_in_the_lock_is_named(cli, tmp_path):
     assert r.exit_code == 3, r.stdout
     [err] = r.json["errors"]
     assert "size must be a non-negative integer, found -1" in err["message"], err
+
+
+def test_an_extra_top_level_key_in_the_lock_is_named(cli, tmp_path):
+    (tmp_path / "m.glb").write_bytes(b"m")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("m.glb")))
+    assert cli("resolve", doc).exit_code == 0
+    lock = tmp_path / "robot.hcdf.lock"
+    data = json.loads(lock.read_text())
+    data["extra"] = 1
+    lock.write_text(json.dumps(data))
+    r = cli("verify", doc, "--json")
+    assert r.exit_code == 3, r.stdout
+    [err] = r.json["errors"]
+    assert "top-level keys must be ['artifacts', 'lock_version', 'root'], found" in err["message"], err
+    assert "'extra'" in err["message"]
