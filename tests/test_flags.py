@@ -271,6 +271,7 @@ def test_a_malformed_url_is_an_input_error(cli, tmp_path):
     doc = _doc_with(tmp_path, "https://[::1/a.glb")
     result = cli("resolve", doc, "--offline", "--cache-dir", tmp_path / "c", "--no-lock", "--json")
     assert result.exit_code == 3 and "malformed URL" in result.json["errors"][0]["message"]
+    assert isinstance(result.json["errors"][0]["line"], int)  # names the reference's line
 
 
 @pytest.mark.parametrize(
