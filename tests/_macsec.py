@@ -70,3 +70,13 @@ def write_store_lines(path: Path, head: dict[str, Any], assocs: dict[str, Any]) 
     dump = lambda v: json.dumps(v, sort_keys=True, separators=(",", ":"))  # noqa: E731
     body = [dump(head), *(dump([ca, a]) for ca, a in sorted(assocs.items()))]
     path.write_text("\n".join(body) + "\n")
+
+
+def generate(cli: Any, tmp: Path, doc: Path, passphrase: bytes) -> list[Any]:
+    """``macsec generate DOC`` into ``tmp/keys`` with a passphrase file; the store flags for the next verbs."""
+    pp = tmp / "pass"
+    pp.write_bytes(passphrase)
+    base: list[Any] = ["--store", tmp / "keys", "--passphrase-file", pp]
+    r = cli("macsec", "generate", doc, *base)
+    assert r.exit_code == 0, r.stderr
+    return base

@@ -16,7 +16,7 @@ from hcdf_trust.macsec.backends import PassphraseWrapper
 from hcdf_trust.macsec.plan import plan
 from hcdf_trust.macsec.store import KeyStore
 
-from ._macsec import comp, hcdf, humanoid, link, port, tree
+from ._macsec import comp, generate, hcdf, humanoid, link, port, tree
 
 PROJECT = Path(__file__).resolve().parents[1]
 ROBOT = PROJECT / "examples" / "robot" / "robot.hcdf"
@@ -139,10 +139,7 @@ def _xpn_tree(tmp: Path, iface: str = "eth0") -> Path:
 
 def test_iproute2_xpn_has_salt_and_ssci(tmp_path, cli):
     doc = _xpn_tree(tmp_path)
-    pp = tmp_path / "pass"
-    pp.write_bytes(PASS)
-    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
-    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    base = generate(cli, tmp_path, doc, PASS)
     r = cli("macsec", "export", doc, *base, "--device", "a", "--format", "iproute2", "--out", tmp_path / "o")
     assert r.exit_code == 0, r.stderr
     script = (tmp_path / "o" / "macsec-eth0.sh").read_text()
@@ -159,10 +156,7 @@ def test_iproute2_xpn_has_salt_and_ssci(tmp_path, cli):
 @pytest.mark.parametrize("iface", ["eth0;reboot", "../../x", "eth0&#10;reboot"])
 def test_hostile_interface_names_are_refused(tmp_path, cli, iface):
     doc = _xpn_tree(tmp_path, iface=iface)
-    pp = tmp_path / "pass"
-    pp.write_bytes(PASS)
-    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
-    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    base = generate(cli, tmp_path, doc, PASS)
     r = cli("macsec", "export", doc, *base, "--device", "a", "--format", "iproute2", "--out", tmp_path / "o")
     assert r.exit_code == 3 and "cannot be used as a file name" in r.stderr
     assert not (tmp_path / "o").exists()
@@ -294,10 +288,7 @@ def test_two_namespaces_exchange_traffic_over_our_iproute2_export(tmp_path, cli,
             "this kernel has no MACsec (CONFIG_MACSEC unset, no macsec module): 'ip link add type macsec' fails"
         )
     doc = ROBOT
-    pp = tmp_path / "pass"
-    pp.write_bytes(PASS)
-    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
-    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    base = generate(cli, tmp_path, doc, PASS)
     a, b = f"{netns}-a", f"{netns}-b"
     try:
         for ns in (a, b):
@@ -354,10 +345,7 @@ def test_mesh_network_keys_go_to_mesh_nodes_only(tmp_path, cli):
     body += ['<mesh name="skin" standard="802.15.4" network-key-ref="thread">']
     body += ['<node device="a" antenna="x"/><node device="c" antenna="x"/></mesh>', "</network>"]
     doc = tree(tmp_path / "d", {"robot.hcdf": hcdf(*body)})
-    pp = tmp_path / "pass"
-    pp.write_bytes(PASS)
-    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
-    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    base = generate(cli, tmp_path, doc, PASS)
     ks = KeyStore.open(tmp_path / "keys", PassphraseWrapper(PASS))
     entry = ks.entries["mesh-key:thread"]
     mesh_key = ks.key(entry, entry.generations[0]).hex()

@@ -19,7 +19,7 @@ from hcdf_trust.macsec.export import FORMATS, ExportError, collect, mesh_keys, r
 from hcdf_trust.macsec.plan import Plan, plan, plan_resolution
 from hcdf_trust.macsec.store import KeyStore, parse_time
 
-from ._macsec import comp, hcdf, humanoid, link, lock, port, tree
+from ._macsec import comp, generate, hcdf, humanoid, link, lock, port, tree
 
 PROJECT = Path(__file__).resolve().parents[1]
 PASS = b"restricted export passphrase"
@@ -176,10 +176,7 @@ def _two_networks(tmp: Path, other_macsec: str) -> Path:
 
 def test_export_checks_the_device_associations_not_unrelated_networks(tmp_path, cli):
     doc = _two_networks(tmp_path, '<macsec policy="must-secure" key-ref="k2"/>')
-    pp = tmp_path / "pass"
-    pp.write_bytes(PASS)
-    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
-    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    base = generate(cli, tmp_path, doc, PASS)
     # a mistake in a network the device is not on: plan refuses, the device's export does not
     text = doc.read_text().replace('key-ref="k2"', 'key-ref="k2" cipher="gcm-aes-999"')
     doc.write_text(text)
@@ -219,10 +216,7 @@ def test_a_duplicate_link_id_in_another_network_still_refuses_the_export(tmp_pat
 
 def test_an_unknown_device_lists_every_device(tmp_path, cli):
     doc = _two_networks(tmp_path, '<macsec policy="must-secure" key-ref="k2"/>')
-    pp = tmp_path / "pass"
-    pp.write_bytes(PASS)
-    base = ["--store", tmp_path / "keys", "--passphrase-file", pp]
-    assert cli("macsec", "generate", doc, *base).exit_code == 0
+    base = generate(cli, tmp_path, doc, PASS)
     r = cli("macsec", "export", doc, *base, "--device", "zz", "--format", "json", "--out", tmp_path / "o")
     assert r.exit_code == 3 and "one of: a, b, c, d" in r.stderr
 
