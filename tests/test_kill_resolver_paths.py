@@ -267,3 +267,15 @@ def test_a_reference_of_another_scheme_says_what_is_allowed(cli, tmp_path, uri):
     assert r.exit_code == 3, r.stdout
     [err] = r.json["errors"]
     assert err["expected"] == "a relative path or an https URL", err
+
+
+def test_drift_of_an_unpinned_file_says_how_to_accept_it(cli, tmp_path):
+    (tmp_path / "m.glb").write_bytes(b"old")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("m.glb")))
+    assert _resolve(cli, doc, tmp_path / "c").exit_code == 0
+    (tmp_path / "m.glb").write_bytes(b"new")
+    r = _resolve(cli, doc, tmp_path / "c")
+    assert r.exit_code == 1, r.stdout
+    [err] = r.json["errors"]
+    assert "`resolve --update m.glb` accepts the new content" in err["message"], err
