@@ -279,3 +279,23 @@ def test_drift_of_an_unpinned_file_says_how_to_accept_it(cli, tmp_path):
     assert r.exit_code == 1, r.stdout
     [err] = r.json["errors"]
     assert "`resolve --update m.glb` accepts the new content" in err["message"], err
+
+
+def test_folder_descriptors_stay_open_while_a_worker_still_runs(tmp_path):
+    """After an interrupt the run is closed with workers still alive: their folder
+    descriptors must not be closed (and their numbers reused) under them."""
+    import threading
+
+    (tmp_path / "m.glb").write_bytes(b"m")
+    run = resolver._Run(resolver.ResolveOptions(), on_start=None, on_progress=None)
+    run.folders.hash(str(tmp_path / "m.glb"), tmp_path)
+    release = threading.Event()
+    workers = resolver._Workers(lambda _task: release.wait(30), ["x"], 1)  # type: ignore[arg-type,return-value]
+    run._pools.append(workers)
+    run.close()
+    assert run.folders.hash(str(tmp_path / "m.glb"), tmp_path).sha256 == sha(b"m")
+    assert [fd for fd in run.folders._folders.values() if fd is not None]  # still open
+    release.set()
+    workers.join()
+    run.close()
+    assert run.folders._folders == {}

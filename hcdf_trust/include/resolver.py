@@ -282,6 +282,7 @@ class _Run:
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
         self.folders = ConfinedFolders()
+        self._pools: list[_Workers] = []  # every worker pool this run started
         self._fetcher: HttpFetcher | None = None
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
@@ -309,7 +310,11 @@ class _Run:
 
     def close(self) -> None:
         self.store.abandon()  # downloads of workers still running when an interrupt stopped us
-        self.folders.close()
+        # A worker still running (an interrupt stopped the join) may be about to open a file
+        # relative to a folder descriptor: closing it could hand its number to another open,
+        # and the worker would read from the wrong folder. The process exit closes them.
+        if not any(pool.alive() for pool in self._pools):
+            self.folders.close()
         if self._fetcher is not None:
             self._fetcher.close()
 
@@ -488,6 +493,7 @@ class _Run:
             for work, workers in ((net, self.o.jobs), (cpu, min(self.o.jobs, _CORES))):
                 if work:
                     pools.append(_Workers(functools.partial(self._obtain_one, keep=keep), work, workers))
+                    self._pools.append(pools[-1])
             for art in inline:
                 self._obtain_one(art, keep)
         finally:
@@ -850,6 +856,9 @@ class _Workers:
             except BaseException as exc:  # re-raised in the resolving thread
                 self.errors.append(exc)
                 return
+
+    def alive(self) -> bool:
+        return any(thread.is_alive() for thread in self._threads)
 
     def join(self) -> None:
         for thread in self._threads:
