@@ -59,7 +59,7 @@ class Kind(str, Enum):
         return self not in (Kind.FIRMWARE, Kind.EXTENSION)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Reference:
     """One reference found in a document, with where it was written."""
 
@@ -74,6 +74,40 @@ class Reference:
     domain: str | None = None  # extension
     version: str | None = None  # extension / software version
     element: Any = field(default=None, compare=False, repr=False, hash=False)
+
+    def __init__(
+        self,
+        kind: Kind,
+        line: int | None,
+        uri: str | None = None,
+        sha: str | None = None,
+        uri_attr: str | None = None,
+        name: str | None = None,
+        pose: str | None = None,
+        active: bool = True,
+        domain: str | None = None,
+        version: str | None = None,
+        element: Any = None,
+    ) -> None:
+        # The generated frozen __init__ makes one object.__setattr__ call per field (3.8 µs
+        # a reference, a third of the walk); every field at once is a quarter of that.
+        object.__setattr__(
+            self,
+            "__dict__",
+            {
+                "kind": kind,
+                "line": line,
+                "uri": uri,
+                "sha": sha,
+                "uri_attr": uri_attr,
+                "name": name,
+                "pose": pose,
+                "active": active,
+                "domain": domain,
+                "version": version,
+                "element": element,
+            },
+        )
 
 
 def _bool(value: str | None, default: bool = True) -> bool:

@@ -494,14 +494,35 @@ class _Run:
                 if work:
                     pools.append(_Workers(functools.partial(self._obtain_one, keep=keep), work, workers))
                     self._pools.append(pools[-1])
-            for art in inline:
-                self._obtain_one(art, keep)
+            if keep:
+                for art in inline:
+                    self._obtain_one(art, keep)
+            else:
+                self._hash_inline(inline)
         finally:
             for pool in pools:
                 pool.join()
             sys.setswitchinterval(switch)
         for pool in pools:
             pool.reraise()
+
+    def _hash_inline(self, artifacts: list[Artifact]) -> None:
+        """:meth:`_obtain_one` for files that are not parsed, in this thread: a small local
+        file of a checked folder by :meth:`ConfinedFolders.hash_small` (the same checks,
+        less Python per file); anything else, and every error, through :meth:`_obtain_one`."""
+        hash_small = self.folders.hash_small
+        progress = self.on_progress
+        for art in artifacts:
+            loc = art.location
+            path = loc.path
+            hashed = hash_small(path, loc.root or os.path.dirname(path)) if path is not None else None
+            if hashed is None:
+                self._obtain_one(art, False)
+                continue
+            art.sha256, art.size, art.inode = hashed
+            art.source = "file" if art.url.startswith("file://") else "mirror"
+            if progress:
+                progress(1, art.size)
 
     def _plan(self, artifacts: list[Artifact]) -> tuple[list[Artifact], list[Artifact], list[Artifact]]:
         """Split work into (this thread, one thread per core, up to --jobs threads).

@@ -1,0 +1,110 @@
+"""The per-file fast paths of a resolve over many small files, each against the plain path it replaces."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import os
+from pathlib import Path
+
+import pytest
+
+from hcdf_trust.document import Kind, Reference
+from hcdf_trust.include.resolver import ResolveOptions, resolve
+from hcdf_trust.localfile import SMALL_FILE, ConfinedFolders
+
+
+def sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+@pytest.fixture
+def hostile_tree(tmp_path: Path) -> Path:
+    """A document over plain small files and every kind of file the fast path must leave alone."""
+    root, outside = tmp_path / "robot", tmp_path / "secret"
+    (root / "m").mkdir(parents=True)
+    (root / "sub" / "deep").mkdir(parents=True)
+    outside.mkdir()
+    (outside / "key").write_bytes(b"secret")
+    files = {f"m/f{i}.glb": os.urandom(100 + i) for i in range(20)}
+    files["sub/deep/b.glb"] = b"b" * 3000
+    files["m/big.glb"] = os.urandom(SMALL_FILE + 1)  # over the one-read size, under the pool's
+    files["m/empty.glb"] = b""
+    for rel, data in files.items():
+        (root / rel).write_bytes(data)
+    (root / "m" / "in-link.glb").symlink_to("../sub/deep/b.glb")
+    (root / "m" / "out-link.glb").symlink_to(outside / "key")
+    (root / "in-dir").symlink_to("sub/deep")
+    (root / "out-dir").symlink_to(outside)
+    (root / "m" / "dir").mkdir()
+    os.mkfifo(root / "m" / "fifo")
+    (root / "m" / "zero").symlink_to("/dev/zero")
+    refs = [f'<model uri="{rel}" sha="{sha(data)}"/>' for rel, data in files.items()]
+    refs += [f'<model uri="{rel}"/>' for rel in ("m/in-link.glb", "in-dir/b.glb")]
+    refs += [f'<model uri="{rel}" sha="{"0" * 64}"/>' for rel in ("m/f1.glb", "m/empty.glb")]  # mismatches
+    bad = ("m/out-link.glb", "out-dir/key", "m/dir", "m/fifo", "m/zero", "m/missing.glb", "nope/x.glb")
+    refs += [f'<model uri="{rel}"/>' for rel in bad]
+    body = "\n".join(f'<comp name="c{i}"><visual>{r}</visual></comp>' for i, r in enumerate(refs))
+    doc = root / "robot.hcdf"
+    doc.write_text(f'<?xml version="1.0"?>\n<hcdf version="1.0">\n{body}\n</hcdf>\n')
+    return doc
+
+
+def _outcome(doc: Path, cache: Path, **kw: object) -> tuple:
+    res = resolve(doc, ResolveOptions(cache_dir=str(cache), **kw))  # type: ignore[arg-type]
+    arts = {url: (a.sha256, a.size, a.source, a.inode, str(a.error)) for url, a in res.artifacts.items()}
+    errors = [(type(e).__name__, str(e), e.file, e.line, e.expected, e.actual) for e in res.errors]
+    warnings = [n.to_dict() for n in res.warnings]
+    return arts, errors, warnings, res.render_lock()
+
+
+@pytest.mark.parametrize("jobs", [1, 16])
+def test_the_small_file_path_resolves_exactly_as_the_plain_path(hostile_tree, tmp_path, monkeypatch, jobs):
+    fast = _outcome(hostile_tree, tmp_path / "c1", jobs=jobs)
+    calls: list[str] = []
+
+    def plain(self: ConfinedFolders, path: str, root: object) -> None:
+        calls.append(path)
+        return None  # every file through ConfinedFolders.hash, as before the fast path
+
+    monkeypatch.setattr(ConfinedFolders, "hash_small", plain)
+    assert _outcome(hostile_tree, tmp_path / "c2", jobs=jobs) == fast
+    assert len(calls) > 20  # the fast path was offered every small local file
+    arts, errors, _, _ = fast
+    assert sum(a[2] == "file" for a in arts.values()) == 25
+    assert {e[0] for e in errors} == {"DigestMismatchError", "PathEscapeError", "InputError", "NotFoundError"}
+
+
+def test_the_small_file_path_hashes_most_files_without_the_plain_path(hostile_tree, tmp_path, monkeypatch):
+    """The fast path is used: only the files it leaves alone reach ConfinedFolders.hash."""
+    seen: list[str] = []
+    real = ConfinedFolders.hash
+
+    def spy(self: ConfinedFolders, path: str, *a: object, **kw: object) -> object:
+        seen.append(os.path.relpath(path, hostile_tree.parent))
+        return real(self, path, *a, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(ConfinedFolders, "hash", spy)
+    resolve(hostile_tree, ResolveOptions(cache_dir=str(tmp_path / "c")))
+    assert sorted(seen) == sorted(
+        ["m/big.glb", "m/in-link.glb", "m/out-link.glb", "out-dir/key", "m/dir", "m/fifo", "m/zero", "m/missing.glb"]
+        + ["nope/x.glb"]
+    )
+
+
+def test_reference_init_takes_every_field_in_order_with_the_dataclass_defaults():
+    """Reference has a hand-written __init__ (one dict for all fields): it must stay the dataclass's."""
+    params = list(inspect.signature(Reference.__init__).parameters.values())[1:]
+    fields = dataclasses.fields(Reference)
+    assert [p.name for p in params] == [f.name for f in fields]
+    for p, f in zip(params, fields, strict=True):
+        assert p.default == (inspect.Parameter.empty if f.default is dataclasses.MISSING else f.default)
+    values = {f.name: object() for f in fields}
+    ref = Reference(**values)  # type: ignore[arg-type]
+    assert all(getattr(ref, name) is value for name, value in values.items())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ref.uri = "x"  # type: ignore[misc]
+    a = Reference(Kind.MODEL, 3, uri="m.glb", element=object())
+    assert a == Reference(Kind.MODEL, 3, "m.glb") and hash(a) == hash(Reference(Kind.MODEL, 3, "m.glb"))
+    assert dataclasses.replace(a, line=4) == Reference(Kind.MODEL, 4, uri="m.glb")
