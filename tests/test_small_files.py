@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from hcdf_trust.document import Kind, Reference
+from hcdf_trust.include import resolver
 from hcdf_trust.include.resolver import ResolveOptions, resolve
 from hcdf_trust.localfile import SMALL_FILE, ConfinedFolders
 
@@ -108,3 +109,37 @@ def test_reference_init_takes_every_field_in_order_with_the_dataclass_defaults()
     a = Reference(Kind.MODEL, 3, uri="m.glb", element=object())
     assert a == Reference(Kind.MODEL, 3, "m.glb") and hash(a) == hash(Reference(Kind.MODEL, 3, "m.glb"))
     assert dataclasses.replace(a, line=4) == Reference(Kind.MODEL, 4, uri="m.glb")
+
+
+def test_an_unchanged_tree_reuses_the_lock_bytes_and_a_changed_one_renders_them(tmp_path):
+    from hcdf_trust.include import lockfile
+
+    root = tmp_path / "robot"
+    (root / "m").mkdir(parents=True)
+    for i in range(5):
+        (root / "m" / f"{i}.glb").write_bytes(b"%d" % i)
+    doc = root / "robot.hcdf"
+
+    def write_doc(n: int) -> None:
+        refs = "".join(f'<comp name="c{i}"><visual><model uri="m/{i}.glb"/></visual></comp>' for i in range(n))
+        doc.write_text(f'<hcdf version="1.0">{refs}</hcdf>')
+
+    def run() -> tuple[resolver.Resolution, bytes]:
+        res = resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c")))
+        assert res.ok, res.errors
+        rendered = lockfile.render(res.lock_entries(), root=res.lock_url(res.root_location.url))
+        assert res.render_lock() == rendered  # the oracle: rendering the entries
+        res.write_lock()
+        return res, rendered
+
+    write_doc(4)
+    first, _ = run()
+    assert first.locked is None
+    again, rendered = run()
+    assert again.locked is not None and again.render_lock() is again.locked.rendered
+    write_doc(5)  # a new reference: the lock changes
+    grown, rendered = run()
+    assert grown.render_lock() != grown.locked.rendered and doc.with_name("robot.hcdf.lock").read_bytes() == rendered
+    (root / "m" / "0.glb").write_bytes(b"changed")  # drift: the run fails and writes nothing
+    drift = resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c")))
+    assert [type(e).__name__ for e in drift.errors] == ["LockDriftError"]

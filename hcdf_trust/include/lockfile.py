@@ -20,7 +20,7 @@ import operator
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from json.encoder import encode_basestring  # the C escaper json itself uses
 from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
@@ -68,10 +68,16 @@ class LockEntry(NamedTuple):
 
 @dataclass(frozen=True)
 class Lock:
-    """A loaded lock file: the root document it belongs to and its entries by URL."""
+    """A loaded lock file: the root document it belongs to and its entries by URL.
+
+    ``rendered`` is the file's bytes when they are exactly what :func:`render` writes for
+    ``entries`` and ``root`` (else None): a run whose entries are unchanged reuses them
+    (:func:`render_unchanged`) instead of rendering 10,000 lines again.
+    """
 
     root: str
     entries: dict[str, LockEntry]
+    rendered: bytes | None = field(default=None, repr=False, compare=False)
 
 
 def render(entries: list[LockEntry], *, root: str) -> bytes:
@@ -86,6 +92,15 @@ def render(entries: list[LockEntry], *, root: str) -> bytes:
     artifacts = f"[\n{body}\n]" if lines else "[]"
     text = f'{{"artifacts": {artifacts},\n"lock_version": {LOCK_VERSION},\n"root": {encode_basestring(root)}}}\n'
     return text.encode()
+
+
+def render_unchanged(entries: list[LockEntry], *, root: str, before: Lock | None) -> bytes:
+    """``render(entries, root=root)``, taken from ``before`` (the lock as read) when that
+    is the same lock: same root, same entries (render sorts them), bytes as render writes."""
+    if before is not None and before.rendered is not None and before.root == root:
+        if len(entries) == len(before.entries) and {e.url: e for e in entries} == before.entries:
+            return before.rendered
+    return render(entries, root=root)
 
 
 def _entry_json(e: LockEntry) -> str:
@@ -119,7 +134,7 @@ def load(path: str | os.PathLike[str]) -> Lock:
         raise LockFileError(f"cannot read lock file: {exc.message}", file=name) from None
     try:
         text = raw.decode()
-        lock = _canonical(text)
+        lock = _canonical(text, raw)
         if lock is not None:
             return lock
         doc = json.loads(text, parse_float=_no_float, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
@@ -149,15 +164,18 @@ _HEAD = '{"artifacts": [\n'
 _TAIL = re.compile(rf'\n\],\n"lock_version": {LOCK_VERSION},\n"root": {_STRING}\}}\n')
 
 
-def _canonical(text: str) -> Lock | None:
-    """The lock, when ``text`` is exactly what :func:`render` writes and every value is
-    valid; otherwise None, and the general path reads it and names what is wrong."""
+def _canonical(text: str, raw: bytes) -> Lock | None:
+    """The lock, when ``text`` (decoded from ``raw``) is in the form :func:`render` writes
+    and every value is valid; otherwise None, and the general path reads it and names
+    what is wrong. When its artifacts are also in render's order, ``raw`` is render's
+    output for them (each line is render's line for the values it holds): ``rendered``."""
     end = text.rfind("\n],\n")
     tail = _TAIL.fullmatch(text, end) if text.startswith(_HEAD) and end > len(_HEAD) else None
     if tail is None or not tail.group(1):
         return None
     entries: dict[str, LockEntry] = {}
     match = _ENTRY.fullmatch
+    ordered, last = True, ""
     for line in text[len(_HEAD) : end].split(",\n"):
         m = match(line)
         if m is None:
@@ -167,7 +185,8 @@ def _canonical(text: str) -> Lock | None:
         if kind not in KINDS or not uri or not url or url in entries or "" in names:
             return None
         entries[url] = LockEntry(kind, uri, url, sha, int(size), names)
-    return Lock(root=tail.group(1), entries=entries)
+        ordered, last = ordered and last < url, url  # render's order: by url (each url once)
+    return Lock(root=tail.group(1), entries=entries, rendered=raw if ordered else None)
 
 
 def _check(doc: object, name: str) -> Lock:

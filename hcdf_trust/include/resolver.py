@@ -148,6 +148,7 @@ class Resolution:
     others: list[tuple[str, Reference]] = field(default_factory=list)  # firmware hashes, extensions
     errors: list[HcdfTrustError] = field(default_factory=list)
     warnings: list[Notice] = field(default_factory=list)
+    locked: lockfile.Lock | None = field(default=None, repr=False)  # the lock file as read, if any
 
     @property
     def ok(self) -> bool:
@@ -196,8 +197,10 @@ class Resolution:
 
     def render_lock(self, edited: dict[str, bytes] | None = None) -> bytes:
         """The lock file's bytes for this tree (what :meth:`write_lock` writes); ``edited``
-        as for :meth:`lock_entries`."""
-        return lockfile.render(self.lock_entries(edited), root=self.lock_url(self.root_location.url))
+        as for :meth:`lock_entries`. An unchanged lock is the bytes read (render's, by
+        :func:`lockfile.render_unchanged`), not rendered again."""
+        root = self.lock_url(self.root_location.url)
+        return lockfile.render_unchanged(self.lock_entries(edited), root=root, before=self.locked)
 
     def write_lock(self) -> None:
         """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.
@@ -389,6 +392,7 @@ class _Run:
                 actual=lock.root,
             )
         self.lock = lock.entries
+        res.locked = lock
         names = set(self.o.update)
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
 
