@@ -12,6 +12,7 @@ import pytest
 
 from hcdf_trust.document import Kind, Reference
 from hcdf_trust.include import resolver
+from hcdf_trust.include.locate import Location
 from hcdf_trust.include.resolver import ResolveOptions, resolve
 from hcdf_trust.localfile import SMALL_FILE, ConfinedFolders
 
@@ -94,18 +95,23 @@ def test_the_small_file_path_hashes_most_files_without_the_plain_path(hostile_tr
     )
 
 
-def test_reference_init_takes_every_field_in_order_with_the_dataclass_defaults():
-    """Reference has a hand-written __init__ (one dict for all fields): it must stay the dataclass's."""
-    params = list(inspect.signature(Reference.__init__).parameters.values())[1:]
-    fields = dataclasses.fields(Reference)
+@pytest.mark.parametrize("cls", [Reference, Location])
+def test_a_hand_written_init_takes_every_field_in_order_with_the_dataclass_defaults(cls):
+    """Reference and Location set all fields in one call: their __init__ must stay the dataclass's."""
+    params = list(inspect.signature(cls.__init__).parameters.values())[1:]
+    fields = dataclasses.fields(cls)
     assert [p.name for p in params] == [f.name for f in fields]
     for p, f in zip(params, fields, strict=True):
         assert p.default == (inspect.Parameter.empty if f.default is dataclasses.MISSING else f.default)
     values = {f.name: object() for f in fields}
-    ref = Reference(**values)  # type: ignore[arg-type]
-    assert all(getattr(ref, name) is value for name, value in values.items())
+    obj = cls(**values)
+    assert all(getattr(obj, name) is value for name, value in values.items())
+    assert obj == cls(*values.values()) and hash(obj) == hash(cls(**values))
     with pytest.raises(dataclasses.FrozenInstanceError):
-        ref.uri = "x"  # type: ignore[misc]
+        obj.uri = "x"
+
+
+def test_reference_compares_and_replaces_as_a_dataclass():
     a = Reference(Kind.MODEL, 3, uri="m.glb", element=object())
     assert a == Reference(Kind.MODEL, 3, "m.glb") and hash(a) == hash(Reference(Kind.MODEL, 3, "m.glb"))
     assert dataclasses.replace(a, line=4) == Reference(Kind.MODEL, 4, uri="m.glb")
@@ -143,3 +149,29 @@ def test_an_unchanged_tree_reuses_the_lock_bytes_and_a_changed_one_renders_them(
     (root / "m" / "0.glb").write_bytes(b"changed")  # drift: the run fails and writes nothing
     drift = resolve(doc, ResolveOptions(cache_dir=str(tmp_path / "c")))
     assert [type(e).__name__ for e in drift.errors] == ["LockDriftError"]
+
+
+def _located(loc, uri: str, doc) -> object:
+    try:
+        return loc.locate(uri, doc, file="d.hcdf", line=3)
+    except Exception as exc:  # noqa: BLE001 -- the outcome compared: type and message
+        return type(exc).__name__, str(exc), getattr(exc, "expected", None), getattr(exc, "actual", None)
+
+
+@pytest.mark.parametrize("root_rel", ["robot", "robot/sub", "robot/sub/deep", "rob", "robot-evil", "."])
+def test_a_folder_checked_once_locates_as_every_path_checked(tmp_path, monkeypatch, root_rel):
+    """Locator._below_root (the containment check once per folder) against _local's check per path."""
+    from hcdf_trust.include.locate import Locator, file_url
+
+    root = (tmp_path / root_rel).resolve()
+    docs = [tmp_path / "robot" / "r.hcdf", tmp_path / "robot" / "sub" / "d.hcdf", tmp_path / "robot-evil" / "e.hcdf"]
+    uris = ["m/a.glb", "a.glb", "sub/deep/x.glb", "deep/b.glb", "robot/x", "-evil/x", "m/../a.glb", "../x.glb"]
+
+    def outcomes() -> list[object]:
+        loc = Locator.create(root=root)
+        referrers = [Location(file_url(doc), str(doc), doc.parent) for doc in docs]
+        return [_located(loc, uri, doc) for doc in referrers for uri in uris]
+
+    fast = outcomes()
+    monkeypatch.setattr(Locator, "_below_root", lambda self, folder: False)
+    assert outcomes() == fast

@@ -32,12 +32,17 @@ _NORMAL_SEGMENT = r"[A-Za-z0-9_~-][A-Za-z0-9._~-]*"
 _PLAIN_NORMAL = re.compile(rf"{_NORMAL_SEGMENT}(?:/{_NORMAL_SEGMENT})*\Z")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Location:
     url: str  # logical identity: file:///abs/path or https://…
     path: str | None = None  # read from here (local file or local mirror), normalised
     root: Path | None = None  # ...which must stay inside this folder
     remote: str | None = None  # or fetch from here (after mirror rewrite)
+
+    def __init__(self, url: str, path: str | None = None, root: Path | None = None, remote: str | None = None) -> None:
+        # One call, not the generated frozen __init__'s one object.__setattr__ per field
+        # (one Location per reference: 10,000 a run on a large tree).
+        object.__setattr__(self, "__dict__", {"url": url, "path": path, "root": root, "remote": remote})
 
     @property
     def is_local(self) -> bool:
@@ -183,6 +188,8 @@ class Locator:
             return None
         if _PLAIN_NORMAL.match(text):  # the join is already normal (folder is normal): no normpath
             path = f"{folder}{text}"
+            if self._below_root(folder):  # then so is every normal path below it: _local's check, once
+                return Location("file://" + path, path, self.root)
             return self._local("file://" + path, path, self.root, file=file, line=line, uri=text, is_normal=True)
         if text.startswith("/") or text.endswith("/") or not _PLAIN.match(text):
             return None
@@ -192,6 +199,17 @@ class Locator:
     @functools.cached_property
     def _plain_folders(self) -> dict[str, str | None]:
         return {}
+
+    @functools.cached_property
+    def _folders_below_root(self) -> dict[str, bool]:
+        return {}
+
+    def _below_root(self, folder: str) -> bool:
+        """Is the normal folder ``folder`` (ending in "/") the root or below it? Once per folder."""
+        below = self._folders_below_root.get(folder)
+        if below is None:
+            below = self._folders_below_root[folder] = folder.startswith(os.fspath(self.root).rstrip("/") + "/")
+        return below
 
     def _plain_folder(self, base: str) -> str | None:
         """The folder (ending in "/") relative references of ``base`` join, when the fast
