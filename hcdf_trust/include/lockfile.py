@@ -15,6 +15,7 @@ missing or extra keys, duplicate URLs or keys, floats, NaN, deep nesting, over
 
 from __future__ import annotations
 
+import functools
 import json
 import operator
 import os
@@ -112,6 +113,10 @@ def _entry_json(e: LockEntry) -> str:
     )
 
 
+# The characters of a rendered line outside its six values (a size of "0" is one digit).
+_LINE_FIXED = len(_entry_json(LockEntry("", "", "", "", 0, ()))) - 1
+
+
 def load(path: str | os.PathLike[str]) -> Lock:
     """Read and check a lock file.
 
@@ -161,6 +166,8 @@ _ENTRY = re.compile(
     rf'"size": (0|[1-9][0-9]{{0,17}}), "uri": {_STRING}, "url": {_STRING}\}}'
 )
 _HEAD = '{"artifacts": [\n'
+_new_entry = functools.partial(tuple.__new__, LockEntry)
+_LINES = re.compile(_ENTRY.pattern + r"(?:,\n|\Z)")  # a line and its separator (none after the last)
 _TAIL = re.compile(rf'\n\],\n"lock_version": {LOCK_VERSION},\n"root": {_STRING}\}}\n')
 
 
@@ -168,24 +175,36 @@ def _canonical(text: str, raw: bytes) -> Lock | None:
     """The lock, when ``text`` (decoded from ``raw``) is in the form :func:`render` writes
     and every value is valid; otherwise None, and the general path reads it and names
     what is wrong. When its artifacts are also in render's order, ``raw`` is render's
-    output for them (each line is render's line for the values it holds): ``rendered``."""
+    output for them (each line is render's line for the values it holds): ``rendered``.
+
+    One regex scan finds every line; the matches cover the body exactly (no text
+    between, before or after them) when their lengths add up to the body's. The
+    checks then run over whole columns, in C: ~1 µs an artifact, not ~4 in a loop.
+    """
     end = text.rfind("\n],\n")
     tail = _TAIL.fullmatch(text, end) if text.startswith(_HEAD) and end > len(_HEAD) else None
     if tail is None or not tail.group(1):
         return None
-    entries: dict[str, LockEntry] = {}
-    match = _ENTRY.fullmatch
-    ordered, last = True, ""
-    for line in text[len(_HEAD) : end].split(",\n"):
-        m = match(line)
-        if m is None:
-            return None
-        kind, refs, sha, size, uri, url = m.groups()
-        names = tuple(refs[1:-1].split('", "')) if refs else ()
-        if kind not in KINDS or not uri or not url or url in entries or "" in names:
-            return None
-        entries[url] = LockEntry(kind, uri, url, sha, int(size), names)
-        ordered, last = ordered and last < url, url  # render's order: by url (each url once)
+    body = text[len(_HEAD) : end]
+    rows = _LINES.findall(body)
+    count = len(rows)
+    if not count:
+        return None
+    columns = tuple(zip(*rows, strict=True))
+    kinds, refs, shas, sizes, uris, urls = columns
+    values = sum(len("".join(column)) for column in columns)
+    if count * _LINE_FIXED + 2 * (count - 1) + values != len(body):
+        return None  # text the matches skipped: not render's lines
+    if not KINDS.issuperset(kinds) or "" in uris or "" in urls or len(set(urls)) != count:
+        return None
+    names_of = {r: tuple(r[1:-1].split('", "')) if r else () for r in set(refs)}  # a few distinct lists
+    if any("" in names for names in names_of.values()):
+        return None
+    # LockEntry(...) runs the named tuple's Python __new__; tuple.__new__ (what its _make
+    # calls) builds the same six-field tuple in C.
+    fields = zip(kinds, uris, urls, shas, map(int, sizes), map(names_of.__getitem__, refs), strict=True)
+    entries = dict(zip(urls, map(_new_entry, fields), strict=True))
+    ordered = all(map(operator.lt, urls, urls[1:]))  # render's order: by url (each url once)
     return Lock(root=tail.group(1), entries=entries, rendered=raw if ordered else None)
 
 
