@@ -284,13 +284,39 @@ def _walk(
     for el in root.iter(*_REFERENCE_TAGS):
         if opaque and _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
+        tag = el.tag
         try:
-            ref = _reference(el, el.tag, source)
+            ref = (tag == "model" and _plain_model(el)) or _reference(el, tag, source)
         except AmbiguousReferenceError as exc:
             yield exc
             continue
         if ref is not None:
             yield ref
+
+
+def _plain_model(el: etree._Element) -> Reference | None:
+    """``_reference`` of a ``<model>`` in the form nearly every one is written: one of uri
+    or href, a location of printable ASCII with no space at either end or run of spaces,
+    no text and no child. None for anything else, which ``_reference`` checks in full."""
+    uri, href = el.get("uri"), el.get("href")
+    if href is None:
+        value, attr = uri, "uri"
+    elif uri is None:
+        value, attr = href, "href"
+    else:
+        return None
+    if (
+        value is None
+        or el.text is not None
+        or len(el)
+        or not (value.isascii() and value.isprintable())
+        or value[:1] == " "
+        or value[-1:] == " "
+        or "  " in value
+    ):
+        return None
+    line = el.sourceline  # (sourceline() without the call; lxml-stubs types it as ...)
+    return Reference(Kind.MODEL, line, value, el.get("sha"), attr, element=el)  # type: ignore[arg-type]
 
 
 def _unclear(value: str, *, what: str) -> str | None:

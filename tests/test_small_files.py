@@ -175,3 +175,47 @@ def test_a_folder_checked_once_locates_as_every_path_checked(tmp_path, monkeypat
     fast = outcomes()
     monkeypatch.setattr(Locator, "_below_root", lambda self, folder: False)
     assert outcomes() == fast
+
+
+MODELS = [
+    '<model uri="m/a.glb" sha="ab"/>',
+    '<model href="m/a.glb"/>',
+    '<model uri="m/a.glb" href="m/a.glb"/>',
+    '<model uri="m/a.glb" href="m/b.glb"/>',
+    "<model/>",
+    '<model uri=""/>',
+    '<model uri=" m/a.glb"/>',
+    '<model uri="m/a.glb "/>',
+    '<model uri="m/a  b.glb"/>',
+    '<model uri="m/a b.glb"/>',
+    '<model uri="m/\u00e9.glb"/>',
+    '<model uri="m/a\u200b.glb"/>',
+    '<model uri="m/a&#9;.glb"/>',
+    '<model uri="m/a.glb"> </model>',
+    '<model uri="m/a.glb">text</model>',
+    '<model uri="m/a.glb"><!-- c --></model>',
+    '<model uri="m/a.glb"><uri>x</uri></model>',
+    '<model uri="m/a.glb"><sha>x</sha></model>',
+    '<model uri="m/a.glb" xmlns:x="urn:x" x:sha="1"/>',
+]
+
+
+@pytest.mark.parametrize("xml", MODELS)
+def test_a_plain_model_reads_as_the_general_walker_reads_it(xml):
+    """document._plain_model is _reference's result or None (then _reference decides)."""
+    from lxml import etree
+
+    from hcdf_trust import document
+    from hcdf_trust.errors import HcdfTrustError
+
+    el = etree.fromstring(f"<hcdf>\n\n{xml}</hcdf>")[0]
+    fast = document._plain_model(el)
+    try:
+        general: object = document._reference(el, "model", "d.hcdf")
+    except HcdfTrustError as exc:
+        general = type(exc)
+    if fast is not None:
+        assert fast == general and fast.line == 3 and fast.element is el
+    # uri="" is the resolver's error; a namespaced attribute, the namespace scan's (_walk)
+    taken = (*MODELS[:2], '<model uri=""/>', '<model uri="m/a b.glb"/>', MODELS[-1])
+    assert (fast is not None) == (xml in taken)
