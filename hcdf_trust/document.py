@@ -34,7 +34,6 @@ exit 3); nothing that another XML reader would take for a reference is skipped:
 from __future__ import annotations
 
 import unicodedata
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, cast
@@ -194,11 +193,7 @@ class Document:
         if self._references is None:
             refs: list[Reference] = []
             problems: list[AmbiguousReferenceError] = []
-            for item in _walk(self.root, self.source, namespaces=_may_use_namespaces(self)):
-                if isinstance(item, AmbiguousReferenceError):
-                    problems.append(item)
-                else:
-                    refs.append(item)
+            _walk(self.root, self.source, refs, problems, namespaces=_may_use_namespaces(self))
             if problems:
                 problems.sort(key=lambda e: e.line or 0)
                 first = problems[0]
@@ -247,10 +242,17 @@ def _opaque(el: etree._Element) -> bool:
 
 
 def _walk(
-    root: etree._Element, source: str, *, namespaces: bool = True
-) -> Iterator[Reference | AmbiguousReferenceError]:
-    def refuse(el: etree._Element, message: str) -> AmbiguousReferenceError:
-        return AmbiguousReferenceError(message, file=source, line=sourceline(el))
+    root: etree._Element,
+    source: str,
+    refs: list[Reference],
+    problems: list[AmbiguousReferenceError],
+    *,
+    namespaces: bool = True,
+) -> None:
+    """Append every reference under ``root`` to ``refs`` and every refusal to ``problems``."""
+
+    def refuse(el: etree._Element, message: str) -> None:
+        problems.append(AmbiguousReferenceError(message, file=source, line=sourceline(el)))
 
     namespaced = cast("list[etree._Element]", _NAMESPACED_ELEMENTS(root)) if namespaces else []
     attributes = cast("list[Any]", _NAMESPACED_ATTRIBUTES(root)) if namespaces else []  # _ElementUnicodeResult
@@ -259,7 +261,7 @@ def _walk(
         if parent is not None and etree.QName(parent).namespace is not None:
             continue  # inside a namespaced element already refused (or opaque): one error per subtree
         if not _opaque(el):
-            yield refuse(
+            refuse(
                 el,
                 f"{_describe(el)}: HCDF elements have no namespace, and a reader that ignores "
                 "namespaces could take this one for HCDF's (a reference, or what makes one)",
@@ -274,13 +276,14 @@ def _walk(
                 if name == _XML_BASE
                 else f"an attribute {local} in namespace {etree.QName(name).namespace!r}"
             )
-            yield refuse(
+            refuse(
                 el,
                 f"<{etree.QName(el).localname}> has {shown} ({str(attr)!r}): refused, "
                 "it changes or hides where a reference points",
             )
     # Most documents have no <comp><extension>: then nothing is opaque (one scan in C).
     opaque = any(getattr(ext.getparent(), "tag", None) == "comp" for ext in root.iter("extension"))
+    add = refs.append
     for el in root.iter(*_REFERENCE_TAGS):
         if opaque and _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
@@ -288,10 +291,10 @@ def _walk(
         try:
             ref = (tag == "model" and _plain_model(el)) or _reference(el, tag, source)
         except AmbiguousReferenceError as exc:
-            yield exc
+            problems.append(exc)
             continue
         if ref is not None:
-            yield ref
+            add(ref)
 
 
 def _plain_model(el: etree._Element) -> Reference | None:

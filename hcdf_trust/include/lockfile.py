@@ -185,15 +185,14 @@ def _canonical(text: str, raw: bytes) -> Lock | None:
     tail = _TAIL.fullmatch(text, end) if text.startswith(_HEAD) and end > len(_HEAD) else None
     if tail is None or not tail.group(1):
         return None
-    body = text[len(_HEAD) : end]
-    rows = _LINES.findall(body)
+    rows = _LINES.findall(text, len(_HEAD), end)  # the body, read in place (as if text ended at end)
     count = len(rows)
     if not count:
         return None
     columns = tuple(zip(*rows, strict=True))
     kinds, refs, shas, sizes, uris, urls = columns
     values = sum(len("".join(column)) for column in columns)
-    if count * _LINE_FIXED + 2 * (count - 1) + values != len(body):
+    if count * _LINE_FIXED + 2 * (count - 1) + values != end - len(_HEAD):
         return None  # text the matches skipped: not render's lines
     if not KINDS.issuperset(kinds) or "" in uris or "" in urls or len(set(urls)) != count:
         return None

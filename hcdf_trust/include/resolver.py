@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import unquote, urlsplit
 
-from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
+from ..digest import Hashed, Pin, hash_bytes, hash_chunks, is_canonical_pin, parse_pin
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -470,7 +470,11 @@ class _Run:
                 res.others.append((source, ref))
                 continue
             try:
-                pin = parse_pin(ref.sha, file=source, line=ref.line, uri=ref.uri)
+                sha = ref.sha
+                if sha is not None and is_canonical_pin(sha):
+                    pin: Pin | None = Pin(sha)  # parse_pin's first case, without the call
+                else:
+                    pin = parse_pin(sha, file=source, line=ref.line, uri=ref.uri)
                 if not ref.uri:
                     raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=ref.line)
                 loc = locate(ref.uri, doc_loc, file=source, line=ref.line)
