@@ -166,7 +166,9 @@ _ENTRY = re.compile(
     rf'"size": (0|[1-9][0-9]{{0,17}}), "uri": {_STRING}, "url": {_STRING}\}}'
 )
 _HEAD = '{"artifacts": [\n'
-_new_entry = functools.partial(tuple.__new__, LockEntry)
+#: ``LockEntry(*fields)`` from a tuple of its six fields, built in C (``tuple.__new__``, what
+#: ``LockEntry._make`` calls), not by the named tuple's Python ``__new__``.
+new_entry = functools.partial(tuple.__new__, LockEntry)
 _LINES = re.compile(_ENTRY.pattern + r"(?:,\n|\Z)")  # a line and its separator (none after the last)
 _TAIL = re.compile(rf'\n\],\n"lock_version": {LOCK_VERSION},\n"root": {_STRING}\}}\n')
 
@@ -202,7 +204,7 @@ def _canonical(text: str, raw: bytes) -> Lock | None:
     # LockEntry(...) runs the named tuple's Python __new__; tuple.__new__ (what its _make
     # calls) builds the same six-field tuple in C.
     fields = zip(kinds, uris, urls, shas, map(int, sizes), map(names_of.__getitem__, refs), strict=True)
-    entries = dict(zip(urls, map(_new_entry, fields), strict=True))
+    entries = dict(zip(urls, map(new_entry, fields), strict=True))
     ordered = all(map(operator.lt, urls, urls[1:]))  # render's order: by url (each url once)
     return Lock(root=tail.group(1), entries=entries, rendered=raw if ordered else None)
 

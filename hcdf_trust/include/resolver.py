@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import unquote, urlsplit
 
-from ..digest import Hashed, Pin, hash_bytes, hash_chunks, is_canonical_pin, parse_pin
+from ..digest import FULL_HEX, Hashed, Pin, hash_bytes, hash_chunks, is_canonical_pin, parse_pin
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -130,8 +130,9 @@ class Artifact:
     def pin_status(self) -> str:
         status = "unpinned"
         for use in self.uses:
-            if use.pin is not None:
-                if use.pin.is_full:
+            pin = use.pin
+            if pin is not None:
+                if len(pin.hex) == FULL_HEX:  # pin.is_full, without the property call
                     return "full"
                 status = "weak"
         return status
@@ -170,6 +171,7 @@ class Resolution:
         lock is what a plain ``resolve`` writes after the edits.
         """
         to_lock = self._urls.to_lock
+        new_entry = lockfile.new_entry
         docs: dict[str, str] = {}  # a document's lock url, once per document
         entries = []
         for art in self.artifacts.values():
@@ -190,8 +192,9 @@ class Resolution:
                     refs.add(ref)
                 referenced_from = tuple(refs) if len(refs) == 1 else tuple(sorted(refs))
             url = art.lock_url or to_lock(art.location.url)
-            # kind._value_: Enum's .value is a Python-level descriptor, 10,000 calls here
-            entries.append(lockfile.LockEntry(art.kind._value_, art.uri, url, art.sha256, art.size, referenced_from))
+            # kind._value_: Enum's .value is a Python-level descriptor, 10,000 calls here;
+            # new_entry: LockEntry's own tuple constructor, without its Python __new__
+            entries.append(new_entry((art.kind._value_, art.uri, url, art.sha256, art.size, referenced_from)))
         if edited:
             changed = {
                 to_lock(url): hash_bytes(data) for url, data in edited.items() if data != self.documents[url].data
@@ -535,7 +538,7 @@ class _Run:
                 self._obtain_one(art, False)
                 continue
             art.sha256, art.size, art.inode = hashed
-            art.source = "file" if art.url.startswith("file://") else "mirror"
+            art.source = "file" if loc.url.startswith("file://") else "mirror"
             if progress:
                 progress(1, art.size)
 
