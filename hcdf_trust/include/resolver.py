@@ -472,24 +472,25 @@ class _Run:
             if kind in _NOT_FETCHED:
                 res.others.append((source, ref))
                 continue
+            uri, sha, line = ref.uri, ref.sha, ref.line
             try:
-                sha = ref.sha
                 if sha is not None and is_canonical_pin(sha):
                     pin: Pin | None = Pin(sha)  # parse_pin's first case, without the call
                 else:
-                    pin = parse_pin(sha, file=source, line=ref.line, uri=ref.uri)
-                if not ref.uri:
-                    raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=ref.line)
-                loc = locate(ref.uri, doc_loc, file=source, line=ref.line)
+                    pin = parse_pin(sha, file=source, line=line, uri=uri)
+                if not uri:
+                    raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=line)
+                loc = locate(uri, doc_loc, file=source, line=line)
             except HcdfTrustError as exc:
                 res.errors.append(exc)
                 continue
-            art = artifacts.get(loc.url)
+            url = loc.url
+            art = artifacts.get(url)
             if art is None:
-                art = artifacts[loc.url] = Artifact(kind=kind, uri=ref.uri, location=loc)
+                art = artifacts[url] = Artifact(kind, uri, loc)
             art.uses.append(Use(source, doc_url, ref, pin))
             if kind is Kind.INCLUDE:
-                edges.append((ref, loc.url))
+                edges.append((ref, url))
                 includes.append(art)
         return includes
 
