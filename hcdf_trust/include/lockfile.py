@@ -38,6 +38,7 @@ _KEYS = frozenset({"kind", "uri", "url", "sha256", "size", "referenced_from"})
 _TOP = frozenset({"artifacts", "lock_version", "root"})
 itemgetter = operator.itemgetter("kind", "uri", "url", "sha256", "size", "referenced_from")
 _BY_URL = operator.attrgetter("url", "kind")  # render's order (in C: 10,000 entries)
+_URL = operator.attrgetter("url")
 
 
 def default_path(doc: str | os.PathLike[str]) -> Path:
@@ -99,7 +100,8 @@ def render_unchanged(entries: list[LockEntry], *, root: str, before: Lock | None
     """``render(entries, root=root)``, taken from ``before`` (the lock as read) when that
     is the same lock: same root, same entries (render sorts them), bytes as render writes."""
     if before is not None and before.rendered is not None and before.root == root:
-        if len(entries) == len(before.entries) and {e.url: e for e in entries} == before.entries:
+        by_url = dict(zip(map(_URL, entries), entries, strict=True))
+        if len(entries) == len(before.entries) and by_url == before.entries:
             return before.rendered
     return render(entries, root=root)
 
