@@ -138,7 +138,7 @@ class ConfinedFolders:
     def __init__(self) -> None:
         self._folders: dict[tuple[str, str], int | None] = {}  # (folder, root) -> descriptor
         self._lock = threading.Lock()
-        self._last: tuple[str | None, Path | str | None, int | None] = (None, None, None)  # hash_small's folder
+        self._last: tuple[str | None, Path | str | None, int | None] = (None, None, None)  # hash_entry's folder
 
     def open(
         self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None
@@ -173,11 +173,11 @@ class ConfinedFolders:
         finally:
             os.close(fd)
 
-    def hash_small(self, path: str, root: Path | str) -> tuple[str, int, tuple[int, int]] | None:
-        """(sha256, size, inode) of a small regular file that is an entry of a checked folder,
-        with nothing but the system calls and the hash: ``None`` for anything else (no folder
-        descriptor, a link, a missing, special or large file, one that grew while read), for
-        which :meth:`hash` takes the general path and names the error.
+    def hash_entry(self, path: str, root: Path | str) -> tuple[str, int, tuple[int, int]] | None:
+        """(sha256, size, inode) of a regular file that is an entry of a checked folder, with
+        nothing but the system calls and the hash: ``None`` for anything else (no folder
+        descriptor, a link, a missing or special file, a small one that grew while read, a
+        read error), for which :meth:`hash` takes the general path and names the error.
 
         The resolver's loop over 10,000 small files: as strict as :meth:`open` (the very
         same descriptor check and ``O_NOFOLLOW`` open), a third of :meth:`hash`'s Python work.
@@ -198,8 +198,11 @@ class ConfinedFolders:
         try:
             st = os.fstat(fd)
             size = st.st_size
-            if not stat.S_ISREG(st.st_mode) or size > SMALL_FILE:
+            if not stat.S_ISREG(st.st_mode):
                 return None
+            if size > SMALL_FILE:  # hash_fd's chunked reads, on the descriptor already checked
+                hashed = hash_fd(fd, size=size)
+                return hashed.sha256, hashed.size, (st.st_dev, st.st_ino)
             data = os.read(fd, size + 1)
         except OSError:
             return None

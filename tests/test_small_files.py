@@ -13,7 +13,7 @@ import pytest
 from hcdf_trust.document import Kind, Reference
 from hcdf_trust.include import resolver
 from hcdf_trust.include.locate import Location
-from hcdf_trust.include.resolver import ResolveOptions, resolve
+from hcdf_trust.include.resolver import PARALLEL_MIN_BYTES, ResolveOptions, resolve
 from hcdf_trust.localfile import SMALL_FILE, ConfinedFolders
 
 
@@ -32,6 +32,7 @@ def hostile_tree(tmp_path: Path) -> Path:
     files = {f"m/f{i}.glb": os.urandom(100 + i) for i in range(20)}
     files["sub/deep/b.glb"] = b"b" * 3000
     files["m/big.glb"] = os.urandom(SMALL_FILE + 1)  # over the one-read size, under the pool's
+    files["m/bigger.glb"] = os.urandom(PARALLEL_MIN_BYTES + 1)  # hashed by the pool
     files["m/empty.glb"] = b""
     for rel, data in files.items():
         (root / rel).write_bytes(data)
@@ -70,11 +71,11 @@ def test_the_small_file_path_resolves_exactly_as_the_plain_path(hostile_tree, tm
         calls.append(path)
         return None  # every file through ConfinedFolders.hash, as before the fast path
 
-    monkeypatch.setattr(ConfinedFolders, "hash_small", plain)
+    monkeypatch.setattr(ConfinedFolders, "hash_entry", plain)
     assert _outcome(hostile_tree, tmp_path / "c2", jobs=jobs) == fast
     assert len(calls) > 20  # the fast path was offered every small local file
     arts, errors, _, _ = fast
-    assert sum(a[2] == "file" for a in arts.values()) == 25
+    assert sum(a[2] == "file" for a in arts.values()) == 26
     assert {e[0] for e in errors} == {"DigestMismatchError", "PathEscapeError", "InputError", "NotFoundError"}
 
 
@@ -90,8 +91,8 @@ def test_the_small_file_path_hashes_most_files_without_the_plain_path(hostile_tr
     monkeypatch.setattr(ConfinedFolders, "hash", spy)
     resolve(hostile_tree, ResolveOptions(cache_dir=str(tmp_path / "c")))
     assert sorted(seen) == sorted(
-        ["m/big.glb", "m/in-link.glb", "m/out-link.glb", "out-dir/key", "m/dir", "m/fifo", "m/zero", "m/missing.glb"]
-        + ["nope/x.glb"]
+        ["m/in-link.glb", "m/out-link.glb", "out-dir/key", "m/dir", "m/fifo", "m/zero", "m/missing.glb", "nope/x.glb"]
+        + ["m/bigger.glb"]  # on the pool's threads
     )
 
 

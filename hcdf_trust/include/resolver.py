@@ -527,14 +527,14 @@ class _Run:
 
     def _hash_inline(self, artifacts: list[Artifact]) -> None:
         """:meth:`_obtain_one` for files that are not parsed, in this thread: a small local
-        file of a checked folder by :meth:`ConfinedFolders.hash_small` (the same checks,
+        file of a checked folder by :meth:`ConfinedFolders.hash_entry` (the same checks,
         less Python per file); anything else, and every error, through :meth:`_obtain_one`."""
-        hash_small = self.folders.hash_small
+        hash_entry = self.folders.hash_entry
         progress = self.on_progress
         for art in artifacts:
             loc = art.location
             path = loc.path
-            hashed = hash_small(path, loc.root or os.path.dirname(path)) if path is not None else None
+            hashed = hash_entry(path, loc.root or os.path.dirname(path)) if path is not None else None
             if hashed is None:
                 self._obtain_one(art, False)
                 continue
