@@ -163,15 +163,15 @@ def load(path: str | os.PathLike[str]) -> Lock:
 # an upper-case digest, other spacing or key order) is read by json and _check.
 _STRING = r'"([^"\\\x00-\x1f]*)"'
 _NAMES = r'\[((?:"[^"\\\x00-\x1f]*"(?:, "[^"\\\x00-\x1f]*")*)?)\]'
-_ENTRY = re.compile(
+_ENTRY = (
     rf'\{{"kind": {_STRING}, "referenced_from": {_NAMES}, "sha256": "([0-9a-f]{{64}})", '
     rf'"size": (0|[1-9][0-9]{{0,17}}), "uri": {_STRING}, "url": {_STRING}\}}'
 )
+_LINES = re.compile(_ENTRY + r"(?:,\n|\Z)")  # a line and its separator (none after the last)
 _HEAD = '{"artifacts": [\n'
 #: ``LockEntry(*fields)`` from a tuple of its six fields, built in C (``tuple.__new__``, what
 #: ``LockEntry._make`` calls), not by the named tuple's Python ``__new__``.
 new_entry = functools.partial(tuple.__new__, LockEntry)
-_LINES = re.compile(_ENTRY.pattern + r"(?:,\n|\Z)")  # a line and its separator (none after the last)
 _TAIL = re.compile(rf'\n\],\n"lock_version": {LOCK_VERSION},\n"root": {_STRING}\}}\n')
 
 
