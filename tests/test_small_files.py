@@ -174,6 +174,16 @@ def test_a_folder_checked_once_locates_as_every_path_checked(tmp_path, monkeypat
         return [_located(loc, uri, doc) for doc in referrers for uri in uris]
 
     fast = outcomes()
+    # plain_joiner (the resolver's per-document fast path) gives locate's result or None
+    loc = Locator.create(root=root)
+    for doc in docs:
+        referrer = Location(file_url(doc), str(doc), doc.parent)
+        join = loc.plain_joiner(referrer)
+        for uri in [*uris, " a.glb", "a.glb\n", "a%20b.glb", "./a.glb", "a//b.glb", "https://h.example/a.glb", ""]:
+            joined = join(uri)
+            if joined is not None:
+                assert joined == loc.locate(uri, referrer, file="d.hcdf", line=3)
+        assert (join("m/a.glb") is not None) == f"{doc.parent}/".startswith(str(root).rstrip("/") + "/")
     monkeypatch.setattr(Locator, "_below_root", lambda self, folder: False)
     assert outcomes() == fast
 

@@ -15,6 +15,7 @@ import functools
 import os
 import posixpath
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote, urljoin, urlsplit
@@ -179,6 +180,20 @@ class Locator:
         except ValueError as exc:  # urlsplit: "Invalid IPv6 URL", a port out of range, ...
             raise InputError(f"malformed URL {shown!r}: {exc}", file=file, line=line, actual=shown) from None
 
+    def plain_joiner(self, referrer: Location) -> Callable[[str], Location | None]:
+        """For the references of one document: a function that gives :meth:`locate`'s result
+        for a reference on its fast path (a plain normal relative path, joined to a folder
+        inside the root), and None for any other, which :meth:`locate` must decide."""
+        folder = self._plain_folder(self.base or referrer.url)
+        if folder is None or not self._below_root(folder):
+            return _never
+        match, root, prefix = _PLAIN_NORMAL.match, self.root, "file://" + folder
+
+        def join(text: str) -> Location | None:
+            return Location(prefix + text, folder + text, root) if match(text) else None
+
+        return join
+
     def _plain_relative(self, text: str, referrer: Location, *, file: str, line: int | None) -> Location | None:
         """The common case without URL parsing: a plain relative path from a local base.
 
@@ -287,6 +302,10 @@ class Locator:
                 actual=display_path(normal),
             )
         return Location(url=url, path=normal, root=root)
+
+
+def _never(text: str) -> Location | None:
+    return None
 
 
 def _normalise(url: str) -> str:
