@@ -24,6 +24,7 @@ from .errors import InputError, NotFoundError, PathEscapeError, display_path
 # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
 # reads from a regular file, the only kind we go on to read.
 _FLAGS = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC
+_ENTRY_FLAGS = _FLAGS | os.O_NOFOLLOW  # ConfinedFolders: an entry of the checked folder, never a link
 
 
 def open_regular(
@@ -137,6 +138,7 @@ class ConfinedFolders:
     def __init__(self) -> None:
         self._folders: dict[tuple[str, str], int | None] = {}  # (folder, root) -> descriptor
         self._lock = threading.Lock()
+        self._last: tuple[str | None, Path | str | None, int | None] = (None, None, None)  # hash_entry's folder
 
     def open(
         self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None
@@ -146,7 +148,7 @@ class ConfinedFolders:
         dirfd = self._folder(folder or "/", root) if sep and name not in ("", ".", "..") else None
         if dirfd is not None:
             try:
-                fd = os.open(name, _FLAGS | os.O_NOFOLLOW, dir_fd=dirfd)
+                fd = os.open(name, _ENTRY_FLAGS, dir_fd=dirfd)
             except OSError:
                 pass  # ELOOP (a symlink), ENOENT, ...: open_checked follows it or names the error
             else:
@@ -170,6 +172,45 @@ class ConfinedFolders:
             return hash_fd(fd, size=size, inode=(st.st_dev, st.st_ino))
         finally:
             os.close(fd)
+
+    def hash_entry(self, path: str, root: Path | str) -> tuple[str, int, tuple[int, int]] | None:
+        """(sha256, size, inode) of a regular file that is an entry of a checked folder, with
+        nothing but the system calls and the hash: ``None`` for anything else (no folder
+        descriptor, a link, a missing or special file, a small one that grew while read, a
+        read error), for which :meth:`hash` takes the general path and names the error.
+
+        The resolver's loop over 10,000 small files: as strict as :meth:`open` (the very
+        same descriptor check and ``O_NOFOLLOW`` open), a third of :meth:`hash`'s Python work.
+        """
+        folder, sep, name = path.rpartition("/")
+        if not sep or name in ("", ".", ".."):
+            return None
+        last_folder, last_root, dirfd = self._last  # the files of a folder come in a row
+        if folder != last_folder or root is not last_root:
+            dirfd = self._folder(folder or "/", root)
+            self._last = (folder, root, dirfd)
+        if dirfd is None:
+            return None
+        try:
+            fd = os.open(name, _ENTRY_FLAGS, dir_fd=dirfd)
+        except OSError:
+            return None
+        try:
+            st = os.fstat(fd)
+            size = st.st_size
+            if not stat.S_ISREG(st.st_mode):
+                return None
+            if size > SMALL_FILE:  # hash_fd's chunked reads, on the descriptor already checked
+                hashed = hash_fd(fd, size=size)
+                return hashed.sha256, hashed.size, (st.st_dev, st.st_ino)
+            data = os.read(fd, size + 1)
+        except OSError:
+            return None
+        finally:
+            os.close(fd)
+        if len(data) > size:
+            return None  # it grew since the fstat: read_small reads on to its end
+        return hashlib.sha256(data).hexdigest(), len(data), (st.st_dev, st.st_ino)
 
     def _folder(self, folder: str, root: Path | str) -> int | None:
         """A descriptor of ``folder`` when its real path lies inside ``root``; else None."""
@@ -199,6 +240,7 @@ class ConfinedFolders:
                 if dirfd is not None:
                     os.close(dirfd)
             self._folders.clear()
+            self._last = (None, None, None)
 
 
 def _inside(real: str, root: Path | str) -> bool:

@@ -156,3 +156,52 @@ def test_past_the_folder_limit_files_are_still_checked(tree, monkeypatch):
         assert _outcome(folders.open, tree / "out-dir" / "key", tree)[0] is localfile.PathEscapeError
     finally:
         folders.close()
+
+
+@pytest.mark.parametrize("rel", CASES)
+def test_hash_entry_is_hash_local_or_leaves_the_file_to_it(tree, rel):
+    """The resolver's small-file path: hash_local's digest, size and inode for a plain
+    entry of a checked folder, None (the general path decides) for everything else:
+    never the content of a link, a file outside the root or a special file."""
+    path = os.path.normpath(tree / rel) if rel not in ("m/.", "m/..") else f"{tree}/{rel}"
+    folders = ConfinedFolders()
+    try:
+        for _ in range(2):  # the folder's first file, and one after its check
+            got = folders.hash_entry(path, tree)
+            if rel in ("m/a.glb", "sub/deep/b.glb", "in-dir/b.glb"):  # in-dir: a folder link that stays inside
+                want = hash_local(path, tree)
+                assert got == (want.sha256, want.size, want.inode)
+            else:
+                assert got is None
+    finally:
+        folders.close()
+
+
+def test_hash_entry_hashes_large_files_and_leaves_other_roots_to_the_general_path(tree):
+    (tree / "m" / "big.glb").write_bytes(b"x" * (3 * localfile.SMALL_FILE + 1))  # hash_fd's chunked reads
+    (tree / "m" / "limit.glb").write_bytes(b"y" * localfile.SMALL_FILE)  # the one-read size
+    folders = ConfinedFolders()
+    try:
+        for name in ("big.glb", "limit.glb"):
+            want = hash_local(tree / "m" / name, tree)
+            assert folders.hash_entry(str(tree / "m" / name), tree) == (want.sha256, want.size, want.inode)
+        # The same folder under a root it is not inside: the remembered folder is not reused.
+        assert folders.hash_entry(str(tree / "m" / "a.glb"), tree / "sub") is None
+        assert folders.hash_entry(str(tree / "m" / "a.glb"), tree) is not None
+    finally:
+        folders.close()
+    assert folders.hash_entry(str(tree / "m" / "a.glb"), tree) is not None  # after close: the folder again
+    folders.close()
+
+
+def test_hash_entry_after_its_folder_was_swapped_for_a_link_reads_the_checked_folder(tree):
+    folders = ConfinedFolders()
+    try:
+        first = folders.hash_entry(str(tree / "m" / "a.glb"), tree)
+        (tree / "m").rename(tree / "m-old")
+        (tree / "m").symlink_to(tree.parent / "secret")
+        (tree.parent / "secret" / "a.glb").write_bytes(b"secret a")
+        assert folders.hash_entry(str(tree / "m" / "a.glb"), tree) == first
+        assert first is not None and first[0] == sha(b"inside a")
+    finally:
+        folders.close()

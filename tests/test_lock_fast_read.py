@@ -121,3 +121,60 @@ def test_a_canonical_lock_is_read_without_json(tmp_path, monkeypatch):
     monkeypatch.setattr(lockfile.json, "loads", lambda *a, **k: pytest.fail("json.loads was called"))
     lock = lockfile.load(path)
     assert lock.root == "robot.hcdf" and lock.entries == {e.url: e for e in items}
+
+
+def _rendered_is_render(tmp_path, text: str) -> None:
+    """A lock loaded with ``rendered`` set: those are the file's bytes, and render's for its entries."""
+    got = _loaded(tmp_path / "robot.hcdf.lock", text)
+    if isinstance(got, lockfile.Lock) and got.rendered is not None:
+        assert got.rendered == text.encode()
+        assert lockfile.render(list(got.entries.values()), root=got.root) == got.rendered
+        assert lockfile.render_unchanged(list(got.entries.values()), root=got.root, before=got) is got.rendered
+
+
+@SETTINGS
+@given(st.lists(entries, max_size=6), names, st.randoms(use_true_random=False))
+def test_a_lock_that_keeps_its_bytes_is_exactly_what_render_writes(tmp_path_factory, items, root, rnd):
+    """Rendered, or in render's line format with its lines in any order."""
+    tmp_path = tmp_path_factory.mktemp("lock")
+    text = lockfile.render(items, root=root).decode()
+    _rendered_is_render(tmp_path, text)
+    head, _, rest = text.partition("[\n")
+    body, sep, tail = rest.rpartition("\n]")
+    lines = body.split(",\n")
+    rnd.shuffle(lines)
+    _rendered_is_render(tmp_path, head + "[\n" + ",\n".join(lines) + sep + tail)
+
+
+@SETTINGS
+@given(st.lists(entries, min_size=1, max_size=4), st.data())
+def test_an_edited_lock_keeps_its_bytes_only_when_they_are_what_render_writes(tmp_path_factory, items, data):
+    tmp_path = tmp_path_factory.mktemp("lock")
+    text = lockfile.render(items, root="robot.hcdf").decode()
+    at = data.draw(st.integers(0, len(text) - 1))
+    char = data.draw(st.sampled_from(list(' ",:[]{}\\\n\t0aA-é') + [""]))
+    _rendered_is_render(tmp_path, text[:at] + char + text[at + 1 :])
+
+
+def test_an_unchanged_lock_is_reused_and_any_change_is_rendered(tmp_path):
+    items = [LockEntry("model", f"m{i}.glb", f"m{i}.glb", SHA, i, ("robot.hcdf",)) for i in range(3)]
+    path = tmp_path / "robot.hcdf.lock"
+    path.write_bytes(lockfile.render(items, root="robot.hcdf"))
+    lock = lockfile.load(path)
+    assert lock.rendered == path.read_bytes()
+    assert lockfile.render_unchanged(items[::-1], root="robot.hcdf", before=lock) is lock.rendered
+    changes = [
+        (items[:2], "robot.hcdf"),
+        ([*items, LockEntry("mesh", "n", "n.glb", SHA, 1)], "robot.hcdf"),
+        ([items[0]._replace(size=7), *items[1:]], "robot.hcdf"),
+        ([items[0]._replace(uri="other"), *items[1:]], "robot.hcdf"),
+        ([items[0]._replace(referenced_from=("a.hcdf", "robot.hcdf")), *items[1:]], "robot.hcdf"),
+        ([items[0], items[1], items[1]], "robot.hcdf"),  # as many entries, one url twice
+        (items, "other.hcdf"),
+    ]
+    for entries, root in changes:
+        out = lockfile.render_unchanged(entries, root=root, before=lock)
+        assert out == lockfile.render(entries, root=root) != lock.rendered
+    swapped = path.read_text().replace("m0.glb", "m9.glb")  # out of render's order
+    path.write_text(swapped)
+    assert lockfile.load(path).rendered is None

@@ -15,6 +15,7 @@ import functools
 import os
 import posixpath
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote, urljoin, urlsplit
@@ -32,12 +33,21 @@ _NORMAL_SEGMENT = r"[A-Za-z0-9_~-][A-Za-z0-9._~-]*"
 _PLAIN_NORMAL = re.compile(rf"{_NORMAL_SEGMENT}(?:/{_NORMAL_SEGMENT})*\Z")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Location:
     url: str  # logical identity: file:///abs/path or https://…
     path: str | None = None  # read from here (local file or local mirror), normalised
     root: Path | None = None  # ...which must stay inside this folder
     remote: str | None = None  # or fetch from here (after mirror rewrite)
+
+    def __init__(self, url: str, path: str | None = None, root: Path | None = None, remote: str | None = None) -> None:
+        # Items of the instance dict, not the generated frozen __init__'s object.__setattr__
+        # per field (one Location per reference: 10,000 a run on a large tree).
+        d = self.__dict__
+        d["url"] = url
+        d["path"] = path
+        d["root"] = root
+        d["remote"] = remote
 
     @property
     def is_local(self) -> bool:
@@ -170,6 +180,20 @@ class Locator:
         except ValueError as exc:  # urlsplit: "Invalid IPv6 URL", a port out of range, ...
             raise InputError(f"malformed URL {shown!r}: {exc}", file=file, line=line, actual=shown) from None
 
+    def plain_joiner(self, referrer: Location) -> Callable[[str], Location | None]:
+        """For the references of one document: a function that gives :meth:`locate`'s result
+        for a reference on its fast path (a plain normal relative path, joined to a folder
+        inside the root), and None for any other, which :meth:`locate` must decide."""
+        folder = self._plain_folder(self.base or referrer.url)
+        if folder is None or not self._below_root(folder):
+            return _never
+        match, root, prefix = _PLAIN_NORMAL.match, self.root, "file://" + folder
+
+        def join(text: str) -> Location | None:
+            return Location(prefix + text, folder + text, root) if match(text) else None
+
+        return join
+
     def _plain_relative(self, text: str, referrer: Location, *, file: str, line: int | None) -> Location | None:
         """The common case without URL parsing: a plain relative path from a local base.
 
@@ -183,6 +207,8 @@ class Locator:
             return None
         if _PLAIN_NORMAL.match(text):  # the join is already normal (folder is normal): no normpath
             path = f"{folder}{text}"
+            if self._below_root(folder):  # then so is every normal path below it: _local's check, once
+                return Location("file://" + path, path, self.root)
             return self._local("file://" + path, path, self.root, file=file, line=line, uri=text, is_normal=True)
         if text.startswith("/") or text.endswith("/") or not _PLAIN.match(text):
             return None
@@ -192,6 +218,17 @@ class Locator:
     @functools.cached_property
     def _plain_folders(self) -> dict[str, str | None]:
         return {}
+
+    @functools.cached_property
+    def _folders_below_root(self) -> dict[str, bool]:
+        return {}
+
+    def _below_root(self, folder: str) -> bool:
+        """Is the normal folder ``folder`` (ending in "/") the root or below it? Once per folder."""
+        below = self._folders_below_root.get(folder)
+        if below is None:
+            below = self._folders_below_root[folder] = folder.startswith(os.fspath(self.root).rstrip("/") + "/")
+        return below
 
     def _plain_folder(self, base: str) -> str | None:
         """The folder (ending in "/") relative references of ``base`` join, when the fast
@@ -265,6 +302,10 @@ class Locator:
                 actual=display_path(normal),
             )
         return Location(url=url, path=normal, root=root)
+
+
+def _never(text: str) -> Location | None:
+    return None
 
 
 def _normalise(url: str) -> str:

@@ -15,12 +15,13 @@ missing or extra keys, duplicate URLs or keys, floats, NaN, deep nesting, over
 
 from __future__ import annotations
 
+import functools
 import json
 import operator
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from json.encoder import encode_basestring  # the C escaper json itself uses
 from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
@@ -37,6 +38,7 @@ _KEYS = frozenset({"kind", "uri", "url", "sha256", "size", "referenced_from"})
 _TOP = frozenset({"artifacts", "lock_version", "root"})
 itemgetter = operator.itemgetter("kind", "uri", "url", "sha256", "size", "referenced_from")
 _BY_URL = operator.attrgetter("url", "kind")  # render's order (in C: 10,000 entries)
+_URL = operator.attrgetter("url")
 
 
 def default_path(doc: str | os.PathLike[str]) -> Path:
@@ -68,10 +70,16 @@ class LockEntry(NamedTuple):
 
 @dataclass(frozen=True)
 class Lock:
-    """A loaded lock file: the root document it belongs to and its entries by URL."""
+    """A loaded lock file: the root document it belongs to and its entries by URL.
+
+    ``rendered`` is the file's bytes when they are exactly what :func:`render` writes for
+    ``entries`` and ``root`` (else None): a run whose entries are unchanged reuses them
+    (:func:`render_unchanged`) instead of rendering 10,000 lines again.
+    """
 
     root: str
     entries: dict[str, LockEntry]
+    rendered: bytes | None = field(default=None, repr=False, compare=False)
 
 
 def render(entries: list[LockEntry], *, root: str) -> bytes:
@@ -88,6 +96,16 @@ def render(entries: list[LockEntry], *, root: str) -> bytes:
     return text.encode()
 
 
+def render_unchanged(entries: list[LockEntry], *, root: str, before: Lock | None) -> bytes:
+    """``render(entries, root=root)``, taken from ``before`` (the lock as read) when that
+    is the same lock: same root, same entries (render sorts them), bytes as render writes."""
+    if before is not None and before.rendered is not None and before.root == root:
+        by_url = dict(zip(map(_URL, entries), entries, strict=True))
+        if len(entries) == len(before.entries) and by_url == before.entries:
+            return before.rendered
+    return render(entries, root=root)
+
+
 def _entry_json(e: LockEntry) -> str:
     esc = encode_basestring
     refs = ", ".join(map(esc, e.referenced_from))
@@ -95,6 +113,10 @@ def _entry_json(e: LockEntry) -> str:
         f'{{"kind": {esc(e.kind)}, "referenced_from": [{refs}], "sha256": {esc(e.sha256)}, '
         f'"size": {int(e.size)}, "uri": {esc(e.uri)}, "url": {esc(e.url)}}}'
     )
+
+
+# The characters of a rendered line outside its six values (a size of "0" is one digit).
+_LINE_FIXED = len(_entry_json(LockEntry("", "", "", "", 0, ()))) - 1
 
 
 def load(path: str | os.PathLike[str]) -> Lock:
@@ -119,7 +141,7 @@ def load(path: str | os.PathLike[str]) -> Lock:
         raise LockFileError(f"cannot read lock file: {exc.message}", file=name) from None
     try:
         text = raw.decode()
-        lock = _canonical(text)
+        lock = _canonical(text, raw)
         if lock is not None:
             return lock
         doc = json.loads(text, parse_float=_no_float, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
@@ -141,33 +163,52 @@ def load(path: str | os.PathLike[str]) -> Lock:
 # an upper-case digest, other spacing or key order) is read by json and _check.
 _STRING = r'"([^"\\\x00-\x1f]*)"'
 _NAMES = r'\[((?:"[^"\\\x00-\x1f]*"(?:, "[^"\\\x00-\x1f]*")*)?)\]'
-_ENTRY = re.compile(
+_ENTRY = (
     rf'\{{"kind": {_STRING}, "referenced_from": {_NAMES}, "sha256": "([0-9a-f]{{64}})", '
     rf'"size": (0|[1-9][0-9]{{0,17}}), "uri": {_STRING}, "url": {_STRING}\}}'
 )
+_LINES = re.compile(_ENTRY + r"(?:,\n|\Z)")  # a line and its separator (none after the last)
 _HEAD = '{"artifacts": [\n'
+#: ``LockEntry(*fields)`` from a tuple of its six fields, built in C (``tuple.__new__``, what
+#: ``LockEntry._make`` calls), not by the named tuple's Python ``__new__``.
+new_entry = functools.partial(tuple.__new__, LockEntry)
 _TAIL = re.compile(rf'\n\],\n"lock_version": {LOCK_VERSION},\n"root": {_STRING}\}}\n')
 
 
-def _canonical(text: str) -> Lock | None:
-    """The lock, when ``text`` is exactly what :func:`render` writes and every value is
-    valid; otherwise None, and the general path reads it and names what is wrong."""
+def _canonical(text: str, raw: bytes) -> Lock | None:
+    """The lock, when ``text`` (decoded from ``raw``) is in the form :func:`render` writes
+    and every value is valid; otherwise None, and the general path reads it and names
+    what is wrong. When its artifacts are also in render's order, ``raw`` is render's
+    output for them (each line is render's line for the values it holds): ``rendered``.
+
+    One regex scan finds every line; the matches cover the body exactly (no text
+    between, before or after them) when their lengths add up to the body's. The
+    checks then run over whole columns, in C: ~1 µs an artifact, not ~4 in a loop.
+    """
     end = text.rfind("\n],\n")
     tail = _TAIL.fullmatch(text, end) if text.startswith(_HEAD) and end > len(_HEAD) else None
     if tail is None or not tail.group(1):
         return None
-    entries: dict[str, LockEntry] = {}
-    match = _ENTRY.fullmatch
-    for line in text[len(_HEAD) : end].split(",\n"):
-        m = match(line)
-        if m is None:
-            return None
-        kind, refs, sha, size, uri, url = m.groups()
-        names = tuple(refs[1:-1].split('", "')) if refs else ()
-        if kind not in KINDS or not uri or not url or url in entries or "" in names:
-            return None
-        entries[url] = LockEntry(kind, uri, url, sha, int(size), names)
-    return Lock(root=tail.group(1), entries=entries)
+    rows = _LINES.findall(text, len(_HEAD), end)  # the body, read in place (as if text ended at end)
+    count = len(rows)
+    if not count:
+        return None
+    columns = tuple(zip(*rows, strict=True))
+    kinds, refs, shas, sizes, uris, urls = columns
+    values = sum(len("".join(column)) for column in columns)
+    if count * _LINE_FIXED + 2 * (count - 1) + values != end - len(_HEAD):
+        return None  # text the matches skipped: not render's lines
+    if not KINDS.issuperset(kinds) or "" in uris or "" in urls or len(set(urls)) != count:
+        return None
+    names_of = {r: tuple(r[1:-1].split('", "')) if r else () for r in set(refs)}  # a few distinct lists
+    if any("" in names for names in names_of.values()):
+        return None
+    # LockEntry(...) runs the named tuple's Python __new__; tuple.__new__ (what its _make
+    # calls) builds the same six-field tuple in C.
+    fields = zip(kinds, uris, urls, shas, map(int, sizes), map(names_of.__getitem__, refs), strict=True)
+    entries = dict(zip(urls, map(new_entry, fields), strict=True))
+    ordered = all(map(operator.lt, urls, urls[1:]))  # render's order: by url (each url once)
+    return Lock(root=tail.group(1), entries=entries, rendered=raw if ordered else None)
 
 
 def _check(doc: object, name: str) -> Lock:

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import unquote, urlsplit
 
-from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
+from ..digest import FULL_HEX, Hashed, Pin, hash_bytes, hash_chunks, is_canonical_pin, parse_pin
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -130,8 +130,9 @@ class Artifact:
     def pin_status(self) -> str:
         status = "unpinned"
         for use in self.uses:
-            if use.pin is not None:
-                if use.pin.is_full:
+            pin = use.pin
+            if pin is not None:
+                if len(pin.hex) == FULL_HEX:  # pin.is_full, without the property call
                     return "full"
                 status = "weak"
         return status
@@ -148,6 +149,7 @@ class Resolution:
     others: list[tuple[str, Reference]] = field(default_factory=list)  # firmware hashes, extensions
     errors: list[HcdfTrustError] = field(default_factory=list)
     warnings: list[Notice] = field(default_factory=list)
+    locked: lockfile.Lock | None = field(default=None, repr=False)  # the lock file as read, if any
 
     @property
     def ok(self) -> bool:
@@ -169,21 +171,30 @@ class Resolution:
         lock is what a plain ``resolve`` writes after the edits.
         """
         to_lock = self._urls.to_lock
+        new_entry = lockfile.new_entry
         docs: dict[str, str] = {}  # a document's lock url, once per document
         entries = []
         for art in self.artifacts.values():
             if art.sha256 is None or art.size is None:
                 continue
-            refs = set()
-            for use in art.uses:
-                ref = docs.get(use.doc_url)
+            uses = art.uses
+            if len(uses) == 1:  # the common case, without a set
+                ref = docs.get(uses[0].doc_url)
                 if ref is None:
-                    ref = docs[use.doc_url] = to_lock(use.doc_url)
-                refs.add(ref)
-            referenced_from = tuple(refs) if len(refs) == 1 else tuple(sorted(refs))
+                    ref = docs[uses[0].doc_url] = to_lock(uses[0].doc_url)
+                referenced_from: tuple[str, ...] = (ref,)
+            else:
+                refs = set()
+                for use in uses:
+                    ref = docs.get(use.doc_url)
+                    if ref is None:
+                        ref = docs[use.doc_url] = to_lock(use.doc_url)
+                    refs.add(ref)
+                referenced_from = tuple(refs) if len(refs) == 1 else tuple(sorted(refs))
             url = art.lock_url or to_lock(art.location.url)
-            # kind._value_: Enum's .value is a Python-level descriptor, 10,000 calls here
-            entries.append(lockfile.LockEntry(art.kind._value_, art.uri, url, art.sha256, art.size, referenced_from))
+            # kind._value_: Enum's .value is a Python-level descriptor, 10,000 calls here;
+            # new_entry: LockEntry's own tuple constructor, without its Python __new__
+            entries.append(new_entry((art.kind._value_, art.uri, url, art.sha256, art.size, referenced_from)))
         if edited:
             changed = {
                 to_lock(url): hash_bytes(data) for url, data in edited.items() if data != self.documents[url].data
@@ -196,8 +207,10 @@ class Resolution:
 
     def render_lock(self, edited: dict[str, bytes] | None = None) -> bytes:
         """The lock file's bytes for this tree (what :meth:`write_lock` writes); ``edited``
-        as for :meth:`lock_entries`."""
-        return lockfile.render(self.lock_entries(edited), root=self.lock_url(self.root_location.url))
+        as for :meth:`lock_entries`. An unchanged lock is the bytes read (render's, by
+        :func:`lockfile.render_unchanged`), not rendered again."""
+        root = self.lock_url(self.root_location.url)
+        return lockfile.render_unchanged(self.lock_entries(edited), root=root, before=self.locked)
 
     def write_lock(self) -> None:
         """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.
@@ -389,6 +402,7 @@ class _Run:
                 actual=lock.root,
             )
         self.lock = lock.entries
+        res.locked = lock
         names = set(self.o.update)
         self._updating = {url for url, e in self.lock.items() if names & {e.uri, url}}
 
@@ -453,25 +467,31 @@ class _Run:
         includes: list[Artifact] = []
         edges = res.includes.setdefault(doc_loc.url, [])
         source, doc_url, artifacts, locate = doc.source, doc_loc.url, res.artifacts, self.locator.locate
+        join = self.locator.plain_joiner(doc_loc)  # locate's fast path, without the call per reference
         for ref in doc.references():
             kind = ref.kind
             if kind in _NOT_FETCHED:
                 res.others.append((source, ref))
                 continue
+            uri, sha, line = ref.uri, ref.sha, ref.line
             try:
-                pin = parse_pin(ref.sha, file=source, line=ref.line, uri=ref.uri)
-                if not ref.uri:
-                    raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=ref.line)
-                loc = locate(ref.uri, doc_loc, file=source, line=ref.line)
+                if sha is not None and is_canonical_pin(sha):
+                    pin: Pin | None = Pin(sha)  # parse_pin's first case, without the call
+                else:
+                    pin = parse_pin(sha, file=source, line=line, uri=uri)
+                if not uri:
+                    raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=line)
+                loc = join(uri) or locate(uri, doc_loc, file=source, line=line)
             except HcdfTrustError as exc:
                 res.errors.append(exc)
                 continue
-            art = artifacts.get(loc.url)
+            url = loc.url
+            art = artifacts.get(url)
             if art is None:
-                art = artifacts[loc.url] = Artifact(kind=kind, uri=ref.uri, location=loc)
+                art = artifacts[url] = Artifact(kind, uri, loc)
             art.uses.append(Use(source, doc_url, ref, pin))
             if kind is Kind.INCLUDE:
-                edges.append((ref, loc.url))
+                edges.append((ref, url))
                 includes.append(art)
         return includes
 
@@ -494,14 +514,35 @@ class _Run:
                 if work:
                     pools.append(_Workers(functools.partial(self._obtain_one, keep=keep), work, workers))
                     self._pools.append(pools[-1])
-            for art in inline:
-                self._obtain_one(art, keep)
+            if keep:
+                for art in inline:
+                    self._obtain_one(art, keep)
+            else:
+                self._hash_inline(inline)
         finally:
             for pool in pools:
                 pool.join()
             sys.setswitchinterval(switch)
         for pool in pools:
             pool.reraise()
+
+    def _hash_inline(self, artifacts: list[Artifact]) -> None:
+        """:meth:`_obtain_one` for files that are not parsed, in this thread: a small local
+        file of a checked folder by :meth:`ConfinedFolders.hash_entry` (the same checks,
+        less Python per file); anything else, and every error, through :meth:`_obtain_one`."""
+        hash_entry = self.folders.hash_entry
+        progress = self.on_progress
+        for art in artifacts:
+            loc = art.location
+            path = loc.path
+            hashed = hash_entry(path, loc.root or os.path.dirname(path)) if path is not None else None
+            if hashed is None:
+                self._obtain_one(art, False)
+                continue
+            art.sha256, art.size, art.inode = hashed
+            art.source = "file" if loc.url.startswith("file://") else "mirror"
+            if progress:
+                progress(1, art.size)
 
     def _plan(self, artifacts: list[Artifact]) -> tuple[list[Artifact], list[Artifact], list[Artifact]]:
         """Split work into (this thread, one thread per core, up to --jobs threads).
@@ -518,8 +559,14 @@ class _Run:
         inline: list[Artifact] = []
         sized: list[tuple[int, Artifact]] = []
         net: list[Artifact] = []
+        lock, to_lock = self.lock, self._to_lock
         for art in artifacts:
-            entry = self._entry(art) if art.location.path is not None else None
+            entry = None
+            if lock and art.location.path is not None:  # _entry, inline (10,000 calls)
+                key = art.lock_url
+                if key is None:
+                    key = art.lock_url = to_lock(art.location.url)
+                entry = lock.get(key)
             # A local file the lock knows: the size it had (a wrong hint costs speed, not safety).
             size = entry.size if entry is not None else self._stat_size(art)
             if size < 0:
@@ -704,8 +751,12 @@ class _Run:
             if art.error is not None:
                 res.errors.append(art.error)
                 continue
-            if art.sha256 is None:
+            sha = art.sha256
+            if sha is None:
                 continue  # never reached (an error elsewhere stopped the walk)
+            uses = art.uses
+            if len(uses) == 1 and (pin := uses[0].pin) is not None and pin.hex == sha:
+                continue  # one full pin that matches: authoritative, no error, no warning, no drift
             entry = self._entry(art)
             errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=self.o.locked)
             res.errors.extend(errors)
@@ -715,7 +766,7 @@ class _Run:
                 use = art.uses[0]
                 drift = lockfile.drift_error(
                     entry,
-                    art.sha256,
+                    sha,
                     art.size,
                     uri=art.uri,
                     url=res.lock_url(art.url),
