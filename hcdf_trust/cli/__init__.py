@@ -390,7 +390,8 @@ def resolve(
     """Fetch every file DOC references, verify its SHA-256, cache it, write the lock file.
 
     Relative references resolve against the referencing document, or against
-    --base. Nothing is written unless every reference verifies. The lock is the
+    --base. Nothing is written unless every reference verifies, and a lock file
+    (or --out) that would not change is left untouched. The lock is the
     pin of every reference without a full sha (trust on first use): content that
     changed since it was locked fails (exit 1) until accepted with --update.
     With --locked the lock is checked, never written. With --registry, the tree's
@@ -411,10 +412,12 @@ def resolve(
     protect_inputs(plan, res, doc=doc, options=options)
     if registry is not None:
         registry.protect(plan)
+    # An output that already holds exactly these bytes is left alone (if_changed): a
+    # rebuild over an unchanged tree touches no file, so a build system sees nothing new.
     if no_lock:
         plan.protect(res.lock_path, what="the lock file")
     else:
-        plan.add(res.lock_path, res.render_lock(), flag="--lock")
+        plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
 
@@ -423,9 +426,15 @@ def resolve(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),
             flag="--out",
+            if_changed=True,
         )
     wrote = plan.commit()
-    _report(res, as_json=as_json, wrote=[display_path(p) for p in wrote])
+    _report(
+        res,
+        as_json=as_json,
+        wrote=[display_path(p) for p in wrote],
+        unchanged=[display_path(p) for p in plan.unchanged],
+    )
 
 
 @main.command()
@@ -687,10 +696,13 @@ def _summary(res: Any) -> dict[str, int]:
     }
 
 
-def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
+def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] | None = None) -> None:
+    """The run's summary; ``unchanged``: outputs already in place, not rewritten (resolve only)."""
     if as_json:
         payload = _payload(res)
         payload["wrote"] = wrote
+        if unchanged is not None:
+            payload["unchanged"] = unchanged
         emit_json(payload)
         return
     _warn(res.warnings)
@@ -703,6 +715,8 @@ def _report(res: Any, *, as_json: bool, wrote: list[str]) -> None:
     )
     for path in wrote:
         click.echo(f"wrote {path}", err=True)
+    for path in unchanged or ():
+        click.echo(f"unchanged {path}", err=True)
 
 
 # The verb groups, each imported when it runs or --help lists it (a resolve needs
