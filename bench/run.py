@@ -424,7 +424,7 @@ def bench_small(args: argparse.Namespace, rows: list[Row]) -> None:
     )
     rows.append(
         Row(
-            "the same with --no-lock (the lock is still read and checked; rendering it and finding it "
+            "the same with --no-lock (the lock is still read and checked; producing it and finding it "
             f"unchanged costs {(t_ours - t_nolock) * 1000:+.0f} ms)",
             f"{t_nolock * 1000:.0f} ms",
             f"find \\| xargs openssl: {t_find * 1000:.0f} ms",
