@@ -67,6 +67,12 @@ def _is_url(text: str) -> bool:
     return "://" in text
 
 
+def _folder_of(base: str) -> str:
+    """The normal folder (ending in "/") of the plain ``file:///`` URL ``base``."""
+    folder = posixpath.normpath(base[7:] if base.endswith("/") else posixpath.dirname(base[7:]))
+    return folder if folder.endswith("/") else folder + "/"
+
+
 def refuse_credentials(url: str, *, what: str, file: str | None = None, line: int | None = None) -> None:
     """Refuse a URL that carries ``user:password@`` (``what`` names where it was given).
 
@@ -295,12 +301,6 @@ class Locator:
                 actual=display_path(normal),
             )
         return Location(url=url, path=normal, root=root)
-
-
-def _folder_of(base: str) -> str:
-    """The normal folder (ending in "/") of the plain ``file:///`` URL ``base``."""
-    folder = posixpath.normpath(base[7:] if base.endswith("/") else posixpath.dirname(base[7:]))
-    return folder if folder.endswith("/") else folder + "/"
 
 
 def _normalise(url: str) -> str:
