@@ -14,23 +14,21 @@ its outputs here first:
    destination folder, then fsyncs them all (together, on a few threads); only when
    all are ready is each renamed into place, and each folder is fsynced once. A
    failure before the renames leaves every destination as it was; a rename that
-   fails puts back the files already replaced.
+   fails puts back the files already replaced. An output added with ``if_changed``
+   that is already in place, byte for byte, is not written at all.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import secrets
 import stat
-import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 from .errors import InputError, display_path, display_place
-from .store import default_cache_dir, fsync_dir
+from .store import create_temp, default_cache_dir, fsync_dir
 
 if TYPE_CHECKING:
     from .include.resolver import Resolution, ResolveOptions
@@ -42,13 +40,13 @@ class OutputError(InputError):
     code = "output"
 
 
-@dataclass(frozen=True)
-class _Output:
+class _Output(NamedTuple):  # a tuple: a frozen dataclass costs ~1 ms of start-up to define
     path: Path  # the real folder + the name as given (a symlink at the destination is replaced, not followed)
     data: bytes
     mode: int
     flag: str  # how the user named it, for messages: "--lock", "--out", ...
     shown: str  # the path as the user gave it
+    if_changed: bool = False  # left as it is when it already holds exactly ``data`` with ``mode``
 
 
 class _Input(NamedTuple):  # a tuple: 10,000 of them per run
@@ -76,6 +74,7 @@ class OutputPlan:
         self._statted = 0  # how many of _inputs are in _inodes
         self._trees: list[_Input] = []
         self._outputs: dict[str, _Output] = {}  # realpath -> output
+        self.unchanged: list[Path] = []  # outputs added with if_changed that commit() found already in place
 
     # -- inputs ----------------------------------------------------------------------
 
@@ -122,12 +121,22 @@ class OutputPlan:
     # -- outputs ---------------------------------------------------------------------
 
     def add(
-        self, path: str | os.PathLike[str], data: bytes, *, flag: str, mode: int = 0o644, edit: bool = False
+        self,
+        path: str | os.PathLike[str],
+        data: bytes,
+        *,
+        flag: str,
+        mode: int = 0o644,
+        edit: bool = False,
+        if_changed: bool = False,
     ) -> None:
         """Plan to write ``data`` to ``path``, refusing at once a destination that is an input.
 
         ``edit`` marks an in-place edit of an input (``pin --write`` rewriting a
         document it read): it may replace a protected file, but nothing else below.
+        ``if_changed``: a destination that already is a regular file (not a symlink)
+        holding exactly ``data`` with ``mode`` is left as it is, inode and mtime
+        untouched (a build system then sees no change); :attr:`unchanged` lists it.
 
         Raises:
             OutputError: ``path`` is an input, inside a protected folder, another
@@ -135,7 +144,7 @@ class OutputPlan:
                 a regular file.
         """
         dest, real, shown = self._check(path, flag=flag, edit=edit)
-        self._outputs[real] = _Output(dest, data, mode, flag, shown)
+        self._outputs[real] = _Output(dest, data, mode, flag, shown, if_changed)
 
     def check(self, path: str | os.PathLike[str], *, flag: str) -> None:
         """Refuse now what :meth:`add` would refuse, before the work of making the data.
@@ -180,6 +189,7 @@ class OutputPlan:
 
     def commit(self) -> list[Path]:
         """Write every planned output; rename them into place only when all are written.
+        Returns the paths written (not those found :attr:`unchanged`).
 
         Every file is written to a temporary file beside its destination first, then the
         temporary files are fsynced together (a few threads: fsync releases the GIL and
@@ -190,7 +200,12 @@ class OutputPlan:
             OutputError: a folder could not be made or written (read-only, full disk...);
                 then no destination has changed and no temporary file or new folder is left.
         """
-        outputs = list(self._outputs.values())
+        outputs = []
+        for out in self._outputs.values():
+            if out.if_changed and _holds(out):
+                self.unchanged.append(out.path)
+            else:
+                outputs.append(out)
         made: list[Path] = []  # folders this commit created, outermost first
         staged: list[tuple[str, _Output]] = []
         done: list[tuple[_Output, str | None]] = []  # renamed so far, with a link to the file they replaced
@@ -237,7 +252,7 @@ class OutputPlan:
             _discard(backup)
         # the renamed files' folders, and the folders that hold a folder this commit made
         _in_parallel(fsync_dir, sorted(folders | {folder.parent for folder in made}))
-        return self.paths
+        return [out.path for out in outputs]
 
 
 def protect_inputs(
@@ -359,10 +374,33 @@ def _in_parallel(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
         return list(pool.map(fn, items))
 
 
+def _holds(out: _Output) -> bool:
+    """Is ``out.path`` already a regular file (not a symlink) holding exactly ``out.data``, with ``out.mode``?"""
+    try:
+        fd = os.open(out.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:  # missing, a symlink (ELOOP), unreadable: written as usual
+        return False
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or stat.S_IMODE(st.st_mode) != out.mode or st.st_size != len(out.data):
+            return False
+        view = memoryview(out.data)
+        while view:  # compared read by read: a file that changes size meanwhile differs somewhere
+            chunk = os.read(fd, len(view))
+            if not chunk or view[: len(chunk)] != chunk:
+                return False
+            view = view[len(chunk) :]
+        return os.read(fd, 1) == b""
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
 def _stage(out: _Output) -> tuple[int, str]:
     """Write ``out`` to a temporary file beside its destination, with its mode from the first
     byte; return the open descriptor (to fsync) and the path."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.path.name}.", suffix=".tmp", dir=out.path.parent)  # 0600
+    fd, tmp = create_temp(out.path.parent, f".{out.path.name}.", ".tmp")  # 0600
     try:
         os.fchmod(fd, out.mode)
         view = memoryview(out.data)
@@ -383,7 +421,7 @@ def _keep_previous(dest: Path) -> str | None:
     destination cannot be restored; the others still are).
     """
     for _ in range(8):
-        backup = os.fspath(dest.parent / f".{dest.name}.{secrets.token_hex(6)}.old")
+        backup = os.fspath(dest.parent / f".{dest.name}.{os.urandom(6).hex()}.old")
         try:
             os.link(dest, backup, follow_symlinks=False)
         except FileExistsError:

@@ -132,3 +132,5 @@ def test_a_resolve_imports_no_other_verb_group(tmp_path):
     assert r.stdout.strip() == "0 []", r
     r = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True, text=True, timeout=60)
     assert "hcdf_trust.cli.ota" in r.stdout and "ota " in r.stdout  # --help lists every group (and loads them)
+    for verb in ("pin", "validate"):  # built only when they run or --help lists them
+        assert f"hcdf_trust.cli.{verb}" in r.stdout and f"  {verb} " in r.stdout

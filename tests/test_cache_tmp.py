@@ -16,12 +16,12 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
+import hcdf_trust.store as store_module
 from hcdf_trust.store import PARTIAL_PREFIX, ContentStore
 
 
@@ -192,17 +192,17 @@ def test_a_writer_whose_new_file_is_swept_before_it_locks_it_takes_another(tmp_p
     """The race between creating a temporary file and locking it: a concurrent sweep
     that wins it unlinks the file, and the writer must notice, not write into the void."""
     store = ContentStore(tmp_path / "cache")
-    real_mkstemp = tempfile.mkstemp
+    real_create = store_module.create_temp
     made: list[str] = []
 
-    def mkstemp_then_sweep(*args, **kw):
-        fd, name = real_mkstemp(*args, **kw)
+    def create_then_sweep(*args, **kw):
+        fd, name = real_create(*args, **kw)
         made.append(name)
         if len(made) == 1:
-            assert store.sweep_tmp() == 1  # another run's sweep, between mkstemp and flock
+            assert store.sweep_tmp() == 1  # another run's sweep, between creating and flock
         return fd, name
 
-    monkeypatch.setattr(tempfile, "mkstemp", mkstemp_then_sweep)
+    monkeypatch.setattr(store_module, "create_temp", create_then_sweep)
     hashed, path = store.ingest([b"first", b"second"])
     assert len(made) == 2
     assert path is not None and path.read_bytes() == b"firstsecond"

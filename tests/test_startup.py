@@ -73,3 +73,15 @@ def test_hashing_threads_import_no_thread_pool(tmp_path):
     code, modules = _modules_after("resolve", str(doc), "--cache-dir", str(tmp_path / "c"))
     assert code == 0 and (tmp_path / "robot.hcdf.lock").exists()
     assert not modules & {"concurrent.futures", "logging"}, sorted(modules & {"concurrent.futures", "logging"})
+
+
+def test_a_resolve_writing_its_lock_imports_neither_tempfile_nor_secrets(tmp_path):
+    """Temporary files come from store.create_temp: tempfile would bring shutil, random, bz2 and
+    lzma (and secrets base64 and hmac) into every run's start-up."""
+    lock = tmp_path / "robot.hcdf.lock"
+    code, modules = _modules_after(
+        "resolve", "examples/robot/robot.hcdf", "--lock", str(lock), "--cache-dir", str(tmp_path / "c")
+    )
+    assert code == 0 and lock.exists()  # written: the commit's temporary file was made
+    unwanted = {"tempfile", "shutil", "random", "secrets", "bz2", "lzma"}
+    assert not modules & unwanted, sorted(modules & unwanted)

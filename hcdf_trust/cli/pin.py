@@ -1,0 +1,79 @@
+"""``hcdf-trust pin``: fill in missing and weak sha attributes (hcdf_trust.include.pin)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+
+from . import emit_json, fail, fetch_options, handle_errors, resolve_options
+
+
+@click.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@resolve_options
+@fetch_options
+@click.option("--write", is_flag=True, help="Edit the documents in place and update the lock (default: only report).")
+@click.option(
+    "--update",
+    "update",
+    multiple=True,
+    metavar="URI",
+    help="Accept the current content of this file where it disagrees with its sha or its lock entry: the uri "
+    "as written in the document, its URL or its path (repeatable).",
+)
+@click.option("--all", "update_all", is_flag=True, help="Accept the current content of every file (like --update).")
+@handle_errors
+def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_json: bool, **kw: Any) -> None:
+    """Fill in missing and weak sha attributes across DOC's include tree, and update the lock.
+
+    A missing or weak sha is filled in with the full SHA-256, from the lock's entry
+    when it has one: content that differs from its lock entry is refused (exit 1),
+    not pinned. A sha that disagrees with the content is replaced only for the
+    files named with --update URI, or with --all; otherwise it is a digest
+    mismatch (exit 1) and nothing is written. Each change shows the old and new
+    digests and whether the lock agreed with the old one.
+
+    Each edit is a minimal text edit of one attribute: comments and formatting are
+    kept. --write writes the edited documents and the lock file (exactly what a
+    following resolve writes) all together, or nothing. Without --write, nothing is
+    written.
+    """
+    from ..include.pin import pin_tree
+    from ..include.resolver import ResolveOptions
+
+    report = pin_tree(doc, ResolveOptions(**kw), write=write, update=update, update_all=update_all)
+    payload = {
+        "changes": [c.to_dict() for c in report.changes],
+        "lock_changes": [c.to_dict() for c in report.lock_changes],
+        "planned": report.planned,
+        "wrote": report.written,
+        "warnings": [w.to_dict() for w in report.warnings],
+    }
+    if report.errors:
+        if not as_json:
+            for w in report.warnings:
+                click.echo(f"warning: {w}", err=True)
+        fail(report.errors, as_json=as_json, payload=payload)
+    if as_json:
+        emit_json({"ok": True, **payload, "errors": []})
+        return
+    for w in report.warnings:
+        click.echo(f"warning: {w}", err=True)
+    verb = "pinned" if write else "would pin"
+    for c in report.changes:
+        click.echo(
+            f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new} [lock: {c.lock}]", err=True
+        )
+    added = sum(1 for lc in report.lock_changes if lc.old is None)
+    for lc in report.lock_changes:
+        if lc.old is not None:  # new entries are counted, not listed
+            click.echo(f"{'' if write else 'would '}lock {lc.url}: {lc.old} -> {lc.new or '(dropped)'}", err=True)
+    for path in report.written:
+        click.echo(f"wrote {path}", err=True)
+    tail = "" if write or not report.planned else f" (dry run: --write writes {', '.join(report.planned)})"
+    click.echo(
+        f"{len(report.changes)} sha change(s), {len(report.lock_changes) - added} lock entr(ies) changed, "
+        f"{added} new{tail}",
+        err=True,
+    )

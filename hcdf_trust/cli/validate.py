@@ -1,0 +1,59 @@
+"""``hcdf-trust validate``: XSD and HCDF semantic rules (hcdf_trust.validate)."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from . import emit_json, handle_errors
+
+
+@click.command()
+@click.argument("doc", type=click.Path(dir_okay=False))
+@click.option(
+    "--schema", type=click.Path(dir_okay=False), help="XSD to validate against (the official schemas are not shipped)."
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@click.option("--registry", "registry_site", help="Registry (URL or folder): schemas, extensions, stream profiles.")
+@click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
+@click.option("--strict", is_flag=True, help="With --registry: unregistered extension domains/versions are errors.")
+@handle_errors
+def validate(
+    doc: str, schema: str | None, as_json: bool, registry_site: str | None, trusted_root: str | None, strict: bool
+) -> None:
+    """Validate DOC against an XSD and check the HCDF semantic rules the XSD cannot express.
+
+    Exits 1 if any error was found; every finding is listed, not just the first.
+    """
+    from ..validate import validate_document
+
+    if registry_site:
+        from .registry import validate_with_registry
+
+        report = validate_with_registry(
+            doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict
+        )
+    else:
+        report = validate_document(doc, schema=schema)
+    if as_json:
+        emit_json(
+            {
+                "ok": report.ok,
+                "checked": report.checked,
+                "schema": report.schema,
+                "notes": list(report.notes),
+                "findings": [f.to_dict() for f in report.findings],
+                "errors": [f.to_dict() for f in report.findings if f.severity == "error"],
+            }
+        )
+    else:
+        for f in report.findings:
+            click.echo(str(f), err=True)
+        for n in report.notes:
+            click.echo(f"note: {n}", err=True)
+        if report.schema is None:
+            click.echo("note: no --schema given: only the semantic rules were checked", err=True)
+        errors = sum(1 for f in report.findings if f.severity == "error")
+        click.echo(f"{errors} error(s), {len(report.findings) - errors} warning(s)", err=True)
+    sys.exit(0 if report.ok else 1)
