@@ -140,6 +140,19 @@ def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     return Pkcs11Wrapper(module, label, pin_from(pin_file))
 
 
+def _warmed(store_dir: str, passphrase_file: str | None, backend: dict[str, Any]) -> Any:
+    """A passphrase wrapper that has opened the store once (its scrypt key kept), or None on any
+    error: the caller makes its own wrapper and opens the store again, and then reports it."""
+    from ..macsec.store import KeyStore
+
+    try:
+        wrapper = _wrapper(passphrase_file, backend)
+        KeyStore.open(store_dir, wrapper)
+    except Exception:  # noqa: BLE001 -- reported by the open the caller makes under the lock
+        return None
+    return wrapper
+
+
 def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     """An OutputPlan that refuses every input of this run: the verified tree of plan ``p``
     (documents, artifacts, the cache) and its lock, the passphrase and PIN files."""
@@ -175,8 +188,6 @@ def generate(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
-    from ..macsec.plan import plan
-    from ..macsec.rotation import generate as run
     from ..macsec.store import Background, KeyStore, locked
 
     now = _now(now_text)
@@ -185,6 +196,9 @@ def generate(
         # A new store's data key is wrapped (scrypt, a pure computation) while the description
         # is verified; if a store exists once the lock is held, it is opened and this one dropped.
         fresh = Background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec.plan import plan
+    from ..macsec.rotation import generate as run
+
     p = plan(doc)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
@@ -217,12 +231,13 @@ def status(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
-    from ..macsec.plan import plan
-    from ..macsec.rotation import status as run
     from ..macsec.store import Background, KeyStore
 
     now = _now(now_text)
     opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec.plan import plan
+    from ..macsec.rotation import status as run
+
     p = plan(doc)
     store = opening.result()
     st = run(store, p, now=now)
@@ -266,14 +281,20 @@ def rotate(
     **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
+    from ..macsec.store import Background, KeyStore, fmt_time, locked
+
+    now = _now(now_text)
+    warm = None
+    if not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
+        # scrypt runs while the description is verified; the store is read again under the lock
+        # (the passphrase wrapper keeps the derived key, so that second open costs no scrypt).
+        warm = Background(lambda: _warmed(store_dir, passphrase_file, backend))
     from ..macsec.plan import plan
     from ..macsec.rotation import rotate as run
     from ..macsec.rotation import select
-    from ..macsec.store import KeyStore, fmt_time, locked
 
-    now = _now(now_text)
     p = plan(doc)
-    wrapper = _wrapper(passphrase_file, backend)
+    wrapper = (warm.result() if warm is not None else None) or _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
@@ -315,10 +336,10 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
 
 
 def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
-    from ..macsec.export.wpa_supplicant import parse_version
+    from ..macsec import parse_wpa_version
 
     try:
-        version = parse_version(value)
+        version = parse_wpa_version(value)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     if version < (2, 10):
@@ -370,13 +391,15 @@ def export(
     """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
     import os
 
-    from ..macsec.export import collect, mesh_keys, render
     from ..macsec.store import Background, KeyStore
 
     now = _now(now_text)
+    # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
+    # the description verified and planned.
+    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec.export import collect, mesh_keys, render
     from ..macsec.plan import plan
 
-    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     p = plan(doc, device=device)  # only the networks that can hold the device's associations
     store = opening.result()
     ports, notices = collect(p, store, device, now=now)

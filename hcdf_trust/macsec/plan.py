@@ -114,7 +114,7 @@ class Policy:
         return out
 
 
-@dataclass
+@dataclass(slots=True)
 class Member:
     device: str
     ports: list[str] = field(default_factory=list)
@@ -123,7 +123,7 @@ class Member:
         return {"device": self.device, "ports": self.ports}
 
 
-@dataclass
+@dataclass(slots=True)
 class Element:
     """One link, chain or mesh that belongs to an association."""
 
@@ -149,7 +149,7 @@ class Element:
         }
 
 
-@dataclass
+@dataclass(slots=True)
 class Association:
     """A connectivity association: one CAK (or one mesh network key) and who holds it."""
 
@@ -330,7 +330,8 @@ def _compile(plain: bool) -> _Queries:
     not_link = "*[not(self::link)]" if plain else "*[local-name()!='link']"
     refs = (f"{link}/{wired}/{macsec}/@key-ref", f"{chain}/{macsec}/@key-ref", f"{mesh}/@network-key-ref")
     return _Queries(
-        naming=etree.XPath(f"{net}[contains(., $w) or {not_link}//@*[contains(., $w)]]"),
+        # ``X/descendant-or-self::*/@*`` is ``X//@*`` (only elements have attributes), without the text nodes
+        naming=etree.XPath(f"{net}[contains(., $w) or {not_link}/descendant-or-self::*/@*[contains(., $w)]]"),
         refs=etree.XPath(" | ".join(refs)),
         all_refs=tuple(etree.XPath(f"{net}/{r}") for r in refs),  # three queries: a union sorts 5,000 nodes
     )
@@ -412,7 +413,7 @@ class _Planner:
         # scoped key-ref -> (instance identity, file, element) where it was first written
         self._key_scope: dict[str, tuple[str, str, etree._Element]] = {}
         self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
-        self._override_cache: dict[tuple[tuple[Any, ...], Policy | None], Policy] = {}
+        self._override_cache: dict[tuple[tuple[Any, ...], ...], Policy] = {}  # this network's overrides
 
     def run(self) -> Plan:
         instances = self._instances()
@@ -430,7 +431,8 @@ class _Planner:
         return self.plan
 
     def _pn_warning(self, ca: Association) -> None:
-        if ca.policy is None or is_xpn(ca.policy.cipher):
+        speeds = ca.port_speeds_mbps
+        if not speeds or max(speeds.values()) < PN_WARN_MBPS or ca.policy is None or is_xpn(ca.policy.cipher):
             return
         fast = sorted(p for p, mbps in ca.port_speeds_mbps.items() if mbps >= PN_WARN_MBPS)
         if not fast:
@@ -543,7 +545,7 @@ class _Planner:
     def _own_comps(self, url: str) -> dict[str, etree._Element]:
         if url not in self._comps:
             root = self.docs[url].root
-            self._comps[url] = {c.get("name", ""): c for c in _children(root, "comp") if c.get("name")}
+            self._comps[url] = {name: c for c in root.iterchildren("{*}comp") if (name := c.get("name"))}
         return self._comps[url]
 
     @staticmethod
@@ -564,6 +566,9 @@ class _Planner:
     def _find_comp(self, inst: _Instance, written: str) -> tuple[etree._Element, str] | None:
         """The comp element a device reference names, searched from the instance outwards."""
         value = written.strip()
+        own = self._own_comps(inst.url).get(value)
+        if own is not None:  # the first place the loop below looks
+            return own, self.docs[inst.url].source
         for level in range(len(inst.chain) - 1, -1, -1):
             url = inst.chain[level]
             comp = self._own_comps(url).get(value)
@@ -614,6 +619,7 @@ class _Planner:
     def _network(self, inst: _Instance, doc: Document, net: etree._Element) -> None:
         net_name = self._scoped(inst, net.get("name", "").strip())
         default = None
+        self._override_cache = {}
         parts = _by_tag(net)
         cfg = parts.get("macsec")
         if cfg:
@@ -714,14 +720,14 @@ class _Planner:
         if el is None:
             return default, None
         # Overrides repeat (every link of a network written alike): parse each distinct one once.
-        attrs = tuple(kv for kv in el.attrib.items() if kv[0] != "key-ref")
-        cache_key = (attrs, default)
-        policy = self._override_cache.get(cache_key)
+        # The cache holds one network's overrides (:meth:`_network` empties it), so ``default`` is fixed.
+        attrs = tuple(kv for kv in el.items() if kv[0] != "key-ref")
+        policy = self._override_cache.get(attrs)
         if policy is None:
             errors = len(self.errors)
             policy = self._policy(doc, el, default, network_level=False)
             if policy is not None and len(self.errors) == errors:
-                self._override_cache[cache_key] = policy
+                self._override_cache[attrs] = policy
         ref = el.get("key-ref")
         return policy, (ref.strip() or None) if ref is not None else None
 
@@ -921,11 +927,14 @@ def _named(tag: Any, name: str) -> bool:
     return tag == name or (isinstance(tag, str) and tag.endswith("}" + name))
 
 
-_SPEEDS = ("speed", "speed-tx", "speed-rx")
+_SPEEDS = frozenset(("speed", "speed-tx", "speed-rx"))
 
 
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
-    """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass."""
+    """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass.
+
+    Tags are matched as :func:`_named` does (no namespace or any), written out inline:
+    20,000 ports make ~100,000 of these tests."""
     out: dict[str, _PortInfo] = {}
     for el in comp.iter("{*}port"):
         name = el.get("name")
@@ -934,19 +943,26 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
         ciphers: list[str] = []
         speed: float | None = None
         for caps in el:  # plain iteration and tag tests: faster in lxml than filtered iterators
-            if not _named(caps.tag, "capabilities"):
+            tag = caps.tag
+            if tag != "capabilities" and not (type(tag) is str and tag.endswith("}capabilities")):
                 continue
             for item in caps:
-                local = _local(item)
+                tag = item.tag
+                if type(tag) is not str:
+                    continue
+                local = tag[tag.rfind("}") + 1 :]
                 if local == "macsec":
-                    ciphers.extend((c.text or "").strip() for c in item if _named(c.tag, "cipher"))
+                    for c in item:
+                        tag = c.tag
+                        if tag == "cipher" or (type(tag) is str and tag.endswith("}cipher")):
+                            ciphers.append((c.text or "").strip())
                 elif local in _SPEEDS:
                     mbps = _mbps(item.text, item.get("unit"))
                     if mbps is not None:
-                        speed = max(speed or 0.0, mbps)
+                        speed = mbps if speed is None or mbps > speed else speed
         out[name] = _PortInfo(
             file,
-            sourceline(el),
+            el.sourceline,  # type: ignore[arg-type]  # lxml-stubs: `sourceline = ...`
             (el.get("type") or "").strip().lower(),
             (el.get("iface") or "").strip() or name,
             speed,
