@@ -352,11 +352,6 @@ def _queries(doc: Document) -> _Queries:
     return _compile(ascii_like and b"xmlns" not in data and b"xml:" not in data)
 
 
-def _local(el: Any) -> str | None:
-    tag = el.tag
-    return tag[tag.rfind("}") + 1 :] if isinstance(tag, str) else None
-
-
 def _children(el: etree._Element, tag: str) -> list[etree._Element]:
     """Child elements named ``tag`` in any namespace or none (matched by lxml, in C)."""
     return list(el.iterchildren("{*}" + tag))
@@ -922,19 +917,14 @@ class _PortInfo(NamedTuple):
 _PortRef = _PortInfo | None
 
 
-def _named(tag: Any, name: str) -> bool:
-    """Whether an element's ``tag`` is ``name`` in no namespace or any (False for comments and PIs)."""
-    return tag == name or (isinstance(tag, str) and tag.endswith("}" + name))
-
-
 _SPEEDS = frozenset(("speed", "speed-tx", "speed-rx"))
 
 
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
-    """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass.
-
-    Tags are matched as :func:`_named` does (no namespace or any), written out inline:
-    20,000 ports make ~100,000 of these tests."""
+    """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass:
+    the first definition of a name wins; ``<capabilities>`` children of the port give its speed
+    (the highest of ``speed``, ``speed-tx``, ``speed-rx``) and the ``<cipher>``s of its ``<macsec>``.
+    Tags match in no namespace or any, tested inline (20,000 ports make ~100,000 tests)."""
     out: dict[str, _PortInfo] = {}
     for el in comp.iter("{*}port"):
         name = el.get("name")
