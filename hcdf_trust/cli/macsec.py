@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from ..errors import HcdfTrustError
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, keep_until_exit
 
 
 @click.group()
@@ -65,8 +65,11 @@ def plan_cmd(doc: str, as_json: bool) -> None:
     from ..macsec.plan import plan
 
     p = plan(doc)
+    keep_until_exit(p)  # a 10,000-link plan and its XML trees are left for the kernel to reclaim
     if as_json:
-        emit_json({"ok": True, **p.to_dict()})
+        payload = {"ok": True, **p.to_dict()}
+        keep_until_exit(payload)
+        emit_json(payload)
         return
     _plan_lines(p)
     keyed = p.keyed()
@@ -200,12 +203,14 @@ def generate(
     from ..macsec.rotation import generate as run
 
     p = plan(doc)
+    keep_until_exit(p)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
         if KeyStore.exists(store_dir):
             store = KeyStore.open(store_dir, wrapper)
         else:
             store = fresh.result() if fresh is not None else KeyStore.create(store_dir, wrapper)
+        keep_until_exit(store)
         created, notices = run(store, p, now=now)
         if store.changed:
             _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
@@ -239,7 +244,9 @@ def status(
     from ..macsec.rotation import status as run
 
     p = plan(doc)
+    keep_until_exit(p)
     store = opening.result()
+    keep_until_exit(store)
     st = run(store, p, now=now)
     if as_json:
         emit_json({"ok": True, **st.to_dict()})
@@ -294,9 +301,11 @@ def rotate(
     from ..macsec.rotation import select
 
     p = plan(doc)
+    keep_until_exit(p)
     wrapper = (warm.result() if warm is not None else None) or _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
+        keep_until_exit(store)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
         if store.changed:
             _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
@@ -323,6 +332,7 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
+        keep_until_exit(store)
         removed = run(store, now=now)
         if store.changed:
             _save(store, now, p=None, passphrase_file=passphrase_file, backend=backend)
@@ -401,7 +411,9 @@ def export(
     from ..macsec.plan import plan
 
     p = plan(doc, device=device)  # only the networks that can hold the device's associations
+    keep_until_exit(p)
     store = opening.result()
+    keep_until_exit(store)
     ports, notices = collect(p, store, device, now=now)
     mesh = mesh_keys(p, store, device, now=now)
     files = render(
