@@ -723,19 +723,33 @@ class _Planner:
 
     def _link(self, inst: _Instance, doc: Document, net: str, link: etree._Element, default: Policy | None) -> None:
         element = self._element(inst, doc, "link", net, link)
-        wired = next(link.iterchildren("{*}wired"), None)
+        # The first <wired>, its <port>s and its first <macsec> (in any namespace), read in plain
+        # loops with tag tests: cheaper in lxml than three filtered iterators, for 10,000 links.
+        wired = None
+        for child in link:
+            tag = child.tag
+            if tag == "wired" or (type(tag) is str and tag.endswith("}wired")):
+                wired = child
+                break
         if wired is None:
             self.plan.skipped.append((element, "a wireless link has no MACsec"))
             return
         endpoints: list[tuple[str, str, _PortRef]] = []
-        for el in wired.iterchildren("{*}port"):
-            device, _, port = (el.text or "").strip().partition("/")
-            endpoints.append((self._device(inst, device), port, self._port(self._find_comp(inst, device), port)))
+        override = None
+        for el in wired:
+            tag = el.tag
+            if type(tag) is not str:
+                continue
+            local = tag[tag.rfind("}") + 1 :]
+            if local == "port":
+                device, _, port = (el.text or "").strip().partition("/")
+                endpoints.append((self._device(inst, device), port, self._port(self._find_comp(inst, device), port)))
+            elif local == "macsec" and override is None:
+                override = el
         types = {p.type for *_, p in endpoints if p is not None}
         if types and types != {"ethernet"}:
             self.plan.skipped.append((element, f"not an Ethernet link (port type {', '.join(sorted(types))})"))
             return
-        override = next(wired.iterchildren("{*}macsec"), None)
         policy, key_ref = self._override(doc, override, default)
         if policy is None:
             self.plan.unprotected.append(element)
