@@ -387,3 +387,28 @@ def test_port_reading_matches_a_plain_reference(seed):
     text = f'<hcdf xmlns:x="urn:x" xmlns:y="urn:y"><comp name="c">\n{body}\n</comp></hcdf>'
     comp_el = parse_bytes(text.encode(), source="t.hcdf").getroot()[0]
     assert _read_ports(comp_el, "t.hcdf") == _reference_ports(comp_el, "t.hcdf")
+
+
+def test_link_children_are_read_in_any_namespace_first_override_wins():
+    # _link reads the first <wired>, all its <port>s and its first <macsec> in one loop of tag tests
+    from hcdf_trust.document import Document
+    from hcdf_trust.macsec.plan import plan_resolution
+    from hcdf_trust.xml import parse_bytes
+
+    wired = (
+        '<x:wired xmlns:x="urn:x"><!-- a comment --><x:port>a/p0</x:port><?pi?><ports>c/p0</ports>'
+        '<port> b/p0</port><x:macsec policy="must-secure" key-ref="k"/><macsec policy="disabled"/></x:wired>'
+        '<wired><port>c/p0</port><macsec policy="disabled"/></wired>'
+    )
+    text = hcdf(
+        comp("a", port("p0", "gcm-aes-128")),
+        comp("b", port("p0", "gcm-aes-128")),
+        comp("c", port("p0", "gcm-aes-128")),
+        f'<network name="n"><link name="l">{wired}</link></network>',
+    )
+    doc = Document(source="t.hcdf", tree=parse_bytes(text.encode(), source="t.hcdf"), data=text.encode())
+    p = plan_resolution({"u": doc}, {}, "u")
+    assert list(p.associations) == ["key-ref:k"]
+    ca = p.associations["key-ref:k"]
+    assert ca.policy is not None and ca.policy.policy == "must-secure"
+    assert _members(ca) == {"a": ["p0"], "b": ["p0"]}
