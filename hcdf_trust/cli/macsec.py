@@ -143,6 +143,31 @@ def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     return Pkcs11Wrapper(module, label, pin_from(pin_file))
 
 
+# What opening or creating a passphrase store imports, and the cryptography modules the caller's
+# thread imports next (kdf); a token backend's own library is imported by its thread only.
+_STORE_THREAD_MODULES = (
+    "cryptography.exceptions",
+    "cryptography.hazmat.primitives.ciphers.aead",
+    "cryptography.hazmat.primitives.ciphers.algorithms",
+    "cryptography.hazmat.primitives.cmac",
+    "cryptography.hazmat.primitives.kdf.scrypt",
+    "hcdf_trust.macsec.backends",
+)
+
+
+def _in_background(fn: Any) -> Any:
+    """``Background(fn)`` for a store's open or creation, once the modules it runs are imported
+    here: the caller goes on importing the planner (and cryptography) meanwhile, and two threads
+    importing the same modules at once can fail on an import cycle between them."""
+    import importlib
+
+    from ..macsec.store import Background
+
+    for name in _STORE_THREAD_MODULES:
+        importlib.import_module(name)
+    return Background(fn)
+
+
 def _warmed(store_dir: str, passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     """A passphrase wrapper that has opened the store once (its scrypt key kept), or None on any
     error: the caller makes its own wrapper and opens the store again, and then reports it."""
@@ -191,14 +216,14 @@ def generate(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
-    from ..macsec.store import Background, KeyStore, locked
+    from ..macsec.store import KeyStore, locked
 
     now = _now(now_text)
     fresh = None
     if not KeyStore.exists(store_dir) and not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
         # A new store's data key is wrapped (scrypt, a pure computation) while the description
         # is verified; if a store exists once the lock is held, it is opened and this one dropped.
-        fresh = Background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
+        fresh = _in_background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
     from ..macsec.plan import plan
     from ..macsec.rotation import generate as run
 
@@ -236,10 +261,10 @@ def status(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
-    from ..macsec.store import Background, KeyStore
+    from ..macsec.store import KeyStore
 
     now = _now(now_text)
-    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     from ..macsec.plan import plan
     from ..macsec.rotation import status as run
 
@@ -288,14 +313,14 @@ def rotate(
     **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
-    from ..macsec.store import Background, KeyStore, fmt_time, locked
+    from ..macsec.store import KeyStore, fmt_time, locked
 
     now = _now(now_text)
     warm = None
     if not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
         # scrypt runs while the description is verified; the store is read again under the lock
         # (the passphrase wrapper keeps the derived key, so that second open costs no scrypt).
-        warm = Background(lambda: _warmed(store_dir, passphrase_file, backend))
+        warm = _in_background(lambda: _warmed(store_dir, passphrase_file, backend))
     from ..macsec.plan import plan
     from ..macsec.rotation import rotate as run
     from ..macsec.rotation import select
@@ -401,12 +426,12 @@ def export(
     """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
     import os
 
-    from ..macsec.store import Background, KeyStore
+    from ..macsec.store import KeyStore
 
     now = _now(now_text)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
     # the description verified and planned.
-    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     from ..macsec.export import collect, mesh_keys, render
     from ..macsec.plan import plan
 
