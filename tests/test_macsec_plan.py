@@ -309,3 +309,106 @@ def test_refuses_without_a_lock(tmp_path, cli):
     r = cli("macsec", "plan", doc)
     assert r.exit_code == 3
     assert "lock" in r.stderr
+
+
+def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]]:
+    """The port rule of macsec.plan written plainly with lxml's filtered iterators and QName."""
+    from lxml import etree
+
+    from hcdf_trust.macsec.plan import _mbps
+
+    out: dict[str, tuple[object, ...]] = {}
+    for el in comp_el.iter("{*}port"):
+        name = el.get("name")
+        if name is None or name in out:
+            continue
+        ciphers: list[str] = []
+        speeds: list[float] = []
+        for caps in el.iterchildren("{*}capabilities"):
+            for item in caps.iterchildren(etree.Element):
+                local = etree.QName(item).localname
+                if local == "macsec":
+                    ciphers += [(c.text or "").strip() for c in item.iterchildren("{*}cipher")]
+                elif local in ("speed", "speed-tx", "speed-rx"):
+                    mbps = _mbps(item.text, item.get("unit"))
+                    if mbps is not None:
+                        speeds.append(mbps)
+        kind = (el.get("type") or "").strip().lower()
+        iface = (el.get("iface") or "").strip() or name
+        out[name] = (file, el.sourceline, kind, iface, max(speeds, default=None), tuple(ciphers))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_port_reading_matches_a_plain_reference(seed):
+    # _read_ports tests tags inline for speed; the same ports read the plain way give the same result
+    import random
+
+    from hcdf_trust.macsec.plan import _read_ports
+    from hcdf_trust.xml import parse_bytes
+
+    r = random.Random(seed)
+
+    def tag(local: str) -> str:
+        return r.choice([local, local, f"x:{local}", f"y:{local}"])
+
+    def capabilities() -> str:
+        items = []
+        for _ in range(r.randrange(6)):
+            pick = r.random()
+            if pick < 0.4:
+                ciphers = "".join(
+                    f"<{t}> {r.choice(['gcm-aes-128', 'gcm-aes-256', ''])}<!--c--></{t}>"
+                    for t in (tag(r.choice(["cipher", "cipher", "ciphers"])) for _ in range(r.randrange(3)))
+                )
+                t = tag(r.choice(["macsec", "macsec", "macsecs"]))
+                items.append(f"<{t}>{ciphers}<?pi x?></{t}>")
+            elif pick < 0.8:
+                t = tag(r.choice(["speed", "speed-tx", "speed-rx", "speeds"]))
+                unit = r.choice(["", ' unit="Gbps"', ' unit="kbps"', ' unit="x"'])
+                items.append(f"<{t}{unit}>{r.choice(['1000', ' 2.5 ', '100', '10000', 'fast', '-1'])}</{t}>")
+            else:
+                items.append("<!-- note -->")
+        t = tag(r.choice(["capabilities", "capabilities", "capability"]))
+        return f"<{t}>{''.join(items)}</{t}>"
+
+    def port_xml(depth: int = 0) -> str:
+        name = r.choice([' name="p0"', ' name="p1"', ' name="p2"', ""])
+        attrs = name + r.choice(["", ' type=" Ethernet "', ' type="can"']) + r.choice(["", ' iface="e0"', ' iface=" "'])
+        inner = "".join(capabilities() for _ in range(r.randrange(3)))
+        if depth < 2 and r.random() < 0.2:
+            inner += port_xml(depth + 1)
+        t = tag("port")
+        return f"<{t}{attrs}>{inner}</{t}>"
+
+    body = "\n".join(port_xml() for _ in range(r.randrange(1, 8)))
+    if r.random() < 0.5:
+        body = f"<switch>{body}</switch>"
+    text = f'<hcdf xmlns:x="urn:x" xmlns:y="urn:y"><comp name="c">\n{body}\n</comp></hcdf>'
+    comp_el = parse_bytes(text.encode(), source="t.hcdf").getroot()[0]
+    assert _read_ports(comp_el, "t.hcdf") == _reference_ports(comp_el, "t.hcdf")
+
+
+def test_link_children_are_read_in_any_namespace_first_override_wins():
+    # _link reads the first <wired>, all its <port>s and its first <macsec> in one loop of tag tests
+    from hcdf_trust.document import Document
+    from hcdf_trust.macsec.plan import plan_resolution
+    from hcdf_trust.xml import parse_bytes
+
+    wired = (
+        '<x:wired xmlns:x="urn:x"><!-- a comment --><x:port>a/p0</x:port><?pi?><ports>c/p0</ports>'
+        '<port> b/p0</port><x:macsec policy="must-secure" key-ref="k"/><macsec policy="disabled"/></x:wired>'
+        '<wired><port>c/p0</port><macsec policy="disabled"/></wired>'
+    )
+    text = hcdf(
+        comp("a", port("p0", "gcm-aes-128")),
+        comp("b", port("p0", "gcm-aes-128")),
+        comp("c", port("p0", "gcm-aes-128")),
+        f'<network name="n"><link name="l">{wired}</link></network>',
+    )
+    doc = Document(source="t.hcdf", tree=parse_bytes(text.encode(), source="t.hcdf"), data=text.encode())
+    p = plan_resolution({"u": doc}, {}, "u")
+    assert list(p.associations) == ["key-ref:k"]
+    ca = p.associations["key-ref:k"]
+    assert ca.policy is not None and ca.policy.policy == "must-secure"
+    assert _members(ca) == {"a": ["p0"], "b": ["p0"]}

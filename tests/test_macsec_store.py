@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hcdf_trust.macsec.backends import PassphraseWrapper
+from hcdf_trust.macsec.backends import PassphraseWrapper, WrongCredentialError
 from hcdf_trust.macsec.store import STORE_NAME, Entries, KeyStore, KeyStoreIntegrityError
 
 from ._macsec import comp, hcdf, link, port, store_lines, tree, write_store_lines
@@ -514,3 +514,37 @@ def test_bad_now_is_a_usage_error(env, value):
     _doc_path, _store, run = env
     r = run("status", "--now", value)
     assert r.exit_code == 2 and "ISO 8601" in r.stderr and "None" not in r.stderr
+
+
+def test_a_passphrase_wrapper_runs_scrypt_once_per_salt(tmp_path, monkeypatch):
+    # rotate opens the store twice (while the description is verified, then under the lock):
+    # one wrapper keeps the derived key per (salt, n, r, p), so a second store is not opened with the first's key
+    from cryptography.hazmat.primitives.kdf import scrypt
+
+    from hcdf_trust.outputs import OutputPlan
+
+    maker = PassphraseWrapper(PASS)
+    for name in ("a", "b"):
+        store = KeyStore.create(tmp_path / name, maker)
+        out = OutputPlan()
+        store.plan_write(out, now=datetime(2026, 1, 1, tzinfo=UTC))
+        (tmp_path / name).mkdir()
+        out.commit()
+    runs: list[bytes] = []
+    real = scrypt.Scrypt
+
+    def counting(*, salt: bytes, **kw: int) -> object:
+        runs.append(salt)
+        return real(salt=salt, **kw)
+
+    monkeypatch.setattr(scrypt, "Scrypt", counting)
+    wrapper = PassphraseWrapper(PASS)
+    first = KeyStore.open(tmp_path / "a", wrapper)
+    assert KeyStore.open(tmp_path / "a", wrapper).store_id == first.store_id
+    assert len(runs) == 1
+    assert KeyStore.open(tmp_path / "b", wrapper).store_id != first.store_id
+    assert len(runs) == 2 and runs[0] != runs[1]
+    wrong = PassphraseWrapper(b"not the passphrase")
+    for _ in range(2):
+        with pytest.raises(WrongCredentialError):
+            KeyStore.open(tmp_path / "a", wrong)

@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from ..errors import HcdfTrustError
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, keep_until_exit
 
 
 @click.group()
@@ -65,8 +65,11 @@ def plan_cmd(doc: str, as_json: bool) -> None:
     from ..macsec.plan import plan
 
     p = plan(doc)
+    keep_until_exit(p)  # a 10,000-link plan and its XML trees are left for the kernel to reclaim
     if as_json:
-        emit_json({"ok": True, **p.to_dict()})
+        payload = {"ok": True, **p.to_dict()}
+        keep_until_exit(payload)
+        emit_json(payload)
         return
     _plan_lines(p)
     keyed = p.keyed()
@@ -140,6 +143,44 @@ def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     return Pkcs11Wrapper(module, label, pin_from(pin_file))
 
 
+# What opening or creating a passphrase store imports, and the cryptography modules the caller's
+# thread imports next (kdf); a token backend's own library is imported by its thread only.
+_STORE_THREAD_MODULES = (
+    "cryptography.exceptions",
+    "cryptography.hazmat.primitives.ciphers.aead",
+    "cryptography.hazmat.primitives.ciphers.algorithms",
+    "cryptography.hazmat.primitives.cmac",
+    "cryptography.hazmat.primitives.kdf.scrypt",
+    "hcdf_trust.macsec.backends",
+)
+
+
+def _in_background(fn: Any) -> Any:
+    """``Background(fn)`` for a store's open or creation, once the modules it runs are imported
+    here: the caller goes on importing the planner (and cryptography) meanwhile, and two threads
+    importing the same modules at once can fail on an import cycle between them."""
+    import importlib
+
+    from ..macsec.store import Background
+
+    for name in _STORE_THREAD_MODULES:
+        importlib.import_module(name)
+    return Background(fn)
+
+
+def _warmed(store_dir: str, passphrase_file: str | None, backend: dict[str, Any]) -> Any:
+    """A passphrase wrapper that has opened the store once (its scrypt key kept), or None on any
+    error: the caller makes its own wrapper and opens the store again, and then reports it."""
+    from ..macsec.store import KeyStore
+
+    try:
+        wrapper = _wrapper(passphrase_file, backend)
+        KeyStore.open(store_dir, wrapper)
+    except Exception:  # noqa: BLE001 -- reported by the open the caller makes under the lock
+        return None
+    return wrapper
+
+
 def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     """An OutputPlan that refuses every input of this run: the verified tree of plan ``p``
     (documents, artifacts, the cache) and its lock, the passphrase and PIN files."""
@@ -175,23 +216,26 @@ def generate(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
-    from ..macsec.plan import plan
-    from ..macsec.rotation import generate as run
-    from ..macsec.store import Background, KeyStore, locked
+    from ..macsec.store import KeyStore, locked
 
     now = _now(now_text)
     fresh = None
     if not KeyStore.exists(store_dir) and not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
         # A new store's data key is wrapped (scrypt, a pure computation) while the description
         # is verified; if a store exists once the lock is held, it is opened and this one dropped.
-        fresh = Background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
+        fresh = _in_background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec.plan import plan
+    from ..macsec.rotation import generate as run
+
     p = plan(doc)
+    keep_until_exit(p)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
         if KeyStore.exists(store_dir):
             store = KeyStore.open(store_dir, wrapper)
         else:
             store = fresh.result() if fresh is not None else KeyStore.create(store_dir, wrapper)
+        keep_until_exit(store)
         created, notices = run(store, p, now=now)
         if store.changed:
             _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
@@ -217,14 +261,17 @@ def status(
     doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
 ) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
-    from ..macsec.plan import plan
-    from ..macsec.rotation import status as run
-    from ..macsec.store import Background, KeyStore
+    from ..macsec.store import KeyStore
 
     now = _now(now_text)
-    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec.plan import plan
+    from ..macsec.rotation import status as run
+
     p = plan(doc)
+    keep_until_exit(p)
     store = opening.result()
+    keep_until_exit(store)
     st = run(store, p, now=now)
     if as_json:
         emit_json({"ok": True, **st.to_dict()})
@@ -266,16 +313,24 @@ def rotate(
     **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
-    from ..macsec.plan import plan
-    from ..macsec.rotation import rotate as run
-    from ..macsec.rotation import select
     from ..macsec.store import KeyStore, fmt_time, locked
 
     now = _now(now_text)
+    warm = None
+    if not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
+        # scrypt runs while the description is verified; the store is read again under the lock
+        # (the passphrase wrapper keeps the derived key, so that second open costs no scrypt).
+        warm = _in_background(lambda: _warmed(store_dir, passphrase_file, backend))
+    from ..macsec.plan import plan
+    from ..macsec.rotation import rotate as run
+    from ..macsec.rotation import select
+
     p = plan(doc)
-    wrapper = _wrapper(passphrase_file, backend)
+    keep_until_exit(p)
+    wrapper = (warm.result() if warm is not None else None) or _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
+        keep_until_exit(store)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
         if store.changed:
             _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
@@ -302,6 +357,7 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
+        keep_until_exit(store)
         removed = run(store, now=now)
         if store.changed:
             _save(store, now, p=None, passphrase_file=passphrase_file, backend=backend)
@@ -315,10 +371,10 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
 
 
 def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
-    from ..macsec.export.wpa_supplicant import parse_version
+    from ..macsec import parse_wpa_version
 
     try:
-        version = parse_version(value)
+        version = parse_wpa_version(value)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     if version < (2, 10):
@@ -370,15 +426,19 @@ def export(
     """Write only DEVICE's keys (least privilege), for one consumer, as 0600 files in --out."""
     import os
 
-    from ..macsec.export import collect, mesh_keys, render
-    from ..macsec.store import Background, KeyStore
+    from ..macsec.store import KeyStore
 
     now = _now(now_text)
+    # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
+    # the description verified and planned.
+    opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec.export import collect, mesh_keys, render
     from ..macsec.plan import plan
 
-    opening = Background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     p = plan(doc, device=device)  # only the networks that can hold the device's associations
+    keep_until_exit(p)
     store = opening.result()
+    keep_until_exit(store)
     ports, notices = collect(p, store, device, now=now)
     mesh = mesh_keys(p, store, device, now=now)
     files = render(

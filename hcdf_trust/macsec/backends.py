@@ -74,18 +74,23 @@ class PassphraseWrapper:
         if not passphrase:
             raise InputError("the key store passphrase is empty")
         self._passphrase = passphrase
+        # (salt, n, r, p) -> key: a store opened twice in one run (before and under the lock) costs one scrypt
+        self._derived: dict[tuple[bytes, int, int, int], bytes] = {}
 
-    @staticmethod
-    def _derive(passphrase: bytes, salt: bytes, n: int, r: int, p: int) -> bytes:
+    def _derive(self, salt: bytes, n: int, r: int, p: int) -> bytes:
         from cryptography.hazmat.primitives.kdf.scrypt import Scrypt
 
-        return Scrypt(salt=salt, length=32, n=n, r=r, p=p).derive(passphrase)
+        key = self._derived.get((salt, n, r, p))
+        if key is None:
+            key = Scrypt(salt=salt, length=32, n=n, r=r, p=p).derive(self._passphrase)
+            self._derived[salt, n, r, p] = key
+        return key
 
     def wrap(self, dek: bytes, aad: bytes) -> dict[str, Any]:
         from cryptography.hazmat.primitives.ciphers.aead import AESGCM
 
         salt, nonce = os.urandom(16), os.urandom(12)
-        kek = self._derive(self._passphrase, salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
+        kek = self._derive(salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
         wrapped = AESGCM(kek).encrypt(nonce, dek, aad)
         return {
             "method": self.method,
@@ -111,7 +116,7 @@ class PassphraseWrapper:
         wrapped = unb64(params.get("wrapped_key"), what="wrapped key", source=source)
         if len(nonce) != 12 or len(wrapped) != 48:
             raise KeyStoreFormatError("the wrapped data key has the wrong length", file=source)
-        kek = self._derive(self._passphrase, salt, n, r, p)
+        kek = self._derive(salt, n, r, p)
         try:
             return AESGCM(kek).decrypt(nonce, wrapped, aad)
         except InvalidTag:

@@ -18,13 +18,6 @@ from . import DEVICE_NAME, ExportError, PortKeys, check_name, header, offset_not
 DEFAULT_VERSION = "2.10"  # Debian 12's wpasupplicant
 
 
-def parse_version(text: str) -> tuple[int, int]:
-    major, _, minor = text.strip().partition(".")
-    if not (major.isdigit() and minor.isdigit()):
-        raise ValueError(f"{text!r} is not a wpa_supplicant version like 2.10")
-    return int(major), int(minor)
-
-
 CERT_DIR = "/etc/wpa_supplicant/hcdf"
 
 
