@@ -46,6 +46,18 @@ def test_the_same_escape_through_base(tmp_path):
         loc.locate("../robot-evil/s.glb", _doc(root), file="d", line=1)
 
 
+@pytest.mark.parametrize("uri", ["models/s.glb", "./models/s.glb"])  # the plain fast path, the general one
+def test_a_plain_path_under_a_base_outside_the_root_is_outside(tmp_path, uri):
+    """The lexical check holds on the fast path too (the descriptor check would still refuse
+    the file, but as a "symlink escape": the wrong reason, and only once it is opened)."""
+    root, elsewhere = tmp_path / "robot", tmp_path / "elsewhere"
+    loc = Locator.create(root=root, base=str(elsewhere) + "/")
+    with pytest.raises(PathEscapeError) as info:
+        loc.locate(uri, _doc(root), file="robot.hcdf", line=3)
+    assert info.value.actual == str(elsewhere / "models" / "s.glb")
+    assert "is outside the root" in info.value.message
+
+
 def test_a_mirror_folder_confines_its_own_files(tmp_path):
     mirror = tmp_path / "mirror"
     loc = Locator.create(root=tmp_path / "robot", mirrors=[("https://cdn.example/m/", str(mirror))])
