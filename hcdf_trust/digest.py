@@ -9,7 +9,7 @@ import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import BinaryIO, Protocol
+from typing import Protocol
 
 from .errors import MalformedDigestError, redact
 
@@ -126,29 +126,6 @@ def _buffer() -> memoryview:
     return view
 
 
-def hash_stream(stream: BinaryIO, *, sink: BinaryIO | None = None, limit: int | None = None) -> Hashed:
-    """Hash a stream in constant memory, optionally copying it to ``sink``.
-
-    Raises:
-        ValueError: more than ``limit`` bytes (the caller turns it into an error
-        that names the file).
-    """
-    h = hashlib.sha256()
-    view = _buffer()
-    size = 0
-    while True:
-        n = stream.readinto(view)  # type: ignore[attr-defined]  # typing.BinaryIO omits readinto
-        if not n:
-            break
-        size += n
-        if limit is not None and size > limit:
-            raise ValueError(f"larger than the {limit}-byte limit")
-        h.update(view[:n])
-        if sink is not None:
-            sink.write(view[:n])
-    return Hashed(h.hexdigest(), size)
-
-
 class ByteSink(Protocol):
     """Where :func:`hash_chunks` copies the bytes: a binary file, a buffer."""
 
@@ -156,7 +133,8 @@ class ByteSink(Protocol):
 
 
 def hash_chunks(chunks: Iterable[bytes], *, sink: ByteSink | None = None, limit: int | None = None) -> Hashed:
-    """Like :func:`hash_stream` over an iterator of byte chunks (e.g. an HTTP body)."""
+    """Hash an iterator of byte chunks (e.g. an HTTP body) in constant memory, optionally copying
+    them to ``sink``; ValueError past ``limit`` bytes (the caller names the file)."""
     h = hashlib.sha256()
     size = 0
     for chunk in chunks:

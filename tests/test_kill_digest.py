@@ -17,7 +17,6 @@ from hcdf_trust.digest import (
     hash_bytes,
     hash_chunks,
     hash_fd,
-    hash_stream,
     is_full_sha256,
     parse_pin,
     read_small,
@@ -160,30 +159,6 @@ def test_read_small_returns_the_whole_file_even_when_it_grew(tmp_path, size):
             assert read_small(fd, hint) == data
         finally:
             os.close(fd)
-
-
-@pytest.mark.parametrize("size", [0, 1, 1 << 20, (1 << 20) + 1, (2 << 20) + 7])
-def test_hash_stream_and_copy(size):
-    data = os.urandom(size)
-    sink = io.BytesIO()
-    got = hash_stream(io.BytesIO(data), sink=sink)
-    assert (got.sha256, got.size) == (sha(data), size)
-    assert sink.getvalue() == data
-    assert hash_stream(io.BufferedReader(io.BytesIO(data))).sha256 == sha(data)
-
-
-def test_hash_stream_limit_is_exact():
-    data = os.urandom(5000)
-    assert hash_stream(io.BytesIO(data), limit=5000).size == 5000
-    with pytest.raises(ValueError, match="5000-byte limit"):
-        hash_stream(io.BytesIO(data + b"!"), limit=5000)
-
-
-def test_hash_stream_limit_holds_across_chunks():
-    data = os.urandom((1 << 20) + 10)
-    with pytest.raises(ValueError, match="limit"):
-        hash_stream(io.BytesIO(data), limit=(1 << 20) + 9)
-    assert hash_stream(io.BytesIO(data), limit=(1 << 20) + 10).size == len(data)
 
 
 def test_hash_chunks_and_copy():
