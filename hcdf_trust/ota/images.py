@@ -62,10 +62,6 @@ class ImageInfo:
     version: McubootVersion
     security_counter: int | None
 
-    @property
-    def hashed_length(self) -> int:
-        return self.header_size + self.image_size + self.protect_tlv_size
-
 
 @contextlib.contextmanager
 def quiet() -> Iterator[None]:
