@@ -78,17 +78,20 @@ def test_any_rendered_lock_loads_as_json_reads_it(tmp_path_factory, items, root)
     _same(tmp_path, lockfile.render(items, root=root).decode())
 
 
+def _edited_render(items: list[LockEntry], data: st.DataObject, *, replace: bool) -> str:
+    """A rendered lock with one character replaced (or deleted, as the empty one) or inserted."""
+    text = lockfile.render(items, root="robot.hcdf").decode()
+    at = data.draw(st.integers(0, len(text) - 1))
+    char = data.draw(st.sampled_from(list(' ",:[]{}\\\n\t0aA-é') + [""]))
+    return text[:at] + char + text[at + replace :]
+
+
 @SETTINGS
 @given(st.lists(entries, min_size=1, max_size=4), st.data())
 def test_any_edit_of_a_rendered_lock_loads_as_json_reads_it(tmp_path_factory, items, data):
     """One character replaced, inserted or deleted anywhere in a canonical lock."""
-    tmp_path = tmp_path_factory.mktemp("lock")
-    text = lockfile.render(items, root="robot.hcdf").decode()
-    at = data.draw(st.integers(0, len(text) - 1))
-    char = data.draw(st.sampled_from(list(' ",:[]{}\\\n\t0aA-é') + [""]))
     how = data.draw(st.sampled_from(["replace", "insert"]))
-    edited = text[:at] + char + text[at + (how == "replace") :]
-    _same(tmp_path, edited)
+    _same(tmp_path_factory.mktemp("lock"), _edited_render(items, data, replace=how == "replace"))
 
 
 @pytest.mark.parametrize(
@@ -149,11 +152,7 @@ def test_a_lock_that_keeps_its_bytes_is_exactly_what_render_writes(tmp_path_fact
 @SETTINGS
 @given(st.lists(entries, min_size=1, max_size=4), st.data())
 def test_an_edited_lock_keeps_its_bytes_only_when_they_are_what_render_writes(tmp_path_factory, items, data):
-    tmp_path = tmp_path_factory.mktemp("lock")
-    text = lockfile.render(items, root="robot.hcdf").decode()
-    at = data.draw(st.integers(0, len(text) - 1))
-    char = data.draw(st.sampled_from(list(' ",:[]{}\\\n\t0aA-é') + [""]))
-    _rendered_is_render(tmp_path, text[:at] + char + text[at + 1 :])
+    _rendered_is_render(tmp_path_factory.mktemp("lock"), _edited_render(items, data, replace=True))
 
 
 def test_an_unchanged_lock_is_reused_and_any_change_is_rendered(tmp_path):
