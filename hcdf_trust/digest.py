@@ -23,8 +23,6 @@ SMALL_FILE = 64 << 10
 
 _HEX = frozenset("0123456789abcdef")
 _CANONICAL_PIN = re.compile(rf"[0-9a-f]{{{MIN_WEAK_HEX},{FULL_HEX}}}\Z")
-#: Is this ``sha`` text a pin exactly as written (``Pin(text)`` is then ``parse_pin(text)``)?
-is_canonical_pin = _CANONICAL_PIN.match
 #: What a malformed ``sha`` should have been, for ``expected`` in its error.
 PIN_FORMAT = f"{FULL_HEX} hex digits (a SHA-256), or {MIN_WEAK_HEX} to {FULL_HEX - 1} for a weak prefix"
 
@@ -65,7 +63,7 @@ def parse_pin(
     """
     if text is None:
         return None
-    if is_canonical_pin(text):  # as render and pin write it: nothing to strip or lower
+    if _CANONICAL_PIN.match(text):  # as render and pin write it: nothing to strip or lower
         return Pin(text)
     value = text.strip().lower()
     if not value:

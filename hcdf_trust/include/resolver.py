@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import unquote, urlsplit
 
-from ..digest import FULL_HEX, Hashed, Pin, hash_bytes, hash_chunks, is_canonical_pin, parse_pin
+from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -130,9 +130,8 @@ class Artifact:
     def pin_status(self) -> str:
         status = "unpinned"
         for use in self.uses:
-            pin = use.pin
-            if pin is not None:
-                if len(pin.hex) == FULL_HEX:  # pin.is_full, without the property call
+            if use.pin is not None:
+                if use.pin.is_full:
                     return "full"
                 status = "weak"
         return status
@@ -475,10 +474,7 @@ class _Run:
                 continue
             uri, sha, line = ref.uri, ref.sha, ref.line
             try:
-                if sha is not None and is_canonical_pin(sha):
-                    pin: Pin | None = Pin(sha)  # parse_pin's first case, without the call
-                else:
-                    pin = parse_pin(sha, file=source, line=line, uri=uri)
+                pin = parse_pin(sha, file=source, line=line, uri=uri)
                 if not uri:
                     raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=line)
                 loc = join(uri) or locate(uri, doc_loc, file=source, line=line)
@@ -559,14 +555,8 @@ class _Run:
         inline: list[Artifact] = []
         sized: list[tuple[int, Artifact]] = []
         net: list[Artifact] = []
-        lock, to_lock = self.lock, self._to_lock
         for art in artifacts:
-            entry = None
-            if lock and art.location.path is not None:  # _entry, inline (10,000 calls)
-                key = art.lock_url
-                if key is None:
-                    key = art.lock_url = to_lock(art.location.url)
-                entry = lock.get(key)
+            entry = self._entry(art) if art.location.path is not None else None
             # A local file the lock knows: the size it had (a wrong hint costs speed, not safety).
             size = entry.size if entry is not None else self._stat_size(art)
             if size < 0:
