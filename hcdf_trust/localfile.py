@@ -165,19 +165,15 @@ class ConfinedFolders:
         """:func:`hash_local` through :meth:`open`."""
         fd, st = self.open(path, root, file=file, line=line)
         try:
-            size = st.st_size
-            if size <= SMALL_FILE:  # hash_fd's small-file path, inline: 10,000 files a run
-                data = read_small(fd, size)
-                return Hashed(hashlib.sha256(data).hexdigest(), len(data), (st.st_dev, st.st_ino))
-            return hash_fd(fd, size=size, inode=(st.st_dev, st.st_ino))
+            return hash_fd(fd, size=st.st_size, inode=(st.st_dev, st.st_ino))
         finally:
             os.close(fd)
 
     def hash_entry(self, path: str, root: Path | str) -> tuple[str, int, tuple[int, int]] | None:
         """(sha256, size, inode) of a regular file that is an entry of a checked folder, with
         nothing but the system calls and the hash: ``None`` for anything else (no folder
-        descriptor, a link, a missing or special file, a small one that grew while read, a
-        read error), for which :meth:`hash` takes the general path and names the error.
+        descriptor, a link, a missing or special file, a read error), for which :meth:`hash`
+        takes the general path and names the error.
 
         The resolver's loop over 10,000 small files: as strict as :meth:`open` (the very
         same descriptor check and ``O_NOFOLLOW`` open), a third of :meth:`hash`'s Python work.
@@ -203,13 +199,11 @@ class ConfinedFolders:
             if size > SMALL_FILE:  # hash_fd's chunked reads, on the descriptor already checked
                 hashed = hash_fd(fd, size=size)
                 return hashed.sha256, hashed.size, (st.st_dev, st.st_ino)
-            data = os.read(fd, size + 1)
+            data = read_small(fd, size)  # hash_fd's small-file read, without building a Hashed
         except OSError:
             return None
         finally:
             os.close(fd)
-        if len(data) > size:
-            return None  # it grew since the fstat: read_small reads on to its end
         return hashlib.sha256(data).hexdigest(), len(data), (st.st_dev, st.st_ino)
 
     def _folder(self, folder: str, root: Path | str) -> int | None:
