@@ -226,10 +226,6 @@ class Locator:
         return self._local("file://" + path, path, self.root, file=file, line=line, uri=text)
 
     @functools.cached_property
-    def _plain_folders(self) -> dict[str, str | None]:
-        return {}
-
-    @functools.cached_property
     def _folders_below_root(self) -> dict[str, bool]:
         return {}
 
@@ -237,30 +233,31 @@ class Locator:
         """Is the normal folder ``folder`` (ending in "/") the root or below it? Once per folder."""
         below = self._folders_below_root.get(folder)
         if below is None:
-            below = self._folders_below_root[folder] = folder.startswith(os.fspath(self.root).rstrip("/") + "/")
+            below = self._folders_below_root[folder] = _lexically_inside(folder, os.fspath(self.root))
         return below
 
     def _plain_folder(self, base: str) -> str | None:
         """The folder (ending in "/") relative references of ``base`` join, when the fast
-        path applies to it (a plain ``file://`` URL, no local mirror), normalised; else None.
-        Once per referring document."""
-        folders = self._plain_folders
+        path applies to it (a plain ``file://`` URL, no local mirror), normalised; else None."""
+        return None if self._mirrors_files else self._base_folder(base)
+
+    @functools.cached_property
+    def _base_folders(self) -> dict[str, str | None]:
+        return {}
+
+    def _base_folder(self, base: str) -> str | None:
+        """The normal folder (ending in "/") of ``base`` when it is a plain ``file:///`` URL,
+        else None. Once per referring document."""
+        folders = self._base_folders
         if base in folders:
             return folders[base]
-        folder = None
-        if base.startswith("file:///") and not self._mirrors_files and _PLAIN.match(base, 7):
-            folder = _folder_of(base)
-        folders[base] = folder
+        folder = folders[base] = _folder_of(base) if base.startswith("file:///") and _PLAIN.match(base, 7) else None
         return folder
 
     @functools.cached_property
     def _mirrors_files(self) -> bool:
         """Does a ``--mirror`` rewrite ``file:`` URLs (so that a local path may not be read as written)?"""
         return any(prefix.startswith("file:") for prefix, _ in self.mirrors)
-
-    @functools.cached_property
-    def _mirrored_folders(self) -> dict[str, str | None]:
-        return {}
 
     def _plain_mirrored(
         self, text: str, referrer: Location, *, file: str, line: int | None, uri: str
@@ -270,11 +267,7 @@ class Locator:
         (``urljoin`` then :func:`_normalise`), which is then routed through the mirrors
         as :meth:`_apply` routes it. A 2,000-model tree served from a mirror's cache
         pays ~10 µs per reference instead of ~50 (three URL parses and a join)."""
-        base = self.base or referrer.url
-        folders = self._mirrored_folders
-        folder = folders.get(base, "")
-        if folder == "":
-            folder = folders[base] = _folder_of(base) if base.startswith("file:///") and _PLAIN.match(base, 7) else None
+        folder = self._base_folder(self.base or referrer.url)
         if folder is None or text.startswith("/") or text.endswith("/") or not _PLAIN.match(text):
             return None
         path = f"{folder}{text}" if _PLAIN_NORMAL.match(text) else posixpath.normpath(folder + text)
@@ -326,8 +319,7 @@ class Locator:
     ) -> Location:
         # Lexical check here; the symlink check happens on the opened descriptor (localfile.py).
         normal = path if is_normal and isinstance(path, str) else os.path.normpath(path)
-        root_text = os.fspath(root)
-        if normal != root_text and not normal.startswith(root_text.rstrip("/") + "/"):
+        if not _lexically_inside(normal, os.fspath(root)):
             shown_root, shown = display_path(root), display_path(normal)
             about = f"{uri.strip()}: " if uri and uri.strip() != shown else ""
             raise PathEscapeError(
@@ -342,6 +334,11 @@ class Locator:
 
 def _never(text: str) -> Location | None:
     return None
+
+
+def _lexically_inside(normal: str, root: str) -> bool:
+    """Is the normal path ``normal`` the folder ``root`` or below it, by its text alone?"""
+    return normal == root or normal.startswith(root.rstrip("/") + "/")
 
 
 def _normalise(url: str) -> str:
