@@ -630,9 +630,8 @@ class _Planner:
             self.plan.skipped.append((el, "a bus has no MACsec"))
 
     def _element(self, inst: _Instance, doc: Document, kind: str, net: str, el: etree._Element) -> Element:
-        scope = inst.scope
-        name = el.get("name", "").strip()
-        return Element(kind, net, f"{scope}{SEPARATOR}{name}" if scope else name, doc.source, sourceline(el), scope)
+        name = self._scoped(inst, el.get("name", "").strip())
+        return Element(kind, net, name, doc.source, sourceline(el), inst.scope)
 
     def _policy(self, doc: Document, el: etree._Element, base: Policy | None, *, network_level: bool) -> Policy | None:
         line = sourceline(el)
@@ -866,13 +865,9 @@ class _Planner:
         return ca
 
     def _endpoint(self, ca: Association, element: Element, device: str, port: str, port_ref: _PortRef) -> None:
-        member = ca.members.get(device)  # Association.add_member, inline: 20,000 endpoints
-        if member is None:
-            member = ca.members[device] = Member(device)
+        ca.add_member(device, port or None)
         if not port:
             return
-        if port not in member.ports:
-            member.ports.append(port)
         label = f"{device}/{port}"
         if port_ref is None:
             self.plan.warnings.append(
