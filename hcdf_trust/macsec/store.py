@@ -124,8 +124,7 @@ def now_utc() -> datetime:
     return datetime.now(UTC).replace(microsecond=0)
 
 
-@functools.lru_cache(maxsize=4096)  # a store holds few distinct times (a generate run stamps one)
-@functools.lru_cache(maxsize=1024)  # a store's 10,000 generations were mostly made at one instant
+@functools.lru_cache(maxsize=4096)  # a store's 10,000 generations were mostly made at one instant
 def fmt_time(t: datetime) -> str:
     """``t`` in UTC, to the second (equal instants in any zone give the same text)."""
     return t.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
