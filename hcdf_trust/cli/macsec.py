@@ -122,6 +122,11 @@ def _now(text: str | None) -> Any:
         raise click.BadParameter(f"{exc.actual!r} is not an ISO 8601 time with a zone (e.g. {example})") from None
 
 
+def _is_passphrase(backend: dict[str, Any]) -> bool:
+    """Do the store options name the passphrase backend (no token, no TPM)?"""
+    return not backend.get("pkcs11_module") and not backend.get("tpm_tcti")
+
+
 def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
     """The wrapping-key backend the store options name: a passphrase, or a PKCS#11 token."""
     from ..macsec.backends import PassphraseWrapper, Pkcs11Wrapper, TpmWrapper, passphrase_from, pin_from
@@ -220,7 +225,7 @@ def generate(
 
     now = _now(now_text)
     fresh = None
-    if not KeyStore.exists(store_dir) and not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
+    if not KeyStore.exists(store_dir) and _is_passphrase(backend):
         # A new store's data key is wrapped (scrypt, a pure computation) while the description
         # is verified; if a store exists once the lock is held, it is opened and this one dropped.
         fresh = _in_background(lambda: KeyStore.create(store_dir, _wrapper(passphrase_file, backend)))
@@ -317,7 +322,7 @@ def rotate(
 
     now = _now(now_text)
     warm = None
-    if not backend.get("pkcs11_module") and not backend.get("tpm_tcti"):
+    if _is_passphrase(backend):
         # scrypt runs while the description is verified; the store is read again under the lock
         # (the passphrase wrapper keeps the derived key, so that second open costs no scrypt).
         warm = _in_background(lambda: _warmed(store_dir, passphrase_file, backend))
