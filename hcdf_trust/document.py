@@ -308,22 +308,22 @@ def _plain_model(el: etree._Element) -> Reference | None:
         value, attr = href, "href"
     else:
         return None
-    if (
-        value is None
-        or el.text is not None
-        or len(el)
-        or not (value.isascii() and value.isprintable())
-        or value[:1] == " "
-        or value[-1:] == " "
-        or "  " in value
-    ):
+    if value is None or el.text is not None or len(el) or not _plain_text(value):
         return None
     line = el.sourceline  # (sourceline() without the call; lxml-stubs types it as ...)
     return Reference(Kind.MODEL, line, value, el.get("sha"), attr, element=el)  # type: ignore[arg-type]
 
 
+def _plain_text(value: str) -> bool:
+    """Printable ASCII with no space at either end and no run of spaces: a location every
+    reader reads alike (the common case, which :func:`_unclear` passes at once)."""
+    return value.isascii() and value.isprintable() and value[:1] != " " and value[-1:] != " " and "  " not in value
+
+
 def _unclear(value: str, *, what: str) -> str | None:
     """Why readers could read ``value`` (a location) differently, or None."""
+    if _plain_text(value):
+        return None
     if value != value.strip(_XML_SPACE):
         return f"{what} {redact(value)!r} has whitespace around it"
     # Printable ASCII holds no control, format, separator or space character but " "
