@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from hcdf_trust.macsec.backends import PassphraseWrapper, WrongCredentialError
-from hcdf_trust.macsec.store import STORE_NAME, Entries, KeyStore, KeyStoreIntegrityError
+from hcdf_trust.macsec.store import INDEX_NAME, STORE_NAME, Entries, KeyStore, KeyStoreIntegrityError
 
 from ._macsec import comp, hcdf, link, port, store_lines, tree, write_store_lines
 
@@ -401,7 +401,8 @@ def test_killed_generate_and_retire_leave_the_store_before_or_after(env, tmp_pat
     killed("generate", str(doc), "--now", T0)  # a first generate: no store before, a whole store after
     assert (store / STORE_NAME).exists() == (when == "after")
     assert _run("generate", "--now", T0).exit_code == 0
-    assert sorted(os.listdir(store)) == [".macsec-keys.lock", STORE_NAME]  # a killed run's temporary is cleaned
+    # a killed run's temporaries are cleaned
+    assert sorted(os.listdir(store)) == [".macsec-keys.lock", INDEX_NAME, STORE_NAME]
     assert _run("rotate", "--now", T0, "--overlap", "60").exit_code == 0
     before = (store / STORE_NAME).read_bytes()
     killed("retire", "--now", "2026-01-02T00:00:00Z")
@@ -431,7 +432,7 @@ def test_failed_write_is_exit_3_and_leaves_nothing(env, monkeypatch):
     monkeypatch.undo()
     assert r.exit_code == 3 and "No space left" in r.stderr
     assert (store / STORE_NAME).read_bytes() == before
-    assert sorted(os.listdir(store)) == [".macsec-keys.lock", STORE_NAME]
+    assert sorted(os.listdir(store)) == [".macsec-keys.lock", INDEX_NAME, STORE_NAME]
 
 
 def test_store_never_over_an_input(env, cli, tmp_path):

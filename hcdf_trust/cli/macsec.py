@@ -202,14 +202,24 @@ def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]
     return out
 
 
-def _save(store: Any, now: Any, *, p: Any, passphrase_file: str | None, backend: dict[str, Any]) -> None:
-    """Write the store through one OutputPlan: 0600 from the first byte, never over an input."""
+def _save(
+    store: Any, now: Any, *, doc: str | None, p: Any, passphrase_file: str | None, backend: dict[str, Any]
+) -> None:
+    """Write the store if it changed, and the export index of plan ``p`` if it changed,
+    through one OutputPlan: 0600 from the first byte, never over an input."""
     import os
 
+    from ..macsec import index
+
     out = _output_plan(p, passphrase_file=passphrase_file, backend=backend)
-    store.plan_write(out, now=now)
-    os.makedirs(store.path.parent, mode=0o700, exist_ok=True)
-    out.commit()
+    if store.changed:
+        store.plan_write(out, now=now)
+    rendered = index.render(doc, p, store) if doc is not None else None
+    if rendered is not None:
+        out.add(index.path_in(store.path.parent), rendered, flag="--store", mode=0o600, if_changed=True)
+    if out.paths:
+        os.makedirs(store.path.parent, mode=0o700, exist_ok=True)
+        out.commit()
 
 
 @macsec.command()
@@ -242,8 +252,7 @@ def generate(
             store = fresh.result() if fresh is not None else KeyStore.create(store_dir, wrapper)
         keep_until_exit(store)
         created, notices = run(store, p, now=now)
-        if store.changed:
-            _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
     warnings = [*p.warnings, *notices]
     if as_json:
         emit_json(
@@ -337,8 +346,7 @@ def rotate(
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
-        if store.changed:
-            _save(store, now, p=p, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
@@ -364,8 +372,7 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
         removed = run(store, now=now)
-        if store.changed:
-            _save(store, now, p=None, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=None, p=None, passphrase_file=passphrase_file, backend=backend)
     if as_json:
         emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
         return
@@ -437,12 +444,25 @@ def export(
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
     # the description verified and planned.
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    from ..macsec import index
     from ..macsec.export import collect, mesh_keys, render
-    from ..macsec.plan import plan
 
-    p = plan(doc, device=device)  # only the networks that can hold the device's associations
-    keep_until_exit(p)
-    store = opening.result()
+    # The export index, when it was written for this description as it is now, holds its
+    # verified plan: once the store opens, it is checked (MAC, every file's digest) and used.
+    found, p = index.candidate(doc, store_dir), None
+    if found is not None:
+        try:
+            store = opening.result()
+        except Exception:  # noqa: BLE001 -- raised again by opening.result() below
+            pass  # planned from the description below, whose errors come before the store's
+        else:
+            p = found.plan(store, device)
+    if p is None:
+        from ..macsec.plan import plan
+
+        p = plan(doc, device=device)  # only the networks that can hold the device's associations
+        keep_until_exit(p)
+        store = opening.result()
     keep_until_exit(store)
     ports, notices = collect(p, store, device, now=now)
     mesh = mesh_keys(p, store, device, now=now)
@@ -450,7 +470,11 @@ def export(
         fmt, ports, device=device, wpa_version=wpa_version, notices=notices, age_recipient=age_recipient, mesh=mesh
     )
     out = _output_plan(p, passphrase_file=passphrase_file, backend=backend)
+    if p.resolution is None:  # planned from the index
+        assert found is not None
+        found.protect(out)
     out.protect(store.path, what="the key store")
+    out.protect(index.path_in(store_dir), what="the export index")
     for name in sorted(files):
         out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
     os.makedirs(out_dir, mode=0o700, exist_ok=True)
@@ -461,6 +485,7 @@ def export(
                 "ok": True,
                 "device": device,
                 "format": fmt,
+                "planned_from": "description" if p.resolution is not None else "index",
                 "associations": sorted({pk.ca.id for pk in ports} | {m.ca.id for m in mesh}),
                 "files": [str(w) for w in written],
                 "warnings": [n.to_dict() for n in notices],

@@ -15,7 +15,9 @@ missing or extra keys, duplicate URLs or keys, floats, NaN, deep nesting, over
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import hashlib
 import json
 import operator
 import os
@@ -80,6 +82,8 @@ class Lock:
     root: str
     entries: dict[str, LockEntry]
     rendered: bytes | None = field(default=None, repr=False, compare=False)
+    # SHA-256 of the file's bytes as read (load sets it): what a verification was made against.
+    sha256: str = field(default="", repr=False, compare=False)
 
 
 def render(entries: list[LockEntry], *, root: str) -> bytes:
@@ -139,11 +143,12 @@ def load(path: str | os.PathLike[str]) -> Lock:
         raise LockFileError(f"lock file {name} does not exist ({hint})", file=name) from None
     except InputError as exc:  # FIFO, device, directory, too large, unreadable
         raise LockFileError(f"cannot read lock file: {exc.message}", file=name) from None
+    digest = hashlib.sha256(raw).hexdigest()
     try:
         text = raw.decode()
         lock = _canonical(text, raw)
         if lock is not None:
-            return lock
+            return dataclasses.replace(lock, sha256=digest)
         doc = json.loads(text, parse_float=_no_float, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
     except RecursionError:
         _bad(name, "nested too deeply")
@@ -153,7 +158,7 @@ def load(path: str | os.PathLike[str]) -> Lock:
         _bad(name, f"not UTF-8: {exc.reason} at byte {exc.start}")
     except ValueError as exc:  # JSONDecodeError, an integer too large to convert
         _bad(name, f"not JSON: {exc}")
-    return _check(doc, name)
+    return dataclasses.replace(_check(doc, name), sha256=digest)
 
 
 # The lines render() writes, read without json: its decoder refuses duplicate keys only

@@ -338,10 +338,10 @@ class _Run:
         root_dir = self._confinement_root(doc_path)
         locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
         root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
-        data = _read_root(doc_path)
+        data = read_root(doc_path)
         stub = link_stub_target(doc_path, data)
         if stub is not None:
-            doc_path, data = stub, _read_root(stub)
+            doc_path, data = stub, read_root(stub)
             root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
@@ -931,7 +931,8 @@ def _read_blob(path: Path, sha256: str, *, file: str, line: int | None, url: str
     return data
 
 
-def _read_root(path: Path) -> bytes:
+def read_root(path: Path) -> bytes:
+    """The root document's bytes, read as every run reads them (confined to its folder, bounded)."""
     with open_local(path, path.parent, file=str(path)) as fd:
         return read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_path(path))
 

@@ -58,6 +58,7 @@ from ..outputs import OutputPlan
 from .backends import KeyStoreFormatError, Wrapper, b64, unb64
 
 STORE_NAME = "macsec-keys.json"
+INDEX_NAME = "macsec-export-index.json"  # beside the store: see hcdf_trust.macsec.index
 LOCK_NAME = ".macsec-keys.lock"
 LOCK_WAIT_SEC = 30.0
 # Entries whose secret is a PEM bundle (EAP-TLS CA or device key and certificate), not an AES key.
@@ -112,9 +113,10 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
 
 
 def _remove_stale_temporaries(folder: Path) -> None:
-    """Temporary store files a killed run left behind (we hold the lock: no run is writing them)."""
+    """Temporary store and index files a killed run left behind (we hold the lock: no run is writing them)."""
+    prefixes = (f".{STORE_NAME}.", f".{INDEX_NAME}.")
     for name in os.listdir(folder):
-        if name.startswith(f".{STORE_NAME}.") and name.endswith(".tmp"):
+        if name.startswith(prefixes) and name.endswith(".tmp"):
             with contextlib.suppress(OSError):
                 if stat.S_ISREG(os.lstat(folder / name).st_mode):
                     os.unlink(folder / name)
@@ -346,7 +348,7 @@ class KeyStore:
                 actual=wrapper.method,
             )
         dek = wrapper.unwrap(wrap, _wrap_aad(store_id), source=source)
-        if not _mac_matches(dek, raw, doc.get("mac")):
+        if not _mac_matches(dek, raw, doc.get("mac"), label=_STORE_MAC):
             raise KeyStoreIntegrityError(
                 "the key store's metadata does not match its MAC: it was changed outside hcdf-trust", file=source
             )
@@ -434,8 +436,17 @@ class KeyStore:
                 "generations": [g.to_json(now) for g in e.generations],
             }
             lines.append(encode([e.ca_id, entry]))
-        body = ("\n".join(lines) + "\n").encode()
-        return b'{"mac":"' + _mac(self._dek, body).encode() + b'",' + body[1:]
+        return _seal(self._dek, ("\n".join(lines) + "\n").encode(), label=_STORE_MAC)
+
+    def seal(self, body: bytes, *, label: bytes) -> bytes:
+        """``body`` (JSON Lines, a header object first) with a ``"mac"`` first in its header:
+        HMAC-SHA256 of the body under a key derived from the data key for ``label`` (a file
+        other than the store, e.g. the export index, uses its own label)."""
+        return _seal(self._dek, body, label=label)
+
+    def sealed(self, raw: bytes, parsed_mac: Any, *, label: bytes) -> bool:
+        """Whether :meth:`seal` of this store made ``raw`` (whose header's ``mac`` is ``parsed_mac``)."""
+        return _mac_matches(self._dek, raw, parsed_mac, label=label)
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
@@ -446,21 +457,28 @@ def _wrap_aad(store_id: str) -> bytes:
     return json.dumps([FORMAT, FORMAT_VERSION, store_id]).encode()
 
 
-def _mac(dek: bytes, body: bytes) -> str:
-    """HMAC-SHA256 of a serialised body (the store without its ``mac``), under a key derived from the data key."""
-    mac_key = hmac.new(dek, b"hcdf-trust macsec store mac", hashlib.sha256).digest()
+_STORE_MAC = b"hcdf-trust macsec store mac"
+
+
+def _mac(dek: bytes, body: bytes, *, label: bytes) -> str:
+    """HMAC-SHA256 of a serialised body (the file without its ``mac``), under a key derived from the data key."""
+    mac_key = hmac.new(dek, label, hashlib.sha256).digest()
     return hmac.new(mac_key, body, hashlib.sha256).hexdigest()
+
+
+def _seal(dek: bytes, body: bytes, *, label: bytes) -> bytes:
+    return b'{"mac":"' + _mac(dek, body, label=label).encode() + b'",' + body[1:]
 
 
 _MAC_FIRST = re.compile(rb'\{"mac":"([0-9a-f]{64})",')
 
 
-def _mac_matches(dek: bytes, raw: bytes, parsed_mac: Any) -> bool:
+def _mac_matches(dek: bytes, raw: bytes, parsed_mac: Any, *, label: bytes) -> bool:
     """Whether ``raw`` is ``{"mac":HEX,`` followed by the rest of a body (``{`` + that rest) whose MAC is HEX."""
     head = _MAC_FIRST.match(raw)
     if head is None or parsed_mac != head.group(1).decode():
         return False
-    return hmac.compare_digest(head.group(1).decode(), _mac(dek, b"{" + raw[head.end() :]))
+    return hmac.compare_digest(head.group(1).decode(), _mac(dek, b"{" + raw[head.end() :], label=label))
 
 
 _ID = json.JSONDecoder()

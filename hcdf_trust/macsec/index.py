@@ -1,0 +1,246 @@
+"""The export index: a verified plan kept beside the key store, so that ``export`` of one
+device need not parse and plan a large description again when nothing in it changed.
+
+``generate`` and ``rotate`` plan the whole description after resolving and verifying it;
+they then write ``DIR/macsec-export-index.json`` (:data:`INDEX_NAME`, mode 0600) with the
+store, through the same :class:`~hcdf_trust.outputs.OutputPlan`. It holds
+
+* a header naming exactly what was verified: the tool version and :data:`INDEX_VERSION`,
+  the working folder (messages name files relative to it), the root document as given
+  and the SHA-256 of the bytes that were parsed, the lock file and the SHA-256 of its
+  bytes, and every file of the tree with the folder it was confined to and its SHA-256;
+* one line per keyed association (``["C", CA_ID, ROW]``) and one per member device
+  (``["D", DEVICE, [CA_ID, ...]]``, its associations in plan order);
+* a MAC: HMAC-SHA256 under a key derived from the store's data key, over the file's
+  bytes, as the store's own MAC is.
+
+``export`` uses it only when the root document and the lock have the recorded digests
+(read the way a resolve reads them, from the paths on the command line), the store opens,
+the MAC matches, and every recorded file, opened with the resolver's confinement, still
+has its digest: then a resolve would read the same bytes and planning them would give the
+same associations, which are taken from the index. Anything else (no index, another
+description, another working folder or tool version, a changed or missing file, an index
+from another store or edited, a device the index does not list) falls back to the full
+resolve and plan, which reports what is wrong as it always did. The index is a cache:
+deleting it changes nothing but speed.
+
+Only trees whose every file is local are indexed (nothing from the cache or a mirror), and
+not a root document reached through a link stub. Nothing listed in an index is opened
+before its MAC has been checked.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from ..digest import hash_bytes
+from ..errors import HcdfTrustError
+from ..localfile import absolute, hash_local, open_local, read_bounded, read_input
+from .plan import Association, Element, Member, Plan, Policy
+from .store import INDEX_NAME, KeyStore
+
+INDEX_FORMAT = "hcdf-trust-macsec-export-index"
+# Bump when the plan's meaning or the rows below change without a new tool version.
+INDEX_VERSION = 1
+MAX_INDEX_BYTES = 512 << 20
+_MAC_LABEL = b"hcdf-trust macsec export index mac"
+# Association fields a row holds; tests check this against the dataclass, so a new field
+# cannot be silently dropped from exports made through the index.
+ROW_FIELDS = ("id", "kind", "key_ref", "policy", "elements", "members", "port_speeds_mbps", "ifaces")
+_ENCODE = json.JSONEncoder(sort_keys=True, separators=(",", ":")).encode
+_LINE = json.JSONEncoder(separators=(",", ":")).encode  # rows are lists: key order is theirs
+
+
+def _line_encoder() -> Any:
+    """``_LINE`` for 20,000 lines: json's C encoder made once (``JSONEncoder.encode`` makes
+    one per call, half the time of a short line); the same text, else ``_LINE`` itself."""
+    from json.encoder import c_make_encoder, encode_basestring_ascii  # type: ignore[attr-defined]
+
+    if c_make_encoder is None:
+        return _LINE
+    chunks = c_make_encoder(None, None, encode_basestring_ascii, None, ":", ",", False, False, True)
+    return lambda value: "".join(chunks(value, 0))
+
+
+def path_in(folder: str | os.PathLike[str]) -> str:
+    return os.path.join(folder, INDEX_NAME)
+
+
+def _row(ca: Association) -> list[Any]:
+    p = ca.policy
+    policy = None
+    if p is not None:
+        policy = [
+            p.policy,
+            p.cipher,
+            p.key_agreement,
+            p.confidentiality_offset,
+            p.rekey_interval_sec,
+            p.key_store_type,
+            p.key_store_ref,
+        ]
+    return [
+        ca.id,
+        ca.kind,
+        ca.key_ref,
+        policy,
+        [[e.kind, e.network, e.name, e.file, e.line, e.scope] for e in ca.elements],
+        [[m.device, m.ports] for m in ca.members.values()],
+        ca.port_speeds_mbps,
+        ca.ifaces,
+    ]
+
+
+def _association(row: list[Any]) -> Association:
+    ca_id, kind, key_ref, policy, elements, members, speeds, ifaces = row
+    return Association(
+        id=ca_id,
+        kind=kind,
+        key_ref=key_ref,
+        policy=None if policy is None else Policy(*policy),
+        elements=[Element(*e) for e in elements],
+        members={device: Member(device, ports) for device, ports in members},
+        port_speeds_mbps=speeds,
+        ifaces=ifaces,
+    )
+
+
+def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
+    """The index of plan ``p`` (of ``doc`` as given on the command line), or None when its
+    tree cannot be indexed (a file from the cache or a mirror, a link stub, no lock)."""
+    res = p.resolution
+    given = absolute(doc)
+    if res is None or res.locked is None or not res.locked.sha256 or res.root_location.path != given:
+        return None
+    files = []
+    for art in res.artifacts.values():
+        loc = art.location
+        if art.source != "file" or loc.path is None or art.sha256 is None:
+            return None
+        files.append([art.kind._value_, loc.path, str(loc.root or os.path.dirname(loc.path)), art.sha256])
+    head = {
+        "format": INDEX_FORMAT,
+        "version": INDEX_VERSION,
+        "tool": __version__,
+        "store_id": store.store_id,
+        "cwd": os.getcwd(),
+        "document": given,
+        "plan_document": p.document,
+        "document_sha256": hash_bytes(res.root.data).sha256,
+        "lock": str(res.lock_path),
+        "lock_sha256": res.locked.sha256,
+        "files": files,
+    }
+    lines = [_ENCODE(head)]
+    devices: dict[str, list[str]] = {}
+    encode = _line_encoder()
+    for ca in p.keyed():
+        lines.append(encode(["C", ca.id, _row(ca)]))
+        for device in ca.members:
+            devices.setdefault(device, []).append(ca.id)
+    lines.extend(encode(["D", device, ids]) for device, ids in devices.items())
+    return store.seal(("\n".join(lines) + "\n").encode(), label=_MAC_LABEL)
+
+
+@dataclass
+class Candidate:
+    """An index whose header matches the description on the command line; not yet trusted."""
+
+    raw: bytes
+    head: dict[str, Any]
+
+    def plan(self, store: KeyStore, device: str) -> Plan | None:
+        """The plan of ``device``'s associations from the index, once its MAC matches this
+        store and every file it lists still has its digest; else None (plan from the description)."""
+        if self.head.get("store_id") != store.store_id or not store.sealed(
+            self.raw, self.head.get("mac"), label=_MAC_LABEL
+        ):
+            return None
+        line = _find(self.raw, "D", device)
+        if line is None:
+            return None
+        for kind, path, root, sha256 in self.head["files"]:
+            if _digest(kind, path, root) != sha256:
+                return None
+        cas = {}
+        for ca_id in line[2]:
+            row = _find(self.raw, "C", ca_id)
+            if row is None:  # the MAC matched: written by this tool, so not expected
+                return None
+            cas[ca_id] = _association(row[2])
+        return Plan(document=self.head["plan_document"], associations=cas, resolution=None)
+
+    def protect(self, out: Any) -> None:
+        """Protect what a resolve of this tree would (see :func:`hcdf_trust.outputs.protect_inputs`)."""
+        from ..store import default_cache_dir
+
+        out.protect(self.head["document"], what="the root document")
+        for kind, path, _root, _sha in self.head["files"]:
+            out.protect(path, what="an included document" if kind == "include" else f"a verified {kind} file")
+        out.protect_tree(default_cache_dir(), what="the cache")
+        out.protect(self.head["lock"], what="the lock file")
+
+
+def _digest(kind: str, path: str, root: str) -> str | None:
+    """A file's SHA-256 read as the resolver reads it (an include whole and bounded, any other
+    file streamed), confined to ``root``; None when it cannot be read so."""
+    from ..xml import MAX_DOCUMENT_BYTES
+
+    try:
+        if kind == "include":
+            with open_local(path, root) as fd:
+                return hash_bytes(read_bounded(fd, MAX_DOCUMENT_BYTES, source=path)).sha256
+        return hash_local(path, root).sha256
+    except HcdfTrustError:
+        return None
+
+
+def _find(raw: bytes, tag: str, key: str) -> Any:
+    """The ``[tag, key, ...]`` line of an index, parsed; None if there is none. A JSON string
+    holds no raw newline, so ``\\n["D","NAME",`` can only begin a line."""
+    start = raw.find(b"\n" + _LINE([tag, key])[:-1].encode() + b",")
+    if start < 0:
+        return None
+    end = raw.find(b"\n", start + 1)
+    return json.loads(raw[start + 1 : end])
+
+
+def candidate(doc: str, store_dir: str) -> Candidate | None:
+    """The store folder's index if it was written for ``doc`` as it is now (root document
+    and lock, read as a resolve reads them), by this tool version, from this working folder.
+
+    Reads nothing that the index itself names: that waits for the MAC (:meth:`Candidate.plan`)."""
+    from ..include import lockfile
+    from ..include.resolver import link_stub_target, read_root
+
+    try:
+        raw = read_input(path_in(store_dir), limit=MAX_INDEX_BYTES, what="export index")
+        head = json.loads(raw[: raw.index(b"\n")])
+        if (
+            not isinstance(head, dict)
+            or head.get("format") != INDEX_FORMAT
+            or head.get("version") != INDEX_VERSION
+            or head.get("tool") != __version__
+            or head.get("cwd") != os.getcwd()
+            or head.get("document") != absolute(doc)
+        ):
+            return None
+        given = Path(head["document"])
+        data = read_root(given)
+        if link_stub_target(given, data) is not None or hash_bytes(data).sha256 != head.get("document_sha256"):
+            return None
+        lock = lockfile.default_path(given)
+        if head.get("lock") != str(lock):
+            return None
+        raw_lock = read_input(lock, limit=lockfile.MAX_LOCK_BYTES, what="lock file")  # as lockfile.load reads it
+        if hashlib.sha256(raw_lock).hexdigest() != head.get("lock_sha256"):
+            return None
+    except (HcdfTrustError, ValueError, KeyError, TypeError, RecursionError):
+        return None
+    return Candidate(raw, head)
