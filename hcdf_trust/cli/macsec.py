@@ -449,14 +449,14 @@ def export(
 
     # The export index, when it was written for this description as it is now, holds its
     # verified plan: once the store opens, it is checked (MAC, every file's digest) and used.
-    found, p = index.candidate(doc, store_dir), None
+    found, p = index.candidate(doc, store_dir, device), None
     if found is not None:
         try:
             store = opening.result()
         except Exception:  # noqa: BLE001 -- raised again by opening.result() below
             pass  # planned from the description below, whose errors come before the store's
         else:
-            p = found.plan(store, device)
+            p = found.plan(store)
     if p is None:
         from ..macsec.plan import plan
 

@@ -5,8 +5,9 @@ device need not parse and plan a large description again when nothing in it chan
 they then write ``DIR/macsec-export-index.json`` (:data:`INDEX_NAME`, mode 0600) with the
 store, through the same :class:`~hcdf_trust.outputs.OutputPlan`. It holds
 
-* a header naming exactly what was verified: the tool version and :data:`INDEX_VERSION`,
-  the working folder (messages name files relative to it), the root document as given
+* a header naming exactly what was verified, and by which code: :data:`INDEX_VERSION` and
+  the SHA-256 of every ``.py`` file of the running hcdf_trust (:func:`code_digest`), the
+  working folder (messages name files relative to it), the root document as given
   and the SHA-256 of the bytes that were parsed, the lock file and the SHA-256 of its
   bytes, and every file of the tree with the folder it was confined to and its SHA-256;
 * one line per keyed association (``["C", CA_ID, ROW]``) and one per member device
@@ -19,7 +20,7 @@ store, through the same :class:`~hcdf_trust.outputs.OutputPlan`. It holds
 the MAC matches, and every recorded file, opened with the resolver's confinement, still
 has its digest: then a resolve would read the same bytes and planning them would give the
 same associations, which are taken from the index. Anything else (no index, another
-description, another working folder or tool version, a changed or missing file, an index
+description, another working folder, an upgraded or edited hcdf-trust, a changed or missing file, an index
 from another store or edited, a device the index does not list) falls back to the full
 resolve and plan, which reports what is wrong as it always did. The index is a cache:
 deleting it changes nothing but speed.
@@ -31,6 +32,7 @@ before its MAC has been checked.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -38,7 +40,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
 from ..digest import hash_bytes
 from ..errors import HcdfTrustError
 from ..localfile import absolute, hash_local, open_local, read_bounded, read_input
@@ -46,8 +47,7 @@ from .plan import Association, Element, Member, Plan, Policy
 from .store import INDEX_NAME, KeyStore
 
 INDEX_FORMAT = "hcdf-trust-macsec-export-index"
-# Bump when the plan's meaning or the rows below change without a new tool version.
-INDEX_VERSION = 1
+INDEX_VERSION = 1  # of the layout below; any change of the code is caught by code_digest
 MAX_INDEX_BYTES = 512 << 20
 _MAC_LABEL = b"hcdf-trust macsec export index mac"
 # Association fields a row holds; tests check this against the dataclass, so a new field
@@ -70,6 +70,24 @@ def _line_encoder() -> Any:
 
 def path_in(folder: str | os.PathLike[str]) -> str:
     return os.path.join(folder, INDEX_NAME)
+
+
+@functools.cache
+def code_digest() -> str:
+    """SHA-256 over the path, length and bytes of every ``.py`` file of this hcdf_trust
+    package (~2 ms): an index is used only by the very code that planned it, so neither an
+    upgrade nor a local edit of the planner can be served a plan it would not make."""
+    top = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.sha256()
+    for folder, subfolders, files in os.walk(top):
+        subfolders[:] = sorted(d for d in subfolders if d != "__pycache__")
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            with open(path, "rb") as f:
+                data = f.read()
+            h.update(f"{os.path.relpath(path, top)}\0{len(data)}\0".encode())
+            h.update(data)
+    return h.hexdigest()
 
 
 def _row(ca: Association) -> list[Any]:
@@ -127,7 +145,7 @@ def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
     head = {
         "format": INDEX_FORMAT,
         "version": INDEX_VERSION,
-        "tool": __version__,
+        "code": code_digest(),
         "store_id": store.store_id,
         "cwd": os.getcwd(),
         "document": given,
@@ -150,31 +168,28 @@ def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
 
 @dataclass
 class Candidate:
-    """An index whose header matches the description on the command line; not yet trusted."""
+    """An index whose header matches the description on the command line, and the device's
+    associations as it lists them: not trusted before :meth:`plan` has checked them."""
 
     raw: bytes
     head: dict[str, Any]
+    associations: dict[str, Association]
 
-    def plan(self, store: KeyStore, device: str) -> Plan | None:
-        """The plan of ``device``'s associations from the index, once its MAC matches this
-        store and every file it lists still has its digest; else None (plan from the description)."""
+    def plan(self, store: KeyStore) -> Plan | None:
+        """The device's plan from the index, once its MAC matches this store and every file
+        it lists still has its digest; else None (plan from the description)."""
         if self.head.get("store_id") != store.store_id or not store.sealed(
             self.raw, self.head.get("mac"), label=_MAC_LABEL
         ):
             return None
-        line = _find(self.raw, "D", device)
-        if line is None:
+        try:
+            for kind, path, root, sha256 in self.head["files"]:
+                if _digest(kind, path, root) != sha256:
+                    return None
+            document = self.head["plan_document"]
+        except (ValueError, TypeError, KeyError):  # sealed by this store, yet not this layout
             return None
-        for kind, path, root, sha256 in self.head["files"]:
-            if _digest(kind, path, root) != sha256:
-                return None
-        cas = {}
-        for ca_id in line[2]:
-            row = _find(self.raw, "C", ca_id)
-            if row is None:  # the MAC matched: written by this tool, so not expected
-                return None
-            cas[ca_id] = _association(row[2])
-        return Plan(document=self.head["plan_document"], associations=cas, resolution=None)
+        return Plan(document=document, associations=self.associations, resolution=None)
 
     def protect(self, out: Any) -> None:
         """Protect what a resolve of this tree would (see :func:`hcdf_trust.outputs.protect_inputs`)."""
@@ -211,11 +226,25 @@ def _find(raw: bytes, tag: str, key: str) -> Any:
     return json.loads(raw[start + 1 : end])
 
 
-def candidate(doc: str, store_dir: str) -> Candidate | None:
-    """The store folder's index if it was written for ``doc`` as it is now (root document
-    and lock, read as a resolve reads them), by this tool version, from this working folder.
+def _device_associations(raw: bytes, device: str) -> dict[str, Association] | None:
+    line = _find(raw, "D", device)
+    if line is None:
+        return None
+    cas = {}
+    for ca_id in line[2]:
+        row = _find(raw, "C", ca_id)
+        if row is None:
+            return None
+        cas[ca_id] = _association(row[2])
+    return cas
 
-    Reads nothing that the index itself names: that waits for the MAC (:meth:`Candidate.plan`)."""
+
+def candidate(doc: str, store_dir: str, device: str) -> Candidate | None:
+    """The store folder's index if it was written for ``doc`` as it is now (root document
+    and lock, read as a resolve reads them), by this very code, from this working folder,
+    and lists ``device``; parsed while the store opens, checked by :meth:`Candidate.plan`.
+
+    Reads nothing that the index itself names: that waits for the MAC."""
     from ..include import lockfile
     from ..include.resolver import link_stub_target, read_root
 
@@ -226,7 +255,7 @@ def candidate(doc: str, store_dir: str) -> Candidate | None:
             not isinstance(head, dict)
             or head.get("format") != INDEX_FORMAT
             or head.get("version") != INDEX_VERSION
-            or head.get("tool") != __version__
+            or head.get("code") != code_digest()
             or head.get("cwd") != os.getcwd()
             or head.get("document") != absolute(doc)
         ):
@@ -241,6 +270,7 @@ def candidate(doc: str, store_dir: str) -> Candidate | None:
         raw_lock = read_input(lock, limit=lockfile.MAX_LOCK_BYTES, what="lock file")  # as lockfile.load reads it
         if hashlib.sha256(raw_lock).hexdigest() != head.get("lock_sha256"):
             return None
-    except (HcdfTrustError, ValueError, KeyError, TypeError, RecursionError):
+        cas = _device_associations(raw, device)
+    except (HcdfTrustError, ValueError, KeyError, TypeError, IndexError, RecursionError):
         return None
-    return Candidate(raw, head)
+    return None if cas is None else Candidate(raw, head, cas)

@@ -347,13 +347,23 @@ class KeyStore:
                 expected=str(wrap.get("method"))[:40],
                 actual=wrapper.method,
             )
-        dek = wrapper.unwrap(wrap, _wrap_aad(store_id), source=source)
+        # The lines are indexed (~23 ms for 10,000) while the data key is unwrapped (scrypt or a
+        # token, without the GIL); the errors still come in the order wrong credential, MAC, format.
+        unwrapping = Background(lambda: wrapper.unwrap(wrap, _wrap_aad(store_id), source=source))
+        index: dict[str, str] | KeyStoreFormatError
+        try:
+            index = _index(lines, source=source)
+        except KeyStoreFormatError as exc:
+            index = exc
+        dek = unwrapping.result()
         if not _mac_matches(dek, raw, doc.get("mac"), label=_STORE_MAC):
             raise KeyStoreIntegrityError(
                 "the key store's metadata does not match its MAC: it was changed outside hcdf-trust", file=source
             )
+        if isinstance(index, KeyStoreFormatError):
+            raise index
         store = cls(path, store_id=store_id, wrap=wrap, dek=dek)
-        store.entries = Entries(_index(lines, source=source), source=source)
+        store.entries = Entries(index, source=source)
         return store
 
     # -- keys --------------------------------------------------------------------------------
