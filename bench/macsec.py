@@ -8,7 +8,9 @@ connectivity association), locks it, then times fresh ``.venv/bin/hcdf-trust`` p
 wall clock, median of ``--repeat`` runs:
 
 * ``macsec plan`` and ``macsec generate`` into an empty store (target: plan + generate < 2 s);
-* ``macsec export --device <one end device> --format json`` from that store (target < 0.3 s);
+* ``macsec export --device <one end device> --format json`` from that store (target < 0.3 s),
+  which plans from the export index generate wrote (the run fails if it did not), and the
+  same export with the index moved aside (the full resolve and plan, for comparison);
 * ``macsec rotate --key-ref`` of one key-ref, checking that exactly one entry's ciphertexts change.
 
 Prints a Markdown table (times, store size) and writes bench/work/macsec/results.json.
@@ -62,16 +64,20 @@ def _children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def timed(args: list[str], env: dict[str, str]) -> float:
-    """Wall seconds of one run; its CPU seconds (user + sys) go to CPU[verb]."""
+def timed(args: list[str], env: dict[str, str], *, label: str | None = None) -> float:
+    """Wall seconds of one run; its CPU seconds (user + sys) go to CPU[label or verb]."""
+    return timed_output(args, env, label=label)[0]
+
+
+def timed_output(args: list[str], env: dict[str, str], *, label: str | None = None) -> tuple[float, str]:
     cpu = _children_cpu()
     start = time.perf_counter()
     proc = subprocess.run([str(CLI), *args], env=env, capture_output=True, text=True)
     elapsed = time.perf_counter() - start
-    CPU.setdefault(" ".join(args[:2]), []).append(_children_cpu() - cpu)
+    CPU.setdefault(label or " ".join(args[:2]), []).append(_children_cpu() - cpu)
     if proc.returncode != 0:
         raise SystemExit(f"hcdf-trust {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
-    return elapsed
+    return elapsed, proc.stdout
 
 
 def ciphertexts(store: Path) -> dict[str, list[str]]:
@@ -100,25 +106,22 @@ def main() -> None:
         plan_t.append(timed(["macsec", "plan", str(doc), "--json"], env))
         gen_t.append(timed(["macsec", "generate", str(doc), "--store", str(store)], env))
     device = f"d{a.networks // 2}_1"
+    export = ["macsec", "export", str(doc), "--store", str(store), "--device", device, "--format", "json", "--json"]
     for i in range(a.repeat):
-        export_t.append(
-            timed(
-                [
-                    "macsec",
-                    "export",
-                    str(doc),
-                    "--store",
-                    str(store),
-                    "--device",
-                    device,
-                    "--format",
-                    "json",
-                    "--out",
-                    str(WORK / f"export{i}"),
-                ],
-                env,
-            )
-        )
+        elapsed, out = timed_output([*export, "--out", str(WORK / f"export{i}")], env)
+        if json.loads(out)["planned_from"] != "index":
+            raise SystemExit("export did not plan from the export index that generate wrote")
+        export_t.append(elapsed)
+    index = store / "macsec-export-index.json"
+    index.rename(WORK / "index.aside")
+    full_t = [
+        timed([*export, "--out", str(WORK / f"full{i}")], env, label="export without index") for i in range(a.repeat)
+    ]
+    (WORK / "index.aside").rename(index)
+    for i in range(a.repeat):
+        for f in (WORK / f"full{i}").iterdir():
+            if f.read_bytes() != (WORK / f"export{i}" / f.name).read_bytes():
+                raise SystemExit(f"{f.name}: the export from the index differs from the full export")
     before = ciphertexts(store)
     rotate_t = timed(["macsec", "rotate", str(doc), "--store", str(store), "--key-ref", f"k{a.networks // 2}_1"], env)
     after = ciphertexts(store)
@@ -132,6 +135,8 @@ def main() -> None:
         "plan_s": statistics.median(plan_t),
         "generate_s": statistics.median(gen_t),
         "export_one_device_s": statistics.median(export_t),
+        "export_without_index_s": statistics.median(full_t),
+        "index_bytes": index.stat().st_size,
         "rotate_one_key_ref_s": rotate_t,
         "store_bytes": (store / "macsec-keys.json").stat().st_size,
         "entries_rewritten_by_rotate": changed,
@@ -149,8 +154,13 @@ def main() -> None:
     print(f"| generate (empty store; plans too) | {results['generate_s']:.2f} | {cpu['macsec generate']:.2f} | |")
     print(f"| plan + generate | {total:.2f} | | < 2 |")
     print(f"| export one device (json) | {results['export_one_device_s']:.3f} | {cpu['macsec export']:.2f} | < 0.3 |")
+    print(
+        f"| the same export, index moved aside | {results['export_without_index_s']:.3f} "
+        f"| {cpu['export without index']:.2f} | |"
+    )
     print(f"| rotate one key-ref | {rotate_t:.2f} | {cpu['macsec rotate']:.2f} | entries rewritten: {len(changed)} |")
     print(f"| store size | {results['store_bytes'] / 1e6:.1f} MB | | |")
+    print(f"| export index size | {results['index_bytes'] / 1e6:.1f} MB | | |")
 
 
 if __name__ == "__main__":

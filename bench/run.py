@@ -90,8 +90,7 @@ def spawn(
     command runs under ``/usr/bin/time``, whose small process forks it instead.
     """
     argv = [str(a) for a in argv]
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
-            tempfile.NamedTemporaryFile("r") as usage:
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, tempfile.NamedTemporaryFile("r") as usage:
         if rss:
             argv = [TIME, "-f", "%M", "-o", usage.name, *argv]
         t0 = time.perf_counter()
@@ -140,9 +139,7 @@ def measure(cmds: dict[str, Cmd], *, repeat: int, warmup: int = 1) -> dict[str, 
                     cmd.setup()
                 proc = spawn(cmd.argv, cwd=cmd.cwd, rss=cmd.rss, env=cmd.env)
             if proc.rc != 0:
-                raise SystemExit(
-                    f"bench: {' '.join(map(str, cmd.argv))} exited {proc.rc}:\n{proc.stderr[-2000:]}"
-                )
+                raise SystemExit(f"bench: {' '.join(map(str, cmd.argv))} exited {proc.rc}:\n{proc.stderr[-2000:]}")
             if cmd.check is not None:
                 cmd.check(proc)
             if i >= warmup:
@@ -269,10 +266,7 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
     nbytes = info["model_bytes"]
     docs = sorted(robot.rglob("*.hcdf"))
     warm_page_cache([robot / r for r in rels] + docs)
-    what = (
-        f"{info['model_files']:,} models, {nbytes / 1e9:.2f} GB, "
-        f"{info['include_references']} includes"
-    )
+    what = f"{info['model_files']:,} models, {nbytes / 1e9:.2f} GB, {info['include_references']} includes"
 
     def digests_match(proc: Proc) -> None:
         # "SHA2-256(models/m0000.glb)= <hex>"; checked on every run, cheap.
@@ -304,8 +298,14 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
         cold = measure(
             # retry: 2,000 fetches on 16 threads fail now and then with EBADF (seen before
             # issue 6's changes too); the failure is listed in the results, not hidden.
-            {"cold": Cmd(resolve_argv(doc, http_cache, *mirror), setup=fresh(http_cache),
-                         check=wrote_lock(doc, f"{info['model_files']} fetched"), retry=True)},
+            {
+                "cold": Cmd(
+                    resolve_argv(doc, http_cache, *mirror),
+                    setup=fresh(http_cache),
+                    check=wrote_lock(doc, f"{info['model_files']} fetched"),
+                    retry=True,
+                )
+            },
             repeat=max(1, args.repeat - 1),
         )["cold"]
         gets = (server.hits - hits) / (len(cold) + 1 + sum(f.startswith("cold:") for f in FAILURES))
@@ -313,8 +313,10 @@ def bench_robot(args: argparse.Namespace, rows: list[Row]) -> None:
         warm = measure(
             {
                 "openssl": Cmd(["openssl", "dgst", "-sha256", *rels], cwd=robot, check=digests_match),
-                "warm": Cmd(resolve_argv(doc, http_cache, *mirror, "--offline"),
-                            check=wrote_lock(doc, f"{info['model_files']} from cache")),
+                "warm": Cmd(
+                    resolve_argv(doc, http_cache, *mirror, "--offline"),
+                    check=wrote_lock(doc, f"{info['model_files']} from cache"),
+                ),
             },
             repeat=args.repeat,
         )
@@ -496,8 +498,11 @@ def bench_memory(args: argparse.Namespace, rows: list[Row]) -> None:
             {
                 label: Cmd(
                     resolve_argv(
-                        doc, cache[label], "--allow-http",
-                        "--mirror", f"{file_url(doc.parent / 'models')}/={server.url}{doc.parent.name}/models/",
+                        doc,
+                        cache[label],
+                        "--allow-http",
+                        "--mirror",
+                        f"{file_url(doc.parent / 'models')}/={server.url}{doc.parent.name}/models/",
                     ),
                     setup=fresh(cache[label]),
                     check=wrote_lock(doc, "1 fetched"),
@@ -597,7 +602,11 @@ def environment() -> str:
 
 
 def render(
-    rows: list[Row], args: argparse.Namespace, env: str, seconds: float, load: tuple[float, float],
+    rows: list[Row],
+    args: argparse.Namespace,
+    env: str,
+    seconds: float,
+    load: tuple[float, float],
     loads: dict[str, tuple[float, float]],
 ) -> str:
     per_section = ", ".join(f"{name} {a:.1f}→{b:.1f}" for name, (a, b) in loads.items())
@@ -693,9 +702,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--startup-runs", type=int, default=10)
     ap.add_argument("--only", default=",".join(SECTIONS), help=f"comma list of {', '.join(SECTIONS)}")
     ap.add_argument("--no-write", action="store_true", help="print the table, leave bench/RESULTS.md alone")
-    ap.add_argument("--wait-idle", type=float, default=0, metavar="SECONDS",
-                    help="before each section, wait up to SECONDS for the 1-minute load average to fall below "
-                    "--idle-load")
+    ap.add_argument(
+        "--wait-idle",
+        type=float,
+        default=0,
+        metavar="SECONDS",
+        help="before each section, wait up to SECONDS for the 1-minute load average to fall below --idle-load",
+    )
     ap.add_argument("--idle-load", type=float, default=0.5, metavar="LOAD", help="see --wait-idle (default 0.5)")
     args = ap.parse_args(argv)
     if not CLI.exists():
@@ -725,9 +738,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     seconds = time.perf_counter() - started
     text = render(rows, args, environment(), seconds, (load_start, os.getloadavg()[0]), loads)
     print(text)
-    (WORK / "results.json").write_text(
-        json.dumps([{**r.__dict__} for r in rows], indent=1, ensure_ascii=False)
-    )
+    (WORK / "results.json").write_text(json.dumps([{**r.__dict__} for r in rows], indent=1, ensure_ascii=False))
     if not args.no_write and set(only) == set(SECTIONS):
         (HERE / "RESULTS.md").write_text(text)
         update_readme(readme_section(rows, (load_start, os.getloadavg()[0]), loads))

@@ -8,8 +8,11 @@ import dataclasses
 import json
 from pathlib import Path
 
+import pytest
+
 from hcdf_trust.macsec import index
 from hcdf_trust.macsec.plan import Association, Plan, plan
+from hcdf_trust.macsec.store import line_encoder
 
 from ._macsec import comp, hcdf, humanoid, link, port, tree
 from .test_macsec_plan import ROBOT, _two_arms
@@ -18,7 +21,7 @@ from .test_macsec_plan import ROBOT, _two_arms
 def _round_trip(p: Plan) -> None:
     assert p.associations
     for ca in p.associations.values():
-        row = json.loads(index._line_encoder()(index._row(ca)))
+        row = json.loads(line_encoder(sort_keys=False)(index._row(ca)))
         again = index._association(row)
         again.warned = ca.warned  # the planner's own bookkeeping (warnings given once), not exported
         assert again == ca, ca.id
@@ -103,3 +106,16 @@ def test_a_device_line_lists_exactly_its_keyed_associations(tmp_path):
         mine = [ca.id for ca in p.for_device(device)]
         assert (list(got) if got is not None else []) == mine and (got is None) == (not mine)
     assert index._device_associations(raw, "no-such-device") is None
+
+
+@pytest.mark.parametrize("sort_keys", [False, True])
+def test_the_line_encoder_writes_what_json_writes(sort_keys):
+    values = [
+        ["C", 'link:n/l\u00e9"\n\\', [None, 1, 2.5, 1000.0, 1e300, -0.0, True, [], {}]],
+        {"z": 1, "a": {"y": [1, "\u2028"], "b": None}, "m": "\ud83d\ude00"},
+        ["D", "d0", ["a", "b"]],
+        "plain",
+    ]
+    encode = line_encoder(sort_keys=sort_keys)
+    for value in values:
+        assert encode(value) == json.dumps(value, sort_keys=sort_keys, separators=(",", ":"))

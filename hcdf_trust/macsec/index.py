@@ -10,8 +10,9 @@ store, through the same :class:`~hcdf_trust.outputs.OutputPlan`. It holds
   working folder (messages name files relative to it), the root document as given
   and the SHA-256 of the bytes that were parsed, the lock file and the SHA-256 of its
   bytes, and every file of the tree with the folder it was confined to and its SHA-256;
-* one line per keyed association (``["C", CA_ID, ROW]``) and one per member device
-  (``["D", DEVICE, [CA_ID, ...]]``, its associations in plan order);
+* one line per keyed association, in plan order: ``[CA_ID, KIND, KEY_REF, POLICY,
+  ELEMENTS, MEMBERS, PORT_SPEEDS, IFACES]`` (:data:`ROW_FIELDS`), a member written
+  ``[DEVICE,[PORT,...]]``;
 * a MAC: HMAC-SHA256 under a key derived from the store's data key, over the file's
   bytes, as the store's own MAC is.
 
@@ -44,7 +45,7 @@ from ..digest import hash_bytes
 from ..errors import HcdfTrustError
 from ..localfile import absolute, hash_local, open_local, read_bounded, read_input
 from .plan import Association, Element, Member, Plan, Policy
-from .store import INDEX_NAME, KeyStore
+from .store import INDEX_NAME, KeyStore, line_encoder
 
 INDEX_FORMAT = "hcdf-trust-macsec-export-index"
 INDEX_VERSION = 1  # of the layout below; any change of the code is caught by code_digest
@@ -54,18 +55,7 @@ _MAC_LABEL = b"hcdf-trust macsec export index mac"
 # cannot be silently dropped from exports made through the index.
 ROW_FIELDS = ("id", "kind", "key_ref", "policy", "elements", "members", "port_speeds_mbps", "ifaces")
 _ENCODE = json.JSONEncoder(sort_keys=True, separators=(",", ":")).encode
-_LINE = json.JSONEncoder(separators=(",", ":")).encode  # rows are lists: key order is theirs
-
-
-def _line_encoder() -> Any:
-    """``_LINE`` for 20,000 lines: json's C encoder made once (``JSONEncoder.encode`` makes
-    one per call, half the time of a short line); the same text, else ``_LINE`` itself."""
-    from json.encoder import c_make_encoder, encode_basestring_ascii  # type: ignore[attr-defined]
-
-    if c_make_encoder is None:
-        return _LINE
-    chunks = c_make_encoder(None, None, encode_basestring_ascii, None, ":", ",", False, False, True)
-    return lambda value: "".join(chunks(value, 0))
+_LINE = json.JSONEncoder(separators=(",", ":")).encode
 
 
 def path_in(folder: str | os.PathLike[str]) -> str:
@@ -155,14 +145,8 @@ def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
         "lock_sha256": res.locked.sha256,
         "files": files,
     }
-    lines = [_ENCODE(head)]
-    devices: dict[str, list[str]] = {}
-    encode = _line_encoder()
-    for ca in p.keyed():
-        lines.append(encode(["C", ca.id, _row(ca)]))
-        for device in ca.members:
-            devices.setdefault(device, []).append(ca.id)
-    lines.extend(encode(["D", device, ids]) for device, ids in devices.items())
+    encode = line_encoder(sort_keys=False)  # rows are lists: their order is the layout
+    lines = [_ENCODE(head), *(encode(_row(ca)) for ca in p.keyed())]
     return store.seal(("\n".join(lines) + "\n").encode(), label=_MAC_LABEL)
 
 
@@ -216,27 +200,22 @@ def _digest(kind: str, path: str, root: str) -> str | None:
         return None
 
 
-def _find(raw: bytes, tag: str, key: str) -> Any:
-    """The ``[tag, key, ...]`` line of an index, parsed; None if there is none. A JSON string
-    holds no raw newline, so ``\\n["D","NAME",`` can only begin a line."""
-    start = raw.find(b"\n" + _LINE([tag, key])[:-1].encode() + b",")
-    if start < 0:
-        return None
-    end = raw.find(b"\n", start + 1)
-    return json.loads(raw[start + 1 : end])
-
-
 def _device_associations(raw: bytes, device: str) -> dict[str, Association] | None:
-    line = _find(raw, "D", device)
-    if line is None:
-        return None
-    cas = {}
-    for ca_id in line[2]:
-        row = _find(raw, "C", ca_id)
-        if row is None:
-            return None
-        cas[ca_id] = _association(row[2])
-    return cas
+    """The keyed associations the index lists ``device`` as a member of, in plan order; None
+    if none. A member is written ``[DEVICE,[`` and a JSON string holds no raw newline, so
+    every line that has ``device`` as a member holds that text; a line that holds it
+    elsewhere is dropped once parsed."""
+    needle = b"[" + _LINE(device).encode() + b",["
+    cas: dict[str, Association] = {}
+    at = raw.find(needle, raw.index(b"\n"))
+    while at >= 0:
+        start = raw.rindex(b"\n", 0, at) + 1
+        end = raw.index(b"\n", at)
+        ca = _association(json.loads(raw[start:end]))
+        if device in ca.members:
+            cas[ca.id] = ca
+        at = raw.find(needle, end)
+    return cas or None
 
 
 def candidate(doc: str, store_dir: str, device: str) -> Candidate | None:

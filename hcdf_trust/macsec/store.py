@@ -434,8 +434,7 @@ class KeyStore:
 
     def serialize(self, now: datetime) -> bytes:
         head = {"format": FORMAT, "version": FORMAT_VERSION, "store_id": self.store_id, "wrap": self.wrap}
-        # compact: json's C encoder (indent= falls back to the pure-Python one)
-        encode = json.JSONEncoder(sort_keys=True, separators=(",", ":")).encode
+        encode = line_encoder(sort_keys=True)
         lines = [encode(head)]
         for e in sorted(self.entries.values(), key=lambda e: e.ca_id):
             entry = {
@@ -461,6 +460,19 @@ class KeyStore:
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
         plan.add(self.path, self.serialize(now), flag="--store", mode=0o600)
+
+
+def line_encoder(*, sort_keys: bool) -> Callable[[Any], str]:
+    """``json.JSONEncoder(sort_keys=sort_keys, separators=(",", ":")).encode``, the same text,
+    for files of 10,000 short lines: ``encode`` builds json's C encoder at every call (half the
+    time of a short line), this builds it once. Compact, since ``indent`` is pure Python."""
+    from json.encoder import c_make_encoder, encode_basestring_ascii  # type: ignore[attr-defined]
+
+    if c_make_encoder is None:  # an interpreter without json's C accelerator
+        return json.JSONEncoder(sort_keys=sort_keys, separators=(",", ":")).encode
+    # (markers, default, encoder, indent, key_separator, item_separator, sort_keys, skipkeys, allow_nan)
+    chunks = c_make_encoder(None, None, encode_basestring_ascii, None, ":", ",", sort_keys, False, True)
+    return lambda value: "".join(chunks(value, 0))
 
 
 def _wrap_aad(store_id: str) -> bytes:
