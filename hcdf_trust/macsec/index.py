@@ -126,6 +126,10 @@ def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
     given = absolute(doc)
     if res is None or res.locked is None or not res.locked.sha256 or res.root_location.path != given:
         return None
+    try:
+        cwd = os.getcwd()  # messages name files relative to it (it may have been removed)
+    except OSError:
+        return None
     files = []
     for art in res.artifacts.values():
         loc = art.location
@@ -137,7 +141,7 @@ def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
         "version": INDEX_VERSION,
         "code": code_digest(),
         "store_id": store.store_id,
-        "cwd": os.getcwd(),
+        "cwd": cwd,
         "document": given,
         "plan_document": p.document,
         "document_sha256": hash_bytes(res.root.data).sha256,
@@ -250,6 +254,6 @@ def candidate(doc: str, store_dir: str, device: str) -> Candidate | None:
         if hashlib.sha256(raw_lock).hexdigest() != head.get("lock_sha256"):
             return None
         cas = _device_associations(raw, device)
-    except (HcdfTrustError, ValueError, KeyError, TypeError, IndexError, RecursionError):
+    except Exception:  # noqa: BLE001 -- any index this code cannot use is planned around, not reported
         return None
     return None if cas is None else Candidate(raw, head, cas)
