@@ -449,12 +449,14 @@ def export(
 
     # The export index, when it was written for this description as it is now, holds its
     # verified plan: once the store opens, it is checked (MAC, every file's digest) and used.
+    # A store that does not open sends us to the description too: its errors come first, and
+    # opening.result() then raises the store's error again.
     found, p = index.candidate(doc, store_dir, device), None
     if found is not None:
         try:
             store = opening.result()
-        except Exception:  # noqa: BLE001 -- raised again by opening.result() below
-            pass  # planned from the description below, whose errors come before the store's
+        except Exception:  # noqa: BLE001 -- reported by the second opening.result() below
+            found = None
         else:
             p = found.plan(store)
     if p is None:

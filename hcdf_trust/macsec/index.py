@@ -21,10 +21,10 @@ store, through the same :class:`~hcdf_trust.outputs.OutputPlan`. It holds
 the MAC matches, and every recorded file, opened with the resolver's confinement, still
 has its digest: then a resolve would read the same bytes and planning them would give the
 same associations, which are taken from the index. Anything else (no index, another
-description, another working folder, an upgraded or edited hcdf-trust, a changed or missing file, an index
-from another store or edited, a device the index does not list) falls back to the full
-resolve and plan, which reports what is wrong as it always did. The index is a cache:
-deleting it changes nothing but speed.
+description, another working folder, an upgraded or edited hcdf-trust, a changed or missing
+file, an index from another store or edited, a device the index does not list) falls back
+to the full resolve and plan, which reports what is wrong as it always did. The index is a
+cache: deleting it changes nothing but speed.
 
 Only trees whose every file is local are indexed (nothing from the cache or a mirror), and
 not a root document reached through a link stub. Nothing listed in an index is opened
