@@ -319,6 +319,17 @@ def test_a_symlink_inside_the_root_is_accepted_as_without_index(env):
     assert got[0].exit_code == 0
 
 
+def test_root_document_turned_into_a_link_stub_takes_the_full_path(env):
+    """``robot.hcdf`` made a symlink to a sibling with the same bytes: a resolve follows the stub
+    (and its lock no longer belongs to the root it reaches), so the index is not used."""
+    real = env.doc.with_name("real.hcdf")
+    env.doc.rename(real)
+    env.doc.symlink_to(real.name)
+    got = env.export("cam")
+    assert got[0].exit_code == 3 and "belongs to" in got[0].stdout, got[0].stdout
+    _same(got, env.full("cam"))
+
+
 # --- 7-10. an index that is not this store's index of this description ------------------------
 
 
@@ -445,12 +456,12 @@ def test_export_through_the_index_never_writes_over_an_input(env, target):
 
 
 def _subprocess_export(env: Env, out: Path) -> subprocess.CompletedProcess[str]:
-    """The export in a child process, killed after 60 s: a blocking read fails the test, never hangs it."""
+    """``cam``'s export in a child process, killed after 30 s: a blocking read fails the test, never hangs it."""
     code = "import sys; from hcdf_trust.cli import main; main(sys.argv[1:], prog_name='hcdf-trust')"
     args = ["macsec", "export", str(env.doc), "--store", str(env.store), "--passphrase-file", str(env.pp)]
     args += ["--device", "cam", "--format", "json", "--out", str(out), "--now", T1, "--json"]
     return subprocess.run(
-        [sys.executable, "-c", code, *args], cwd=os.getcwd(), capture_output=True, text=True, timeout=60
+        [sys.executable, "-c", code, *args], cwd=os.getcwd(), capture_output=True, text=True, timeout=30
     )
 
 
@@ -519,8 +530,10 @@ def test_generate_with_a_special_file_at_the_index_path(env, tmp_path, kind):
     assert f"--store {env.index} " in proc.stderr and "Traceback" not in proc.stderr
     assert store.read_bytes() == before
     assert sorted(os.listdir(env.store)) == [".macsec-keys.lock", INDEX_NAME, STORE_NAME]
-    got = env.export("cam")  # the new key is not there yet: the export says so, as without an index
-    _same(got, env.full("cam"))
+    proc = _subprocess_export(env, env.tmp / "after")  # the special file is still there: never read
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["planned_from"] == "description"
+    assert _files(env.tmp / "after") == _files(env.full("cam")[1])
 
 
 # --- 12. wrong passphrase ---------------------------------------------------------------------
@@ -653,3 +666,25 @@ def test_killed_generate_leaves_store_and_index_each_before_or_after(env, when):
     env.generate()  # under the lock: a killed run's leftovers are removed
     assert sorted(os.listdir(env.store)) == [".macsec-keys.lock", INDEX_NAME, STORE_NAME]
     assert _path(env.export("spare")[0]) == "index"
+
+
+STORE_KILLER = KILLER.replace("macsec-export-index.json", STORE_NAME)
+
+
+def test_killed_retire_leaves_no_copy_of_the_retired_generation(env):
+    """A retire killed once the store is renamed leaves OutputPlan's link to the store it replaced;
+    the next locked run removes it: the retired generation's ciphertext is nowhere in the folder."""
+    r = env.cli("macsec", "rotate", env.doc, *env.base(), "--key-ref", "left_arm_arm-links", "--now", T0)
+    assert r.exit_code == 0, r.stderr
+    line = next(x for x in KeyStore.file_in(env.store).read_text().splitlines() if "left_arm_arm-links" in x)
+    retired = json.loads(line)[1]["generations"][0]["ciphertext"].encode()
+    args = ["macsec", "retire", *map(str, env.base()), "--now", "2026-01-02T00:00:00Z"]
+    proc = subprocess.run([sys.executable, "-c", STORE_KILLER, "after", *args], cwd=PROJECT, capture_output=True)
+    assert proc.returncode == -9, proc.stderr
+    assert retired not in KeyStore.file_in(env.store).read_bytes()
+    env.generate()
+    assert sorted(os.listdir(env.store)) == [".macsec-keys.lock", INDEX_NAME, STORE_NAME]
+    assert not [f for f in env.store.iterdir() if retired in f.read_bytes()]
+    got = env.export("left_arm_ctrl", "json", "--now", "2026-01-02T00:00:00Z")
+    assert _path(got[0]) == "index"
+    _same(got, env.full("left_arm_ctrl", "json", "--now", "2026-01-02T00:00:00Z"))
