@@ -319,6 +319,25 @@ def test_a_symlink_inside_the_root_is_accepted_as_without_index(env):
     assert got[0].exit_code == 0
 
 
+def test_a_file_replaced_by_a_fifo_is_refused_as_without_index(env):
+    glb = env.doc.parent / "models" / "hand.glb"
+    glb.unlink()
+    os.mkfifo(glb)
+    proc = _subprocess_export(env, env.tmp / "fifo-out", "left_arm_hand")
+    with env.without_index():
+        full = _subprocess_export(env, env.tmp / "fifo-full", "left_arm_hand")
+    assert proc.returncode == full.returncode != 0
+    assert proc.stdout == full.stdout and "FIFO" in proc.stdout
+    assert not (env.tmp / "fifo-out").exists()
+
+
+def test_a_device_the_index_does_not_list_fails_as_without_index(env):
+    for device in ("ghost", "left_arm", "left_arm/ctrl", "CAM"):
+        got = env.export(device)
+        assert got[0].exit_code == 3 and "member of no keyed MACsec association" in got[0].stdout
+        _same(got, env.full(device))
+
+
 def test_root_document_turned_into_a_link_stub_takes_the_full_path(env):
     """``robot.hcdf`` made a symlink to a sibling with the same bytes: a resolve follows the stub
     (and its lock no longer belongs to the root it reaches), so the index is not used."""
@@ -435,18 +454,30 @@ def test_another_tool_or_index_version_falls_back(env, monkeypatch):
 
 @pytest.mark.parametrize(
     "target",
-    ["robot.hcdf", "arm.hcdf", "models/hand.glb", "robot.hcdf.lock", "keys/" + STORE_NAME, "keys/" + INDEX_NAME],
+    [
+        "robot.hcdf",
+        "arm.hcdf",
+        "models/hand.glb",
+        "robot.hcdf.lock",
+        "keys/" + STORE_NAME,
+        "keys/" + INDEX_NAME,
+        "../pass",
+    ],
 )
-def test_export_through_the_index_never_writes_over_an_input(env, target):
+@pytest.mark.parametrize("how", ["symlink", "hard link"])
+def test_export_through_the_index_never_writes_over_an_input(env, target, how):
     path = env.doc.parent / target if not target.startswith("keys/") else env.store / target[5:]
     before = path.read_bytes()
     trap = env.tmp / "trap"
     trap.mkdir()
-    (trap / "cam.macsec.json").symlink_to(path)
+    if how == "symlink":
+        (trap / "cam.macsec.json").symlink_to(path)
+    else:
+        os.link(path, trap / "cam.macsec.json")
     r = env.cli("macsec", "export", env.doc, *env.base(), "--device", "cam", "--format", "json", "--out", trap)
     assert r.exit_code == 3 and "refusing to overwrite an input" in r.stderr, r.stderr
-    assert path.read_bytes() == before and os.path.islink(trap / "cam.macsec.json")
-    if target != "keys/" + INDEX_NAME:  # (without an index, the link to it dangles)
+    assert path.read_bytes() == before and (trap / "cam.macsec.json").read_bytes() == before
+    if target != "keys/" + INDEX_NAME:  # (without an index, a symlink to it dangles, a hard link is no input)
         with env.without_index():
             r = env.cli("macsec", "export", env.doc, *env.base(), "--device", "cam", "--format", "json", "--out", trap)
         assert r.exit_code == 3 and path.read_bytes() == before
@@ -455,11 +486,11 @@ def test_export_through_the_index_never_writes_over_an_input(env, target):
 # --- 11. hostile index files ------------------------------------------------------------------
 
 
-def _subprocess_export(env: Env, out: Path) -> subprocess.CompletedProcess[str]:
-    """``cam``'s export in a child process, killed after 30 s: a blocking read fails the test, never hangs it."""
+def _subprocess_export(env: Env, out: Path, device: str = "cam") -> subprocess.CompletedProcess[str]:
+    """The export in a child process, killed after 30 s: a blocking read fails the test, never hangs it."""
     code = "import sys; from hcdf_trust.cli import main; main(sys.argv[1:], prog_name='hcdf-trust')"
     args = ["macsec", "export", str(env.doc), "--store", str(env.store), "--passphrase-file", str(env.pp)]
-    args += ["--device", "cam", "--format", "json", "--out", str(out), "--now", T1, "--json"]
+    args += ["--device", device, "--format", "json", "--out", str(out), "--now", T1, "--json"]
     return subprocess.run(
         [sys.executable, "-c", code, *args], cwd=os.getcwd(), capture_output=True, text=True, timeout=30
     )
@@ -688,3 +719,17 @@ def test_killed_retire_leaves_no_copy_of_the_retired_generation(env):
     got = env.export("left_arm_ctrl", "json", "--now", "2026-01-02T00:00:00Z")
     assert _path(got[0]) == "index"
     _same(got, env.full("left_arm_ctrl", "json", "--now", "2026-01-02T00:00:00Z"))
+
+
+def test_document_named_relatively_at_generate_and_absolutely_at_export(tmp_path, cli, monkeypatch):
+    """The index keys on the absolute root path: how it was spelt on either command line changes nothing."""
+    e = Env(cli, tmp_path, _small(tmp_path / "doc"))
+    monkeypatch.chdir(tmp_path / "doc")
+    e.doc = Path("robot.hcdf")
+    e.generate()
+    e.doc = tmp_path / "doc" / "robot.hcdf"
+    assert _differential(e) >= 20
+    e.doc = Path("../doc/./robot.hcdf")
+    got = e.export("left_arm_ctrl", "wpa_supplicant")
+    assert _path(got[0]) == "index"
+    _same(got, e.full("left_arm_ctrl", "wpa_supplicant"))
