@@ -733,3 +733,22 @@ def test_document_named_relatively_at_generate_and_absolutely_at_export(tmp_path
     got = e.export("left_arm_ctrl", "wpa_supplicant")
     assert _path(got[0]) == "index"
     _same(got, e.full("left_arm_ctrl", "wpa_supplicant"))
+
+
+def test_rows_hold_every_field_of_an_association(tmp_path):
+    """ROW_FIELDS is every field of Association but its warning memo, and a row read back is the
+    association planned (so a new field cannot be dropped silently from exports through the index)."""
+    import dataclasses
+
+    from hcdf_trust.macsec.plan import Association, Element, Member, Policy, plan
+
+    assert index.ROW_FIELDS == tuple(f.name for f in dataclasses.fields(Association) if f.name != "warned")
+    assert len(dataclasses.fields(Element)) == 6 and len(dataclasses.fields(Member)) == 2
+    assert len(dataclasses.fields(Policy)) == 7
+    (tmp_path / "h").mkdir()
+    for doc in (_small(tmp_path / "s"), humanoid(tmp_path / "h")):
+        p = plan(doc)
+        for ca in p.keyed():
+            back = index._association(json.loads(json.dumps(index._row(ca))))
+            ca.warned = set()
+            assert back == ca, ca.id
