@@ -113,10 +113,12 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
 
 
 def _remove_stale_temporaries(folder: Path) -> None:
-    """Temporary store and index files a killed run left behind (we hold the lock: no run is writing them)."""
+    """Temporary store and index files a killed run left behind (we hold the lock: no run is writing them):
+    staged files (``.tmp``) and OutputPlan's links to the files they replaced (``.old``, which keep a
+    previous store, with generations a retire removed, on disk)."""
     prefixes = (f".{STORE_NAME}.", f".{INDEX_NAME}.")
     for name in os.listdir(folder):
-        if name.startswith(prefixes) and name.endswith(".tmp"):
+        if name.startswith(prefixes) and name.endswith((".tmp", ".old")):
             with contextlib.suppress(OSError):
                 if stat.S_ISREG(os.lstat(folder / name).st_mode):
                     os.unlink(folder / name)
