@@ -119,3 +119,35 @@ def test_the_line_encoder_writes_what_json_writes(sort_keys):
     encode = line_encoder(sort_keys=sort_keys)
     for value in values:
         assert encode(value) == json.dumps(value, sort_keys=sort_keys, separators=(",", ":"))
+
+
+def test_the_code_digest_changes_with_any_source_file_and_only_with_them(tmp_path):
+    """An index is bound to the code that wrote it: a copy of the package elsewhere has the
+    same digest, a copy with one planner line changed (or a module added) another one."""
+    import shutil
+
+    import hcdf_trust
+
+    package = Path(hcdf_trust.__file__).parent
+    assert index.code_digest() == index.tree_digest(str(package))
+
+    def copy(name: str) -> Path:
+        dest = tmp_path / name / "hcdf_trust"
+        shutil.copytree(package, dest, ignore=shutil.ignore_patterns("__pycache__"))
+        return dest
+
+    assert index.tree_digest(str(copy("same"))) == index.code_digest()
+    edited = copy("edited")
+    plan_py = edited / "macsec" / "plan.py"
+    plan_py.write_text(plan_py.read_text().replace("return PN_SPACE", "return 2 * PN_SPACE", 1))
+    assert index.tree_digest(str(edited)) != index.code_digest()
+    added = copy("added")
+    (added / "macsec" / "extra.py").write_text("")
+    assert index.tree_digest(str(added)) != index.code_digest()
+    before = index.tree_digest(str(added))
+    (added / "macsec" / "extra.py").rename(added / "macsec" / "extrb.py")  # same bytes and place, another name
+    assert index.tree_digest(str(added)) not in (before, index.code_digest())
+    compiled = copy("compiled")
+    (compiled / "macsec" / "__pycache__").mkdir()
+    (compiled / "macsec" / "__pycache__" / "plan.cpython-311.pyc").write_bytes(b"not source")
+    assert index.tree_digest(str(compiled)) == index.code_digest()

@@ -67,7 +67,11 @@ def code_digest() -> str:
     """SHA-256 over the path, length and bytes of every ``.py`` file of this hcdf_trust
     package (~2 ms): an index is used only by the very code that planned it, so neither an
     upgrade nor a local edit of the planner can be served a plan it would not make."""
-    top = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    return tree_digest(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def tree_digest(top: str) -> str:
+    """:func:`code_digest` of the package folder ``top``."""
     h = hashlib.sha256()
     for folder, subfolders, files in os.walk(top):
         subfolders[:] = sorted(d for d in subfolders if d != "__pycache__")
