@@ -549,3 +549,29 @@ def test_a_passphrase_wrapper_runs_scrypt_once_per_salt(tmp_path, monkeypatch):
     for _ in range(2):
         with pytest.raises(WrongCredentialError):
             KeyStore.open(tmp_path / "a", wrong)
+
+
+@pytest.mark.parametrize("bad", [b'{"x":1}', b"[1,{}]", b'["link:n/plain",{}]'])
+def test_a_sealed_store_with_a_malformed_line_is_refused_after_the_credential(env, bad):
+    """A line that is not an association is refused even under a valid MAC (re-sealed here with
+    the store's own data key), and only once the credential has opened the store: the lines are
+    indexed while scrypt runs, yet a wrong passphrase is still the error a user sees first."""
+    from hcdf_trust.macsec.backends import WrongCredentialError
+    from hcdf_trust.macsec.store import _STORE_MAC, KeyStoreFormatError
+
+    _doc, store, run = env
+    assert run("generate", "--now", T0).exit_code == 0
+    ks = _open(store)
+    path = store / STORE_NAME
+    raw = path.read_bytes()
+    body = b"{" + raw[raw.index(b",") + 1 :]  # without its "mac"
+    head, _, lines = body.partition(b"\n")
+    if bad.startswith(b'["link:n/plain"'):  # the same CA twice
+        lines += bad.replace(b"{}", b'{"generations":[]}') + b"\n"
+    else:
+        lines += bad + b"\n"
+    path.write_bytes(ks.seal(head + b"\n" + lines, label=_STORE_MAC))
+    with pytest.raises(KeyStoreFormatError, match="not an association"):
+        _open(store)
+    with pytest.raises(WrongCredentialError):
+        KeyStore.open(store, PassphraseWrapper(b"wrong"))
