@@ -80,3 +80,21 @@ def generate(cli: Any, tmp: Path, doc: Path, passphrase: bytes) -> list[Any]:
     r = cli("macsec", "generate", doc, *base)
     assert r.exit_code == 0, r.stderr
     return base
+
+
+# ``python -c KILLER WHEN NAME ARGS...``: the CLI with ARGS, killed (SIGKILL) just "before" or
+# "after" it renames a file named NAME into place (an interrupted write).
+KILLER = """
+import os, signal, sys
+when, name = sys.argv[1], sys.argv[2]
+real = os.replace
+def replace(src, dst):
+    if when == "before" and str(dst).endswith(name):
+        os.kill(os.getpid(), signal.SIGKILL)
+    real(src, dst)
+    if when == "after" and str(dst).endswith(name):
+        os.kill(os.getpid(), signal.SIGKILL)
+os.replace = replace
+from hcdf_trust.cli import main
+main(sys.argv[3:], prog_name="hcdf-trust")
+"""

@@ -26,7 +26,7 @@ from hcdf_trust.macsec import index
 from hcdf_trust.macsec.backends import PassphraseWrapper
 from hcdf_trust.macsec.store import INDEX_NAME, STORE_NAME, KeyStore
 
-from ._macsec import comp, hcdf, humanoid, link, lock, port, tree
+from ._macsec import KILLER, comp, hcdf, humanoid, link, lock, port, tree
 
 PROJECT = Path(__file__).resolve().parents[1]
 PASS = b"export index passphrase"
@@ -664,20 +664,6 @@ def test_index_is_0600_and_holds_no_key_material(env):
 
 # --- 17. an interrupted generate --------------------------------------------------------------
 
-KILLER = """
-import os, signal, sys
-real = os.replace
-def replace(src, dst):
-    if sys.argv[1] == "before" and str(dst).endswith("macsec-export-index.json"):
-        os.kill(os.getpid(), signal.SIGKILL)
-    real(src, dst)
-    if sys.argv[1] == "after" and str(dst).endswith("macsec-export-index.json"):
-        os.kill(os.getpid(), signal.SIGKILL)
-os.replace = replace
-from hcdf_trust.cli import main
-main(sys.argv[2:], prog_name="hcdf-trust")
-"""
-
 
 @pytest.mark.parametrize("when", ["before", "after"])
 def test_killed_generate_leaves_store_and_index_each_before_or_after(env, when):
@@ -687,7 +673,8 @@ def test_killed_generate_leaves_store_and_index_each_before_or_after(env, when):
     env.doc.write_text(_with_spare())
     lock(env.doc)
     args = ["macsec", "generate", str(env.doc), *map(str, env.base()), "--now", T0]
-    proc = subprocess.run([sys.executable, "-c", KILLER, when, *args], cwd=PROJECT, capture_output=True, timeout=60)
+    cmd = [sys.executable, "-c", KILLER, when, INDEX_NAME, *args]
+    proc = subprocess.run(cmd, cwd=PROJECT, capture_output=True, timeout=60)
     assert proc.returncode == -9, proc.stderr
     ks = KeyStore.open(env.store, PassphraseWrapper(PASS))  # opens: never half-written
     assert "link:base/spare_link" in ks.entries and store.read_bytes() != old_store  # the store is renamed first
@@ -701,9 +688,6 @@ def test_killed_generate_leaves_store_and_index_each_before_or_after(env, when):
     assert _path(env.export("spare")[0]) == "index"
 
 
-STORE_KILLER = KILLER.replace("macsec-export-index.json", STORE_NAME)
-
-
 def test_killed_retire_leaves_no_copy_of_the_retired_generation(env):
     """A retire killed once the store is renamed leaves OutputPlan's link to the store it replaced;
     the next locked run removes it: the retired generation's ciphertext is nowhere in the folder."""
@@ -712,7 +696,7 @@ def test_killed_retire_leaves_no_copy_of_the_retired_generation(env):
     line = next(x for x in KeyStore.file_in(env.store).read_text().splitlines() if "left_arm_arm-links" in x)
     retired = json.loads(line)[1]["generations"][0]["ciphertext"].encode()
     args = ["macsec", "retire", *map(str, env.base()), "--now", "2026-01-02T00:00:00Z"]
-    proc = subprocess.run([sys.executable, "-c", STORE_KILLER, "after", *args], cwd=PROJECT, capture_output=True)
+    proc = subprocess.run([sys.executable, "-c", KILLER, "after", STORE_NAME, *args], cwd=PROJECT, capture_output=True)
     assert proc.returncode == -9, proc.stderr
     assert retired not in KeyStore.file_in(env.store).read_bytes()
     env.generate()

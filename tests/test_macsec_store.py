@@ -15,7 +15,7 @@ import pytest
 from hcdf_trust.macsec.backends import PassphraseWrapper, WrongCredentialError
 from hcdf_trust.macsec.store import INDEX_NAME, STORE_NAME, Entries, KeyStore, KeyStoreIntegrityError
 
-from ._macsec import comp, hcdf, link, port, store_lines, tree, write_store_lines
+from ._macsec import KILLER, comp, hcdf, link, port, store_lines, tree, write_store_lines
 
 PROJECT = Path(__file__).resolve().parents[1]
 T0 = "2026-01-01T00:00:00Z"
@@ -351,20 +351,6 @@ def test_status_missing_and_orphaned(env, tmp_path):
 
 # --- interrupted writes ------------------------------------------------------------------
 
-KILLER = """
-import os, signal, sys
-real = os.replace
-def replace(src, dst):
-    if sys.argv[1] == "before" and str(dst).endswith("macsec-keys.json"):
-        os.kill(os.getpid(), signal.SIGKILL)
-    real(src, dst)
-    if sys.argv[1] == "after" and str(dst).endswith("macsec-keys.json"):
-        os.kill(os.getpid(), signal.SIGKILL)
-os.replace = replace
-from hcdf_trust.cli import main
-main(sys.argv[2:], prog_name="hcdf-trust")
-"""
-
 
 @pytest.mark.parametrize("when", ["before", "after"])
 def test_killed_rotation_leaves_the_store_before_or_after(env, tmp_path, when):
@@ -372,9 +358,8 @@ def test_killed_rotation_leaves_the_store_before_or_after(env, tmp_path, when):
     assert run("generate", "--now", T0).exit_code == 0
     before = (store / STORE_NAME).read_bytes()
     args = ["macsec", "rotate", str(doc), "--store", str(store), "--passphrase-file", str(tmp_path / "pass")]
-    proc = subprocess.run(
-        [sys.executable, "-c", KILLER, when, *args, "--now", T0], cwd=PROJECT, capture_output=True, timeout=60
-    )
+    cmd = [sys.executable, "-c", KILLER, when, STORE_NAME, *args, "--now", T0]
+    proc = subprocess.run(cmd, cwd=PROJECT, capture_output=True, timeout=60)
     assert proc.returncode == -9, proc.stderr
     after = (store / STORE_NAME).read_bytes()
     ks = _open(store)  # opens and verifies either way: never in between
@@ -394,7 +379,8 @@ def test_killed_generate_and_retire_leave_the_store_before_or_after(env, tmp_pat
     pp = str(tmp_path / "pass")
 
     def killed(*args: str) -> None:
-        cmd = [sys.executable, "-c", KILLER, when, "macsec", *args, "--store", str(store), "--passphrase-file", pp]
+        store_flags = ["--store", str(store), "--passphrase-file", pp]
+        cmd = [sys.executable, "-c", KILLER, when, STORE_NAME, "macsec", *args, *store_flags]
         proc = subprocess.run(cmd, cwd=PROJECT, capture_output=True, timeout=60)
         assert proc.returncode == -9, proc.stderr
 
