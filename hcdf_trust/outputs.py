@@ -281,12 +281,17 @@ def protect_inputs(
             kind = art.kind._value_  # Enum's .value is a Python-level descriptor
             what = names.get(kind)
             if what is None:
-                what = names[kind] = "an included document" if kind == "include" else f"a verified {kind} file"
+                what = names[kind] = artifact_role(kind)
             plan.protect(art.location.path, what=what, inode=art.inode)
     if options is not None and options.ca_bundle:
         plan.protect(options.ca_bundle, what="the CA bundle")
     cache = options.cache_dir if options is not None else None
     plan.protect_tree(cache or default_cache_dir(), what="the cache")
+
+
+def artifact_role(kind: str) -> str:
+    """What an output that would replace a verified file of ``kind`` is told it is."""
+    return "an included document" if kind == "include" else f"a verified {kind} file"
 
 
 def _destination(text: str, *, flag: str) -> Path:

@@ -185,11 +185,12 @@ class Candidate:
 
     def protect(self, out: Any) -> None:
         """Protect what a resolve of this tree would (see :func:`hcdf_trust.outputs.protect_inputs`)."""
+        from ..outputs import artifact_role
         from ..store import default_cache_dir
 
         out.protect(self.head["document"], what="the root document")
         for kind, path, _root, _sha in self.head["files"]:
-            out.protect(path, what="an included document" if kind == "include" else f"a verified {kind} file")
+            out.protect(path, what=artifact_role(kind))
         out.protect_tree(default_cache_dir(), what="the cache")
         out.protect(self.head["lock"], what="the lock file")
 
@@ -252,10 +253,7 @@ def candidate(doc: str, store_dir: str, device: str) -> Candidate | None:
         if link_stub_target(given, data) is not None or hash_bytes(data).sha256 != head.get("document_sha256"):
             return None
         lock = lockfile.default_path(given)
-        if head.get("lock") != str(lock):
-            return None
-        raw_lock = read_input(lock, limit=lockfile.MAX_LOCK_BYTES, what="lock file")  # as lockfile.load reads it
-        if hashlib.sha256(raw_lock).hexdigest() != head.get("lock_sha256"):
+        if head.get("lock") != str(lock) or lockfile.load(lock).sha256 != head.get("lock_sha256"):
             return None
         cas = _device_associations(raw, device)
     except Exception:  # noqa: BLE001 -- any index this code cannot use is planned around, not reported
