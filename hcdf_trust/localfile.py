@@ -13,10 +13,12 @@ import contextlib
 import functools
 import hashlib
 import os
+import re
 import stat
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from .digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
 from .errors import InputError, NotFoundError, PathEscapeError, display_path
@@ -309,3 +311,134 @@ def absolute(path: str | os.PathLike[str]) -> str:
     last = len(parts) - parts[::-1].index("..")
     head = os.path.realpath(os.sep.join(parts[:last]) or os.sep)
     return os.path.normpath(os.path.join(head, *parts[last:]))
+
+
+# --- the one strict JSON reader ------------------------------------------------------
+
+#: Deepest nesting of objects and lists any JSON we read may have (ours are 5 deep at most).
+MAX_JSON_DEPTH = 64
+_SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")  # the only way a lone surrogate gets into a str
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+class JsonError(InputError):
+    """Bytes that are not one unambiguous JSON document: every JSON reader refuses them alike."""
+
+    code = "malformed-json"
+
+
+class _Duplicated(dict):  # type: ignore[type-arg]
+    """An object that held a key twice (``key``): named with its JSON Pointer after parsing."""
+
+    key: str
+
+
+def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, floats: bool = True) -> Any:
+    """``data`` as JSON, read so that every reader sees the same values as every other parser.
+
+    Python's ``json`` keeps the last of two equal keys where other parsers keep the first
+    (``"url"`` twice: one party checks one URL, another fetches the other), and accepts
+    ``NaN``/``Infinity``, lone surrogates (``"\\ud800"``, which no UTF-8 encoder writes),
+    UTF-16 input and nesting deep enough to exhaust the stack. All are refused here, with
+    a JSON Pointer or line naming where; ``floats=False`` refuses non-integer numbers too.
+
+    Raises:
+        JsonError: over ``limit`` bytes, not UTF-8, not JSON, or any ambiguity above.
+    """
+    import json
+
+    if len(data) > limit:
+        raise JsonError(f"{what} is over the {limit}-byte limit", file=source)
+    try:
+        text = data.decode("utf-8")  # never json's UTF-16/32 guess
+    except UnicodeDecodeError as exc:
+        raise JsonError(f"{what} is not UTF-8: {exc.reason} at byte {exc.start}", file=source) from None
+
+    def bad_float(token: str) -> float:
+        value = float(token)
+        if not floats:
+            raise JsonError(f"{what}: number {token[:40]} is not an integer", file=source)
+        if value in (float("inf"), float("-inf")):
+            raise JsonError(f"{what}: number {token[:40]} is out of range", file=source)
+        return value
+
+    def bad_constant(token: str) -> None:
+        raise JsonError(f"{what}: {token} is not a JSON number", file=source)
+
+    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
+        out = dict(items)
+        if len(out) == len(items):
+            return out
+        seen: set[str] = set()
+        marked = _Duplicated(items)
+        marked.key = next(k for k, _ in items if k in seen or seen.add(k))  # type: ignore[func-returns-value]
+        return marked
+
+    try:
+        doc = json.loads(text, parse_float=bad_float, parse_constant=bad_constant, object_pairs_hook=pairs)
+    except json.JSONDecodeError as exc:
+        raise JsonError(f"{what} is not JSON: {exc.msg} (column {exc.colno})", file=source, line=exc.lineno) from None
+    except RecursionError:
+        raise JsonError(
+            f"{what} is nested too deeply", file=source, expected=f"at most {MAX_JSON_DEPTH} levels"
+        ) from None
+    except ValueError as exc:  # an integer of more than 4300 digits
+        raise JsonError(f"{what} is not JSON: {exc}", file=source) from None
+    _check_tree(doc, what=what, source=source, strings=_SURROGATE_ESCAPE.search(text) is not None)
+    return doc
+
+
+def _check_tree(doc: Any, *, what: str, source: str, strings: bool) -> None:
+    """Depth, duplicate keys and (when ``strings``) lone surrogates, named by JSON Pointer."""
+
+    def pointer(path: tuple[Any, ...] | None) -> str:
+        parts: list[str] = []
+        while path is not None:
+            key, path = path
+            parts.append(str(key).replace("~", "~0").replace("/", "~1"))
+        return "/" + "/".join(reversed(parts)) if parts else "(the document)"
+
+    if not isinstance(doc, (dict, list)):
+        if strings and isinstance(doc, str) and _SURROGATE.search(doc):
+            raise JsonError(f"{what}: the string holds a lone surrogate", file=source)
+        return
+    stack: list[tuple[Any, int, tuple[Any, ...] | None]] = [(doc, 1, None)]
+    while stack:
+        node, depth, path = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            raise JsonError(
+                f"{what} is nested too deeply at {pointer(path)}",
+                file=source,
+                expected=f"at most {MAX_JSON_DEPTH} levels",
+            )
+        items: Any
+        if isinstance(node, dict):
+            if type(node) is _Duplicated:
+                raise JsonError(
+                    f"{what}: key {node.key!r} appears twice in the object at {pointer(path)} "
+                    "(parsers disagree on which one counts)",
+                    file=source,
+                )
+            items = node.items()
+        else:
+            items = enumerate(node)
+        for key, value in items:
+            if strings and isinstance(key, str) and _SURROGATE.search(key):
+                raise JsonError(f"{what}: a key at {pointer(path)} holds a lone surrogate", file=source)
+            if isinstance(value, (dict, list)):
+                stack.append((value, depth + 1, (key, path)))
+            elif strings and isinstance(value, str) and _SURROGATE.search(value):
+                raise JsonError(f"{what}: the string at {pointer((key, path))} holds a lone surrogate", file=source)
+
+
+def read_json(
+    path: Path | str, *, limit: int, what: str = "JSON file", source: str | None = None, floats: bool = True
+) -> Any:
+    """:func:`read_input` then :func:`parse_json`: a local JSON file, bounded and strict.
+
+    Raises:
+        NotFoundError, InputError (see :func:`read_input`), JsonError.
+    """
+    name = source or str(path)
+    data = read_input(path, limit=limit, what=what, source=name)
+    return parse_json(data, source=name, what=what, limit=limit, floats=floats)

@@ -6,7 +6,6 @@ constants) followed by lockfile._check, the path every other form of lock takes.
 
 from __future__ import annotations
 
-import json
 import os
 
 import pytest
@@ -16,6 +15,7 @@ from hypothesis import strategies as st
 from hcdf_trust.errors import LockFileError
 from hcdf_trust.include import lockfile
 from hcdf_trust.include.lockfile import LockEntry
+from hcdf_trust.localfile import JsonError, parse_json
 
 SETTINGS = settings(
     max_examples=int(os.environ.get("HCDF_FUZZ_EXAMPLES", "100")),
@@ -29,17 +29,12 @@ SHA = "0123456789abcdef" * 4
 def _general(text: str, name: str) -> lockfile.Lock | str:
     """What json + _check make of ``text``: the lock, or the error's message."""
     try:
-        doc = json.loads(
-            text,
-            parse_float=lockfile._no_float,
-            parse_constant=lockfile._no_constant,
-            object_pairs_hook=lockfile._no_duplicates,
-        )
+        doc = parse_json(text.encode(), source=name, limit=lockfile.MAX_LOCK_BYTES, floats=False)
         return lockfile._check(doc, name)
     except LockFileError as exc:
         return exc.message
-    except (ValueError, RecursionError) as exc:
-        return f"not JSON: {type(exc).__name__}"
+    except JsonError as exc:
+        return f"not JSON: {exc.message}"
 
 
 def _loaded(path, text: str) -> lockfile.Lock | str:

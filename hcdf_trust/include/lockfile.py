@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
 
 from ..errors import InputError, LockDriftError, LockFileError, NotFoundError, display_path
-from ..localfile import read_input
+from ..localfile import JsonError, parse_json, read_input
 
 LOCK_VERSION = 2
 SUFFIX = ".lock"
@@ -145,19 +145,15 @@ def load(path: str | os.PathLike[str]) -> Lock:
         raise LockFileError(f"cannot read lock file: {exc.message}", file=name) from None
     digest = hashlib.sha256(raw).hexdigest()
     try:
-        text = raw.decode()
-        lock = _canonical(text, raw)
-        if lock is not None:
-            return dataclasses.replace(lock, sha256=digest)
-        doc = json.loads(text, parse_float=_no_float, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
-    except RecursionError:
-        _bad(name, "nested too deeply")
-    except _Malformed as exc:
-        _bad(name, str(exc))
+        lock = _canonical(raw.decode(), raw)
     except UnicodeDecodeError as exc:
         _bad(name, f"not UTF-8: {exc.reason} at byte {exc.start}")
-    except ValueError as exc:  # JSONDecodeError, an integer too large to convert
-        _bad(name, f"not JSON: {exc}")
+    if lock is not None:
+        return dataclasses.replace(lock, sha256=digest)
+    try:  # any other form: the one strict reader (duplicate keys, NaN, surrogates, depth), integers only
+        doc = parse_json(raw, source=name, what="lock file", limit=MAX_LOCK_BYTES, floats=False)
+    except JsonError as exc:
+        _bad(name, exc.message.removeprefix("lock file: ").removeprefix("lock file "))
     return dataclasses.replace(_check(doc, name), sha256=digest)
 
 
@@ -280,27 +276,6 @@ def _is_names(refs: object) -> bool:
     except TypeError:
         return False
     return True
-
-
-class _Malformed(ValueError):
-    pass
-
-
-def _no_float(text: str) -> NoReturn:
-    raise _Malformed(f"number {text[:40]} is not an integer")
-
-
-def _no_constant(text: str) -> NoReturn:
-    raise _Malformed(f"{text} is not a number")
-
-
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out = dict(pairs)
-    if len(out) != len(pairs):
-        seen: set[str] = set()
-        dup = next(k for k, _ in pairs if k in seen or seen.add(k))  # type: ignore[func-returns-value]
-        raise _Malformed(f"key {dup!r} appears twice in one object")
-    return out
 
 
 def _type(value: object) -> str:

@@ -43,7 +43,7 @@ from typing import Any
 
 from ..digest import hash_bytes
 from ..errors import HcdfTrustError
-from ..localfile import absolute, hash_local, open_local, read_bounded, read_input
+from ..localfile import absolute, hash_local, open_local, parse_json, read_bounded, read_input
 from .plan import Association, Element, Member, Plan, Policy
 from .store import INDEX_NAME, KeyStore, line_encoder
 
@@ -220,7 +220,7 @@ def _device_associations(raw: bytes, device: str) -> dict[str, Association] | No
     while at >= 0:
         start = raw.rindex(b"\n", 0, at) + 1
         end = raw.index(b"\n", at)
-        ca = _association(json.loads(raw[start:end]))
+        ca = _association(parse_json(raw[start:end], source="export index", limit=MAX_INDEX_BYTES))
         if device in ca.members:
             cas[ca.id] = ca
         at = raw.find(needle, end)
@@ -238,7 +238,7 @@ def candidate(doc: str, store_dir: str, device: str) -> Candidate | None:
 
     try:
         raw = read_input(path_in(store_dir), limit=MAX_INDEX_BYTES, what="export index")
-        head = json.loads(raw[: raw.index(b"\n")])
+        head = parse_json(raw[: raw.index(b"\n")], source="export index", limit=MAX_INDEX_BYTES)
         if (
             not isinstance(head, dict)
             or head.get("format") != INDEX_FORMAT

@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError, IntegrityError
-from ..localfile import read_input
+from ..localfile import JsonError, parse_json, read_input
 from ..outputs import OutputPlan
 from .backends import KeyStoreFormatError, Wrapper, b64, unb64
 
@@ -319,8 +319,8 @@ class KeyStore:
         raw = read_input(path, limit=MAX_STORE_BYTES, what="key store")
         header, _, lines = raw.partition(b"\n")
         try:
-            doc = json.loads(header)
-        except (ValueError, RecursionError):
+            doc = parse_json(header, source=source, what="key store header", limit=MAX_STORE_BYTES)
+        except JsonError:
             raise KeyStoreFormatError("the key store does not start with a JSON header", file=source) from None
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise KeyStoreFormatError("not an hcdf-trust MACsec key store", file=source, expected=FORMAT)
@@ -531,8 +531,8 @@ def _index(lines: bytes, *, source: str) -> dict[str, str]:
 def _line(ca_id: str, line: str, source: str) -> Any:
     """The association object of one ``[CA_ID, {...}]`` line."""
     try:
-        item = json.loads(line)
-    except (ValueError, RecursionError):
+        item = parse_json(line.encode(), source=source, limit=MAX_STORE_BYTES)
+    except JsonError:
         item = None
     if not isinstance(item, list) or len(item) != 2 or item[0] != ca_id:
         raise KeyStoreFormatError(f"association {ca_id!r} is malformed", file=source)

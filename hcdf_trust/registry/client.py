@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, unquote, urlsplit
 
 from ..errors import HcdfTrustError, InputError, NotFoundError
-from ..localfile import open_checked, read_chunks, read_input
+from ..localfile import JsonError, open_checked, parse_json, read_chunks, read_input
 from .errors import AttackError, TransportError
 from .source import domain_pattern, is_version
 
@@ -36,10 +36,57 @@ if TYPE_CHECKING:
 ROOT_LIMIT = 512_000
 
 
+def check_metadata(data: bytes, what: str) -> None:
+    """Refuse metadata that parsers could read differently: python-tuf's ``json.loads`` keeps
+    the last of two ``"signed"`` keys, another client the first (see :func:`.localfile.parse_json`).
+
+    Raises:
+        AttackError: duplicate keys, NaN, lone surrogates, too deep, not UTF-8 or not JSON.
+    """
+    try:
+        parse_json(data, source=what, what=what, limit=max(len(data), 1))
+    except JsonError as exc:
+        raise AttackError(f"ambiguous or malformed metadata: {exc.message}", file=what, line=exc.line) from None
+
+
+def _strict(base: type) -> type:
+    """``base`` (a ``FetcherInterface``) whose metadata downloads pass :func:`check_metadata`.
+
+    ngclient fetches metadata with ``download_bytes`` (capped at the role's maximum length)
+    and targets with ``download_file``, so only metadata is parsed here.
+    """
+
+    class Strict(base):  # type: ignore[misc]
+        def download_bytes(self, url: str, max_length: int) -> bytes:
+            data: bytes = super().download_bytes(url, max_length)
+            check_metadata(data, unquote(urlsplit(url).path.rsplit("/", 1)[-1]))
+            return data
+
+    return Strict
+
+
+def _strict_updater() -> type:
+    """python-tuf's ``Updater`` reading its cached metadata through :func:`check_metadata`:
+    a cached file that fails it counts as absent, as ngclient treats any invalid cache file."""
+    from tuf.api.exceptions import RepositoryError
+    from tuf.ngclient import Updater
+
+    class StrictUpdater(Updater):
+        def _load_local_metadata(self, rolename: str) -> bytes:
+            data: bytes = super()._load_local_metadata(rolename)
+            try:
+                check_metadata(data, f"cached {rolename}.json")
+            except AttackError as exc:
+                raise RepositoryError(exc.message) from None
+            return data
+
+    return StrictUpdater
+
+
 def _fetcher_base() -> type:
     from tuf.ngclient import FetcherInterface
 
-    return FetcherInterface
+    return _strict(FetcherInterface)
 
 
 def make_directory_fetcher(root: Path) -> Any:
@@ -136,8 +183,12 @@ class RegistryClient:
     """
 
     def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
-        from tuf.ngclient import Updater, Urllib3Fetcher
+        from tuf.ngclient import Urllib3Fetcher
 
+        try:
+            parse_json(trusted_root, source="the trusted root", what="the trusted root", limit=ROOT_LIMIT)
+        except JsonError as exc:
+            raise InputError(f"the trusted root is not valid TUF root metadata: {exc.message}") from None
         self.site = site
         local = "://" not in site
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(site, trusted_root)
@@ -154,9 +205,9 @@ class RegistryClient:
             scheme = urlsplit(site).scheme
             if scheme not in ("http", "https"):
                 raise InputError(f"{site}: a registry is an http(s) URL or a folder", file=site)
-            base, fetcher = site.rstrip("/"), Urllib3Fetcher(socket_timeout=timeout)  # type: ignore[arg-type]
+            base, fetcher = site.rstrip("/"), _strict(Urllib3Fetcher)(socket_timeout=timeout)
         try:
-            self.updater: Updater = Updater(
+            self.updater: Updater = _strict_updater()(
                 str(self.metadata_dir),
                 f"{base}/metadata/",
                 str(self.cache_dir / "targets"),
@@ -186,9 +237,11 @@ class RegistryClient:
             if role in ("root", "timestamp", "snapshot") or not path.is_file():
                 continue
             try:
-                out[role] = read_input(path, limit=8 << 20, what="cached metadata")
-            except InputError:
-                continue
+                data = read_input(path, limit=8 << 20, what="cached metadata")
+                check_metadata(data, path.name)
+            except (InputError, AttackError):
+                continue  # ngclient will not trust it either (see _strict_updater)
+            out[role] = data
         return out
 
     def refresh(self) -> None:

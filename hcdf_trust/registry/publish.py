@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import DigestMismatchError, InputError
-from ..localfile import open_checked, read_bounded, read_input
+from ..localfile import open_checked, parse_json, read_bounded, read_input
 from ..outputs import OutputPlan
 from . import keys as keymod
 from .errors import RefusedError
@@ -166,6 +166,7 @@ def _load_md(path: Path) -> Any:
     from tuf.api.metadata import Metadata
 
     data = read_input(path, limit=METADATA_LIMIT, what="site metadata")
+    parse_json(data, source=str(path), what="site metadata", limit=METADATA_LIMIT)  # strict: what clients check
     try:
         return Metadata.from_bytes(data)
     except Exception as exc:  # tuf raises DeserializationError, ValueError, KeyError, TypeError

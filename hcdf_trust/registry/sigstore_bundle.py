@@ -15,7 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ..localfile import read_input
+from ..localfile import JsonError, parse_json, read_input
 from .errors import RefusedError
 
 BUNDLE_LIMIT = 1 << 20
@@ -44,6 +44,11 @@ def verify_bundle(
     except ImportError:
         raise InputError("sigstore bundles need the optional extra: pip install 'hcdf-trust[sigstore]'") from None
     raw_root = read_input(trusted_root, limit=TRUSTED_ROOT_LIMIT, what="sigstore trusted root")
+    parse_json(raw_root, source=trusted_root, what="sigstore trusted root", limit=TRUSTED_ROOT_LIMIT)
+    try:
+        parse_json(bundle, source=source, what=f"{what}: sigstore bundle", limit=BUNDLE_LIMIT)
+    except JsonError as exc:  # pydantic keeps the last of two equal keys: refused like any ambiguous JSON
+        raise RefusedError(exc.message, file=source, line=exc.line) from None
     try:
         root = TrustedRoot(trustroot_v1.TrustedRoot.from_json(raw_root))
     except Exception as exc:  # pydantic ValidationError, sigstore Error, ValueError
