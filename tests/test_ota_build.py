@@ -102,6 +102,8 @@ def test_json_stdout_is_clean_of_imgtool_prints(robot, tmp_path):
 def test_corpus_latest_json_is_our_previous_and_history_is_kept(robot, cli, tmp_path):
     out = tmp_path / "rel"
     r = robot.build(cli, out, "--previous", RELEASES)
+    assert r.exit_code == 3 and "--import-unsigned-history" in r.stderr and not out.exists()
+    r = robot.build(cli, out, "--previous", RELEASES, "--import-unsigned-history")
     assert r.exit_code == 0, r.stderr
     for app in ("flex-io", "rtk-gnss"):
         before = json.loads((RELEASES / "mr_mcxn_t1" / app / "latest.json").read_text())
@@ -112,7 +114,9 @@ def test_corpus_latest_json_is_our_previous_and_history_is_kept(robot, cli, tmp_
     # a second release on top keeps both earlier entries, newest first
     out2 = tmp_path / "rel2"
     robot.rewrite(cli, flex_version="0.3.0")
-    assert robot.build(cli, out2, "--previous", out).exit_code == 0
+    r = robot.build(cli, out2, "--previous", out)  # 0.1.0 came from the unsigned folder: still unsigned
+    assert r.exit_code == 1 and "previous[0] (0.1.0) is not a release this key signed" in r.stderr
+    assert robot.build(cli, out2, "--previous", out, "--import-unsigned-history").exit_code == 0
     after = json.loads((out2 / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
     assert [e["version"] for e in after["previous"]] == ["0.2.0", "0.1.0"]
     manifest = json.loads((out2 / "release.suit.json").read_text())
@@ -285,23 +289,54 @@ def test_intel_hex_input(robot, cli, tmp_path):
 
 def test_previous_release_over_https(robot, cli, tmp_path, serve, tls):
     first = tmp_path / "rel"
-    assert robot.build(cli, first, "--previous", RELEASES).exit_code == 0
+    assert robot.build(cli, first, "--previous", RELEASES, "--import-unsigned-history").exit_code == 0
     server = serve("good", root=first)
     robot.rewrite(cli, flex_version="0.3.0")
     out = tmp_path / "rel2"
     url = server.url("/")
-    r = robot.build(cli, out, "--previous", url, "--ca-bundle", tls.ca_pem, "--json")
+    r = robot.build(cli, out, "--previous", url, "--ca-bundle", tls.ca_pem, "--json", "--import-unsigned-history")
     assert r.exit_code == 0, r.stderr
     assert r.json["sequence_number"] == 2
     after = json.loads((out / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
     assert [e["version"] for e in after["previous"]] == ["0.2.0", "0.1.0"]
-    r = cli("ota", "verify", out, "--key", robot.pub, "--previous", url, "--ca-bundle", tls.ca_pem)
+    r = cli(
+        "ota",
+        "verify",
+        out,
+        "--key",
+        robot.pub,
+        "--previous",
+        url,
+        "--ca-bundle",
+        tls.ca_pem,
+        "--import-unsigned-history",
+    )
     assert r.exit_code == 0, r.stderr
-    r = cli("ota", "verify", first, "--key", robot.pub, "--previous", url, "--ca-bundle", tls.ca_pem)
+    r = cli(
+        "ota",
+        "verify",
+        first,
+        "--key",
+        robot.pub,
+        "--previous",
+        url,
+        "--ca-bundle",
+        tls.ca_pem,
+        "--import-unsigned-history",
+    )
     assert r.exit_code == 1 and "sequence-number is not greater" in r.stderr
     # the fleet's own unsigned folder served over https is a previous too (no release.suit: HTTP 404)
     corpus = serve("good", root=RELEASES)
-    r = robot.build(cli, tmp_path / "rel3", "--previous", corpus.url("/"), "--ca-bundle", tls.ca_pem, "--json")
+    r = robot.build(
+        cli,
+        tmp_path / "rel3",
+        "--previous",
+        corpus.url("/"),
+        "--ca-bundle",
+        tls.ca_pem,
+        "--json",
+        "--import-unsigned-history",
+    )
     assert r.exit_code == 0, r.stderr
     assert r.json["sequence_number"] == 1
     # an untrusted server is an input error, nothing written
@@ -311,9 +346,11 @@ def test_previous_release_over_https(robot, cli, tmp_path, serve, tls):
 
 def test_building_into_a_release_folder_keeps_its_history(robot, cli, tmp_path):
     out = tmp_path / "rel"
-    assert robot.build(cli, out, "--previous", RELEASES).exit_code == 0
+    assert robot.build(cli, out, "--previous", RELEASES, "--import-unsigned-history").exit_code == 0
     robot.rewrite(cli, flex_version="0.3.0")
-    r = robot.build(cli, out, "--json")  # no --previous: the folder's own release is the previous one
+    r = robot.build(
+        cli, out, "--json", "--import-unsigned-history"
+    )  # no --previous: the folder's own release is the previous one
     assert r.exit_code == 0, r.stderr
     assert r.json["sequence_number"] == 2
     assert any(w["code"] == "previous" for w in r.json["warnings"])
@@ -469,7 +506,7 @@ def test_a_previous_latest_json_of_another_device_is_refused(robot, cli, tmp_pat
     doc = json.loads((prev / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
     doc["app"] = "optical-flow"
     (prev / "mr_mcxn_t1" / "flex-io" / "latest.json").write_text(json.dumps(doc))
-    r = robot.build(cli, tmp_path / "rel", "--previous", prev)
+    r = robot.build(cli, tmp_path / "rel", "--previous", prev, "--import-unsigned-history")
     assert r.exit_code == 3 and "the previous latest.json is for mr_mcxn_t1/optical-flow" in r.stderr
 
 

@@ -70,9 +70,17 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
 )
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write.")
-@click.option("--base-url", help="URL prefix of the release folder, for latest.json and the manifest.")
+@click.option(
+    "--base-url", help="https:// URL prefix of the release folder, for latest.json and the manifest (no credentials)."
+)
+@click.option("--allow-http", is_flag=True, help="Allow a plain http:// --base-url (or ota.toml base_url).")
 @click.option(
     "--previous", help="The previous release (folder or https URL): history, sequence number, security counters."
+)
+@click.option(
+    "--import-unsigned-history",
+    is_flag=True,
+    help="Accept a --previous without a signed manifest; its latest.json history is taken on your word.",
 )
 @click.option(
     "--ca-bundle",
@@ -105,7 +113,9 @@ def build(
     pin_file: str | None,
     out_dir: str,
     base_url: str | None,
+    allow_http: bool,
     previous: str | None,
+    import_unsigned_history: bool,
     ca_bundle: str | None,
     config: str | None,
     changelog: str | None,
@@ -142,6 +152,8 @@ def build(
                 ca_bundle=ca_bundle,
                 online=online,
                 cache_dir=cache_dir,
+                allow_http=allow_http,
+                import_unsigned_history=import_unsigned_history,
             ),
         )
     finally:
@@ -178,7 +190,14 @@ def build(
 @click.argument("release_dir", type=click.Path(file_okay=False))
 @click.option("--key", "key", required=True, type=click.Path(dir_okay=False), help="Public key (PEM).")
 @click.option(
-    "--previous", help="The previous release (folder or https URL): sequence number and counters must not go back."
+    "--previous",
+    help="The previous release (folder or https URL): sequence number and counters must not go back; "
+    "its signed history vouches for previous[] entries.",
+)
+@click.option(
+    "--import-unsigned-history",
+    is_flag=True,
+    help="Accept a --previous without a signed manifest; its latest.json entries are taken on your word.",
 )
 @click.option(
     "--ca-bundle",
@@ -188,17 +207,26 @@ def build(
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
-def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str | None, as_json: bool) -> None:
+def verify_cmd(
+    release_dir: str,
+    key: str,
+    previous: str | None,
+    import_unsigned_history: bool,
+    ca_bundle: str | None,
+    as_json: bool,
+) -> None:
     """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
     from ..ota.keys import load_public
-    from ..ota.release import previous_manifest, read_release
+    from ..ota.release import read_release
     from ..ota.verify import check_release
     from . import fail
 
     public = load_public(key)
-    release, files = read_release(release_dir, public)
-    before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
-    errors = check_release(release, files, public, previous=before)
+    release, files = read_release(
+        release_dir, public, previous=previous, ca_bundle=ca_bundle, import_unsigned=import_unsigned_history
+    )
+    before = files.previous
+    errors = check_release(release, files, public)
     payload = {
         "sequence_number": release.sequence_number,
         "lock_sha256": release.lock_sha256,

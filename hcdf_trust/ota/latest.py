@@ -16,6 +16,7 @@ from typing import Any
 from .errors import FirmwareError, MalformedReleaseError, RollbackError
 
 _HEX64 = re.compile(r"[0-9a-f]{64}")
+MAX_BYTES = 4 << 20  # a latest.json (the fleet's have a few entries; ours one per release)
 
 
 @dataclass(frozen=True)
@@ -67,10 +68,12 @@ def parse(data: bytes, *, source: str) -> Latest:
     Raises:
         MalformedReleaseError: not JSON, a missing or mistyped field, a bad hash.
     """
+    from ..localfile import JsonError, parse_json
+
     try:
-        doc = json.loads(data)
-    except (ValueError, RecursionError) as exc:
-        raise MalformedReleaseError(f"latest.json is not JSON: {exc}", file=source) from None
+        doc = parse_json(data, source=source, what="latest.json", limit=MAX_BYTES)
+    except JsonError as exc:
+        raise MalformedReleaseError(exc.message, file=source, line=exc.line, expected=exc.expected) from None
     if not isinstance(doc, dict):
         raise MalformedReleaseError("latest.json is not an object", file=source, actual=type(doc).__name__)
     board = _field(doc, "board", str, source, "")

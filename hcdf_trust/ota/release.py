@@ -35,16 +35,18 @@ from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
 from .config import ImageSettings, OtaConfig, load_config
-from .errors import FirmwareError, FirmwareHashError, RollbackError
+from .errors import FirmwareError, FirmwareHashError, MalformedReleaseError, RollbackError
 from .hcdf_edit import HashEdit, check_unchanged, update_tree
 from .images import SignedImage, quiet, sign_image
 from .signer import ALG_NAMES, COSE_ALGS, Signer, key_id
 from .version import McubootVersion, parse_version
 
 MAX_FIRMWARE_BYTES = 256 << 20
-MAX_LATEST_BYTES = 4 << 20
+MAX_LATEST_BYTES = latest_json.MAX_BYTES
 MANIFEST_NAME = "release.suit"
 MANIFEST_JSON_NAME = "release.suit.json"
+HISTORY_NAME = "release.history"  # the earlier signed envelopes, newest first (verify.verify_history)
+MAX_HISTORY_BYTES = 64 << 20
 _SAFE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")
 
 
@@ -65,6 +67,8 @@ class BuildOptions:
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
     online: bool = False  # resolve the tree with the network (still under its lock)
     cache_dir: str | None = None
+    allow_http: bool = False  # a plain http:// base URL
+    import_unsigned_history: bool = False  # a --previous without a signed manifest (see load_previous)
 
 
 @dataclass
@@ -105,6 +109,10 @@ class PreviousRelease:
     release: suit.Release | None
     latest: dict[tuple[str, str], latest_json.Latest]
     source: str
+    envelope: bytes | None = None  # its signed release.suit
+    history: tuple[bytes, ...] = ()  # its release.history, verified: the envelopes before it
+    signed: tuple[suit.Release, ...] = ()  # its release, then its history's
+    imported: bool = False  # --import-unsigned-history: its latest.json entries taken on the user's word
 
 
 def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
@@ -160,12 +168,31 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                 "previous", f"{options.out_dir} already holds a release: using it as --previous", file=options.out_dir
             )
         )
-    previous = load_previous(source, options.signer, [(p.board, p.app) for p in todo], ca_bundle=options.ca_bundle)
+    previous = load_previous(
+        source,
+        options.signer.public,
+        [(p.board, p.app) for p in todo],
+        ca_bundle=options.ca_bundle,
+        import_unsigned=options.import_unsigned_history,
+    )
+    if previous.imported and previous.release is None:
+        notices.append(
+            Notice(
+                "unsigned-history",
+                f"{source}: no signed manifest; its latest.json history is imported on your word "
+                "(--import-unsigned-history) and the sequence number starts again",
+                file=source,
+            )
+        )
 
     # 4. the images
     built = _build_images(todo, options, config)
     errors: list[HcdfTrustError] = []
     base_url = options.base_url if options.base_url is not None else config.base_url
+    if base_url is not None:
+        check_base_url(
+            base_url, allow_http=options.allow_http, what="--base-url" if options.base_url is not None else "base_url"
+        )
     date = options.date or _now()
     outputs: list[tuple[Path, bytes]] = []
     hash_edits: list[HashEdit] = []
@@ -208,6 +235,22 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                     actual=str(image.security_counter),
                 )
             )
+        for before in previous.signed:  # a file name is a version: another content under it is refused
+            was = before.component(p.board, p.app)
+            same_latest = not is_raw and (p.board, p.app) in previous.latest  # latest_json.advance says it
+            if was is not None and was.version == version_name and not same_latest:
+                if (was.mcuboot_hash or was.sha256) != computed:
+                    errors.append(
+                        FirmwareError(
+                            f"{p.board}/{p.app} version {version_name} was already released with another image "
+                            f"(release {before.sequence_number}): bump the version",
+                            file=p.first.file,
+                            line=p.first.line,
+                            expected=was.mcuboot_hash or was.sha256,
+                            actual=computed,
+                        )
+                    )
+                    break
         rel = f"{p.board}/{p.app}/{version_name}.bin"
         url = _join(base_url, rel)
         outputs.append((Path(options.out_dir, rel), image.data))
@@ -274,6 +317,10 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     )
     env, alg, kid = sign_release(release, options.signer)
     plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
+    if previous.envelope is not None:  # the signed history that vouches for every previous[] entry
+        import cbor2
+
+        plan.add(Path(options.out_dir, HISTORY_NAME), cbor2.dumps([previous.envelope, *previous.history]), flag="--out")
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
     plan.add(
         Path(options.out_dir, MANIFEST_JSON_NAME),
@@ -454,53 +501,77 @@ def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
 
 
 def load_previous(
-    source: str | None, signer: Signer, wanted: list[tuple[str, str]], *, ca_bundle: str | None = None
+    source: str | None,
+    public_key: Any,
+    wanted: list[tuple[str, str]],
+    *,
+    ca_bundle: str | None = None,
+    import_unsigned: bool = False,
 ) -> PreviousRelease:
-    """The previous release (a folder or an https URL): its manifest, verified with our key,
-    if it has one, and each wanted image's latest.json (the fleet's own format is accepted).
+    """The previous release (a folder or an https URL): its manifest and history, verified
+    with our key, and each wanted image's latest.json, every entry of which must be a
+    release this key signed (that manifest or its history).
+
+    ``import_unsigned`` (``--import-unsigned-history``, the same meaning in build and
+    verify): a folder without a signed manifest (the fleet's own latest.json files, e.g.
+    ``firmware_releases``) is accepted, and its latest.json entries are taken on the
+    user's word. Without it such a folder is refused: nothing vouches for its history.
 
     Raises:
-        SignatureError / MalformedReleaseError: the previous manifest does not verify with our key.
+        MalformedReleaseError: no signed manifest (without ``import_unsigned``).
+        SignatureError / MalformedReleaseError: the manifest or history does not verify with our key.
+        ErrorGroup: a latest.json entry that no signed release vouches for.
         FetchError / InputError: a file that exists cannot be read or fetched.
     """
-    from .verify import verify_envelope
+    from .verify import check_history, verify_envelope, verify_history
 
     if source is None:
         return PreviousRelease(None, {}, "")
     reader = PreviousReader(source, ca_bundle=ca_bundle)
     try:
         release = None
+        history: list[tuple[bytes, suit.Release]] = []
         data = reader.read(MANIFEST_NAME, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
+        if data is None and not import_unsigned:
+            raise MalformedReleaseError(
+                "the previous release has no signed manifest, so nothing vouches for its history: "
+                "give --import-unsigned-history to import its latest.json files on your word",
+                file=reader.name(MANIFEST_NAME),
+                expected=f"{MANIFEST_NAME} signed by this key",
+                actual="none",
+            )
         if data is not None:
-            release = verify_envelope(data, signer.public, source=reader.name(MANIFEST_NAME))
+            release = verify_envelope(data, public_key, source=reader.name(MANIFEST_NAME))
+            raw = reader.read(HISTORY_NAME, limit=MAX_HISTORY_BYTES, what="release history")
+            if raw is not None:
+                history = verify_history(
+                    raw, public_key, source=reader.name(HISTORY_NAME), below=release.sequence_number
+                )
         found = {}
         for board, app in wanted:
             rel = f"{board}/{app}/latest.json"
-            data = reader.read(rel, limit=MAX_LATEST_BYTES, what="latest.json")
-            if data is not None:
-                found[(board, app)] = latest_json.parse(data, source=reader.name(rel))
+            text = reader.read(rel, limit=MAX_LATEST_BYTES, what="latest.json")
+            if text is not None:
+                found[(board, app)] = latest_json.parse(text, source=reader.name(rel))
     finally:
         reader.close()
-    return PreviousRelease(release, found, source)
-
-
-def previous_manifest(source: str, public_key: Any, *, ca_bundle: str | None = None) -> suit.Release:
-    """The verified manifest of a previous release (folder or https URL), for ``ota verify``.
-
-    Raises:
-        MalformedReleaseError: it has none. SignatureError etc.: see :func:`.verify.verify_envelope`.
-    """
-    from .errors import MalformedReleaseError
-    from .verify import verify_envelope
-
-    reader = PreviousReader(source, ca_bundle=ca_bundle)
-    try:
-        data = reader.read(MANIFEST_NAME, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
-    finally:
-        reader.close()
-    if data is None:
-        raise MalformedReleaseError("the previous release has no signed manifest", file=reader.name(MANIFEST_NAME))
-    return verify_envelope(data, public_key, source=reader.name(MANIFEST_NAME))
+    signed = (release, *(r for _, r in history)) if release is not None else ()
+    if not import_unsigned:
+        errors: list[HcdfTrustError] = []
+        for (board, app), doc in found.items():
+            entries = (("latest", doc.latest), *((f"previous[{i}]", e) for i, e in enumerate(doc.previous)))
+            errors += check_history(doc, signed, rel=reader.name(f"{board}/{app}/latest.json"), entries=entries)
+        if errors:
+            raise ErrorGroup(errors)
+    return PreviousRelease(
+        release,
+        found,
+        source,
+        envelope=data,
+        history=tuple(e for e, _ in history),
+        signed=signed,
+        imported=import_unsigned,
+    )
 
 
 class PreviousReader:
@@ -582,6 +653,38 @@ def _protect(plan: OutputPlan, res: Any, options: BuildOptions, config_path: str
         plan.protect(path, what=what)
 
 
+def check_base_url(url: str, *, allow_http: bool, what: str) -> None:
+    """The URL prefix written into the signed manifest and every latest.json: https (http
+    with ``--allow-http``, as resolve reads it), a host, no credentials, query or fragment
+    (the image path is appended to it: after a query or fragment it would name nothing).
+
+    Raises:
+        CredentialsError: ``user:password@`` (it would be published). InputError: the rest.
+    """
+    from ..errors import InputError
+    from ..include.locate import redact, refuse_credentials
+
+    refuse_credentials(url, what=what)
+    shown = redact(url)
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 -- raises ValueError for a port that is not a number in 0-65535
+    except ValueError as exc:
+        raise InputError(f"{what} {shown!r} is not a valid URL: {exc}", actual=shown) from None
+    scheme = parts.scheme.lower()
+    if scheme != "https" and not (scheme == "http" and allow_http):
+        hint = " (plain http needs --allow-http)" if scheme == "http" else ""
+        raise InputError(f"{what} {shown!r} is not an https:// URL{hint}", expected="https://host/path", actual=shown)
+    if not parts.hostname or "\\" in url or any(ord(ch) <= 32 or ord(ch) == 127 for ch in url):
+        raise InputError(f"{what} {shown!r} is not a valid URL", expected=f"{scheme}://host/path", actual=shown)
+    if parts.query or parts.fragment or "?" in url or "#" in url:
+        raise InputError(
+            f"{what} {shown!r} has a query or fragment: image paths are appended to it",
+            expected=f"{scheme}://{parts.netloc}{parts.path}",
+            actual=shown,
+        )
+
+
 def _join(base: str | None, rel: str) -> str:
     return base.rstrip("/") + "/" + rel if base else rel
 
@@ -592,54 +695,130 @@ def _now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
 
 
-def read_release(folder: str, public_key: Any) -> tuple[suit.Release, Any]:
-    """The disk layer of ``ota verify``: the verified manifest of ``folder`` and the bytes
-    of every file it lists, plus every ``*/*/latest.json`` found there.
+def read_release(
+    folder: str,
+    public_key: Any,
+    *,
+    previous: str | None = None,
+    ca_bundle: str | None = None,
+    import_unsigned: bool = False,
+) -> tuple[suit.Release, Any]:
+    """The disk layer of ``ota verify``: the verified manifest of ``folder``, its verified
+    history, the bytes of every file they list, every ``*/*/latest.json`` found there, and
+    every file or folder nothing accounts for. ``previous`` (``--previous``) adds its signed
+    releases to the history (and, imported on the user's word, its latest.json entries).
+
+    An image whose size is not the signed one is not read (``ReleaseFiles.sizes``).
 
     Raises:
         NotFoundError / InputError: no manifest, or a file that cannot be read.
         MalformedReleaseError / SignatureError: see :func:`.verify.verify_envelope`.
     """
-    from .verify import ReleaseFiles, image_path, verify_envelope
+    from .verify import ReleaseFiles, image_path, verify_envelope, verify_history
 
     manifest_path = os.path.join(folder, MANIFEST_NAME)
     data = read_input(manifest_path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
     release = verify_envelope(data, public_key, source=manifest_path)
+    history: list[suit.Release] = []
+    history_path = os.path.join(folder, HISTORY_NAME)
+    if os.path.lexists(history_path):
+        raw = _read_in(history_path, folder, HISTORY_NAME, MAX_HISTORY_BYTES, "release history")
+        history = [r for _, r in verify_history(raw, public_key, source=HISTORY_NAME, below=release.sequence_number)]
+    unsigned: dict[tuple[str, str], tuple[latest_json.Entry, ...]] = {}
+    before = None
+    if previous is not None:
+        wanted = [(c.board, c.app) for c in release.components if c.type == "mcuboot"]
+        given = load_previous(previous, public_key, wanted, ca_bundle=ca_bundle, import_unsigned=import_unsigned)
+        before = given.release
+        history += given.signed
+        if given.imported:
+            unsigned = {k: (doc.latest, *doc.previous) for k, doc in given.latest.items()}
     images: dict[str, bytes | None] = {}
+    sizes: dict[str, int] = {}
+    signed_sizes = {c.size for c in release.components}
     for c in release.components:
-        rel = image_path(c)
-        path = os.path.join(folder, rel)
-        try:
-            fd, _ = open_checked(path, folder, file=rel)
-        except NotFoundError:
-            images[rel] = None
-            continue
-        try:
-            images[rel] = read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image")
-        finally:
-            os.close(fd)
+        images[image_path(c)] = _read_image(folder, image_path(c), c.size, sizes, signed_sizes)
+    history_images: dict[str, bytes | None] = {}
+    for r in history:
+        for c in r.components:
+            rel = image_path(c)
+            if rel not in images and rel not in history_images and os.path.lexists(os.path.join(folder, rel)):
+                history_images[rel] = _read_image(folder, rel, c.size, sizes, set())
+    accounted = {MANIFEST_NAME, MANIFEST_JSON_NAME, HISTORY_NAME, *images, *history_images}
+    accounted.update(f"{c.board}/{c.app}/latest.json" for c in release.components if c.type == "mcuboot")
     found: dict[str, bytes] = {}
-    for board in sorted(os.listdir(folder)):
-        board_dir = os.path.join(folder, board)
-        if not os.path.isdir(board_dir) or os.path.islink(board_dir):
-            continue
-        for app in sorted(os.listdir(board_dir)):
-            path = os.path.join(board_dir, app, "latest.json")
-            if os.path.lexists(path):
-                rel = f"{board}/{app}/latest.json"
-                fd, _ = open_checked(path, folder, file=rel)
-                try:
-                    found[rel] = read_bounded(fd, MAX_LATEST_BYTES, source=rel, what="latest.json")
-                finally:
-                    os.close(fd)
+    unaccounted: list[str] = []
+    linked: list[str] = []
+    for rel, kind in _walk(folder):
+        if kind == "link":
+            linked.append(rel)
+        elif rel.count("/") == 2 and rel.endswith("/latest.json") and kind == "file":
+            found[rel] = _read_in(os.path.join(folder, rel), folder, rel, MAX_LATEST_BYTES, "latest.json")
+        elif rel not in accounted:
+            unaccounted.append(rel)
     rendering = None
-    json_path = os.path.join(folder, MANIFEST_JSON_NAME)
-    if os.path.lexists(json_path):
-        fd, _ = open_checked(json_path, folder, file=MANIFEST_JSON_NAME)
-        try:
-            rendering = read_bounded(fd, suit.MAX_MANIFEST_BYTES, source=MANIFEST_JSON_NAME, what="release.suit.json")
-        finally:
-            os.close(fd)
+    if os.path.lexists(os.path.join(folder, MANIFEST_JSON_NAME)):
+        rendering = _read_in(
+            os.path.join(folder, MANIFEST_JSON_NAME), folder, MANIFEST_JSON_NAME, suit.MAX_MANIFEST_BYTES, "rendering"
+        )
     return release, ReleaseFiles(
-        manifest=data, manifest_source=manifest_path, images=images, latest=found, rendering=rendering
+        manifest=data,
+        manifest_source=manifest_path,
+        images=images,
+        latest=found,
+        rendering=rendering,
+        sizes=sizes,
+        history=tuple(history),
+        history_images=history_images,
+        unsigned=unsigned,
+        unaccounted=tuple(unaccounted),
+        linked=tuple(linked),
+        previous=before,
     )
+
+
+def _read_in(path: str, folder: str, rel: str, limit: int, what: str) -> bytes:
+    fd, _ = open_checked(path, folder, file=rel)
+    try:
+        return read_bounded(fd, limit, source=rel, what=what)
+    finally:
+        os.close(fd)
+
+
+def _read_image(folder: str, rel: str, size: int, sizes: dict[str, int], signed: set[int]) -> bytes | None:
+    """An image's bytes (None: missing or not read). A size other than the signed ``size``
+    goes into ``sizes``, and the file is read only if its size is another signed image's
+    (to name a mix-and-match): a sparse 2 GB file in place of an image is what it is, not
+    what was signed (exit 1), never "over a limit"."""
+    path = os.path.join(folder, rel)
+    try:
+        fd, st = open_checked(path, folder, file=rel)
+    except NotFoundError:
+        return None
+    try:
+        if st.st_size != size:
+            sizes[rel] = st.st_size
+            if st.st_size not in signed:
+                return None
+        return read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image")
+    finally:
+        os.close(fd)
+
+
+def _walk(folder: str) -> list[tuple[str, str]]:
+    """Every entry under ``folder`` (relative path, "file" | "link" | "other"), not entering
+    symlinks: a symlinked folder is reported, never skipped or followed. Sorted."""
+    out: list[tuple[str, str]] = []
+    pending = [""]
+    while pending:
+        prefix = pending.pop()
+        with os.scandir(os.path.join(folder, prefix) if prefix else folder) as it:
+            for entry in it:
+                rel = f"{prefix}{entry.name}"
+                if entry.is_symlink():
+                    out.append((rel, "link" if entry.is_dir() else "file"))
+                elif entry.is_dir(follow_symlinks=False):
+                    pending.append(rel + "/")
+                else:
+                    out.append((rel, "file" if entry.is_file(follow_symlinks=False) else "other"))
+    return sorted(out)

@@ -43,6 +43,17 @@ class ReleaseFiles:
     images: dict[str, bytes | None] = field(default_factory=dict)  # relative path -> bytes (None: missing)
     latest: dict[str, bytes] = field(default_factory=dict)  # "board/app/latest.json" -> bytes
     rendering: bytes | None = None  # release.suit.json, the unsigned rendering for people
+    # Images whose size is not the signed one, left unread: relative path -> size on disk.
+    sizes: dict[str, int] = field(default_factory=dict)
+    # The earlier releases this key signed (release.history, then --previous), newest first,
+    # and the bytes of their images still in the folder (None: not read, its size is wrong).
+    history: tuple[suit.Release, ...] = ()
+    history_images: dict[str, bytes | None] = field(default_factory=dict)
+    # latest.json entries taken on the user's word (--import-unsigned-history): (board, app) -> entries
+    unsigned: dict[tuple[str, str], tuple[latest_json.Entry, ...]] = field(default_factory=dict)
+    unaccounted: tuple[str, ...] = ()  # files and folders that no signed release accounts for
+    linked: tuple[str, ...] = ()  # folders that are symlinks
+    previous: suit.Release | None = None  # --previous's signed release (rollback: step 6)
 
 
 def image_path(c: suit.Component) -> str:
@@ -103,9 +114,26 @@ def check_release(
 ) -> list[HcdfTrustError]:
     """Steps 4–6: every violation, each naming its device (board/app) and field. Pure."""
     errors: list[HcdfTrustError] = []
+    for rel in files.linked:
+        errors.append(
+            ReleaseIntegrityError(
+                f"{rel} is a symlink: a release folder holds its files itself (a link can hide another "
+                "latest.json from this check)",
+                file=rel,
+            )
+        )
+    for rel in files.unaccounted:
+        errors.append(
+            ReleaseIntegrityError(
+                f"{rel} is in the release folder but no signed release accounts for it",
+                file=rel,
+                expected="release.suit, release.suit.json, release.history and the files the manifests list",
+            )
+        )
     by_sha = {c.sha256: c for c in release.components}
     for c in release.components:
         errors += _check_image(c, files, public_key, by_sha)
+    errors += _check_history_images(release, files)
     listed = {f"{c.board}/{c.app}/latest.json": c for c in release.components if c.type == "mcuboot"}
     for rel, data in sorted(files.latest.items()):
         comp = listed.get(rel)
@@ -114,13 +142,134 @@ def check_release(
                 ReleaseIntegrityError(f"{rel}: no such component in the signed manifest (mix-and-match)", file=rel)
             )
             continue
-        errors += _check_latest(comp, data, rel)
+        errors += _check_latest(comp, data, rel, files)
     for rel in sorted(set(listed) - set(files.latest)):
         errors.append(ReleaseIntegrityError(f"{listed[rel].name}: latest.json is missing", file=rel))
     if files.rendering is not None:
         errors += _check_rendering(release, files.rendering)
+    for before in files.history:  # a version names one content, in every release
+        for c in release.components:
+            was = before.component(c.board, c.app)
+            if was is not None and was.version == c.version and content_id(was) != content_id(c):
+                errors.append(
+                    RollbackError(
+                        f"{c.name}: version {c.version} was already released with another image "
+                        f"(release {before.sequence_number})",
+                        file=files.manifest_source,
+                        expected=content_id(was),
+                        actual=content_id(c),
+                    )
+                )
+    previous = previous or files.previous
     if previous is not None:
         errors += check_rollback(release, previous, source=files.manifest_source)
+    return errors
+
+
+def content_id(c: suit.Component) -> str:
+    """What identifies an image's content across rebuilds: the MCUboot image hash (a re-signed
+    file differs, ECDSA signatures being random), the file's SHA-256 for a raw image."""
+    return c.mcuboot_hash or c.sha256
+
+
+def vouched(board: str, app: str, entry: latest_json.Entry, signed: tuple[suit.Release, ...]) -> bool:
+    """Is ``entry`` the ``board/app`` image of one of the ``signed`` releases (version, both
+    digests' fields, size and URL as that release's manifest lists them)?"""
+    for r in signed:
+        c = r.component(board, app)
+        if c is not None and (c.version, c.mcuboot_hash, c.size, c.uri) == (
+            entry.version,
+            entry.mcuboot_hash,
+            entry.size,
+            entry.url,
+        ):
+            return True
+    return False
+
+
+def check_history(
+    doc: latest_json.Latest,
+    signed: tuple[suit.Release, ...],
+    *,
+    rel: str,
+    entries: tuple[tuple[str, latest_json.Entry], ...],
+    unsigned: tuple[latest_json.Entry, ...] = (),
+) -> list[HcdfTrustError]:
+    """Each of ``entries`` (``(where, entry)`` of ``doc``) is a release this key signed, or
+    one of the ``unsigned`` entries the user chose to import. Pure."""
+    errors: list[HcdfTrustError] = []
+    for where, entry in entries:
+        if vouched(doc.board, doc.app, entry, signed) or entry in unsigned:
+            continue
+        errors.append(
+            ReleaseIntegrityError(
+                f"{doc.board}/{doc.app}: latest.json {where} ({entry.version}) is not a release this key signed",
+                file=rel,
+                expected="an image of an earlier signed release (release.history or --previous); history "
+                "imported from an unsigned folder needs --previous DIR --import-unsigned-history",
+                actual=f"{entry.version} {entry.mcuboot_hash} {entry.size} {entry.url}",
+            )
+        )
+    return errors
+
+
+def verify_history(data: bytes, public_key: Any, *, source: str, below: int) -> list[tuple[bytes, suit.Release]]:
+    """``release.history``: a CBOR array of the earlier signed envelopes, newest first, each
+    verified with ``public_key`` (steps 1–3) and with a sequence number below the one before.
+
+    Raises:
+        MalformedReleaseError: not such an array. SignatureError etc.: an envelope that does not verify.
+        RollbackError: the sequence numbers do not go down.
+    """
+    import io
+
+    import cbor2
+
+    stream = io.BytesIO(data)
+    try:
+        items = cbor2.CBORDecoder(stream).decode()
+    except (cbor2.CBORDecodeError, ValueError, RecursionError, EOFError) as exc:
+        raise MalformedReleaseError(f"release history is not CBOR: {exc}", file=source) from None
+    if stream.tell() != len(data) or not isinstance(items, list) or not all(isinstance(i, bytes) for i in items):
+        raise MalformedReleaseError("release history is not one CBOR array of envelopes", file=source)
+    out: list[tuple[bytes, suit.Release]] = []
+    for i, envelope in enumerate(items):
+        where = f"{source}[{i}]"
+        release = verify_envelope(envelope, public_key, source=where)
+        if release.sequence_number >= below:
+            raise RollbackError(
+                "release history is not in decreasing sequence-number order",
+                file=where,
+                expected=f"< {below}",
+                actual=str(release.sequence_number),
+            )
+        below = release.sequence_number
+        out.append((envelope, release))
+    return out
+
+
+def _check_history_images(release: suit.Release, files: ReleaseFiles) -> list[HcdfTrustError]:
+    """An earlier release's image still in the folder (previous[] URLs name it) is the one signed."""
+    errors: list[HcdfTrustError] = []
+    current = {image_path(c) for c in release.components}
+    for r in files.history:
+        for c in r.components:
+            rel = image_path(c)
+            if rel in current or rel not in files.history_images:
+                continue
+            current.add(rel)
+            data = files.history_images[rel]
+            size = files.sizes.get(rel, len(data) if data is not None else -1)
+            if size != c.size or data is None or hashlib.sha256(data).hexdigest() != c.sha256:
+                errors.append(
+                    ReleaseIntegrityError(
+                        f"{c.name}: image {rel} of release {r.sequence_number} is not the one that release signed",
+                        file=rel,
+                        expected=f"{c.sha256} ({c.size} bytes)",
+                        actual=f"{hashlib.sha256(data).hexdigest() if data is not None else '(not read)'} "
+                        f"({size} bytes)",
+                    )
+                )
     return errors
 
 
@@ -128,11 +277,13 @@ def _check_rendering(release: suit.Release, data: bytes) -> list[HcdfTrustError]
     """The unsigned ``release.suit.json`` says what the signed manifest says (people read it)."""
     import json
 
+    from ..localfile import JsonError, parse_json
+
     name = "release.suit.json"
     try:
-        doc = json.loads(data)
-    except (ValueError, RecursionError) as exc:
-        return [MalformedReleaseError(f"{name} is not JSON: {exc}", file=name)]
+        doc = parse_json(data, source=name, what=name, limit=suit.MAX_MANIFEST_BYTES)
+    except JsonError as exc:
+        return [MalformedReleaseError(exc.message, file=name, line=exc.line)]
     want = suit.to_json(release, alg="", kid="")
     if not isinstance(doc, dict):
         return [MalformedReleaseError(f"{name} is not an object", file=name)]
@@ -183,6 +334,15 @@ def _check_image(
 ) -> list[HcdfTrustError]:
     rel = image_path(c)
     data = files.images.get(rel)
+    if rel in files.sizes and data is None:  # the size, checked before reading: a 2 GB file is not what was signed
+        return [
+            ReleaseIntegrityError(
+                f"{c.name}: size differs from the signed manifest (the file was not read)",
+                file=rel,
+                expected=str(c.size),
+                actual=str(files.sizes[rel]),
+            )
+        ]
     if data is None:
         return [ReleaseIntegrityError(f"{c.name}: image {rel} is missing", file=rel)]
     if not c.uri.endswith(rel):
@@ -246,12 +406,18 @@ def _check_image(
     return errors
 
 
-def _check_latest(c: suit.Component, data: bytes, rel: str) -> list[HcdfTrustError]:
+def _check_latest(c: suit.Component, data: bytes, rel: str, files: ReleaseFiles) -> list[HcdfTrustError]:
     try:
         doc = latest_json.parse(data, source=rel)
     except MalformedReleaseError as exc:
         return [exc]
-    errors: list[HcdfTrustError] = []
+    errors = check_history(
+        doc,
+        files.history,
+        rel=rel,
+        entries=tuple((f"previous[{i}]", e) for i, e in enumerate(doc.previous)),
+        unsigned=files.unsigned.get((c.board, c.app), ()),
+    )
     checks = (
         ("board", doc.board, c.board),
         ("app", doc.app, c.app),
