@@ -678,10 +678,10 @@ def check_base_url(url: str, *, allow_http: bool, what: str) -> None:
     if not parts.hostname or "\\" in url or any(ord(ch) <= 32 or ord(ch) == 127 for ch in url):
         raise InputError(f"{what} {shown!r} is not a valid URL", expected=f"{scheme}://host/path", actual=shown)
     if parts.query or parts.fragment or "?" in url or "#" in url:
+        bare = redact(f"{scheme}://{parts.netloc}{parts.path}")  # the query may hold a token: not shown
         raise InputError(
-            f"{what} {shown!r} has a query or fragment: image paths are appended to it",
-            expected=f"{scheme}://{parts.netloc}{parts.path}",
-            actual=shown,
+            f"{what} {bare!r} has a query or fragment (not shown): image paths are appended to it",
+            expected=bare,
         )
 
 
@@ -735,24 +735,31 @@ def read_release(
             unsigned = {k: (doc.latest, *doc.previous) for k, doc in given.latest.items()}
     images: dict[str, bytes | None] = {}
     sizes: dict[str, int] = {}
+    entries = _walk(folder)
+    linked = [rel for rel, kind in entries if kind == "link"]  # refused; nothing is read through them
+
+    def through_link(rel: str) -> bool:
+        return any(rel.startswith(link + "/") for link in linked)
+
     signed_sizes = {c.size for c in release.components}
     for c in release.components:
-        images[image_path(c)] = _read_image(folder, image_path(c), c.size, sizes, signed_sizes)
+        rel = image_path(c)
+        images[rel] = None if through_link(rel) else _read_image(folder, rel, c.size, sizes, signed_sizes)
     history_images: dict[str, bytes | None] = {}
     for r in history:
         for c in r.components:
             rel = image_path(c)
             if rel not in images and rel not in history_images and os.path.lexists(os.path.join(folder, rel)):
-                history_images[rel] = _read_image(folder, rel, c.size, sizes, set())
+                if not through_link(rel):
+                    history_images[rel] = _read_image(folder, rel, c.size, sizes, set())
     accounted = {MANIFEST_NAME, MANIFEST_JSON_NAME, HISTORY_NAME, *images, *history_images}
     accounted.update(f"{c.board}/{c.app}/latest.json" for c in release.components if c.type == "mcuboot")
     found: dict[str, bytes] = {}
     unaccounted: list[str] = []
-    linked: list[str] = []
-    for rel, kind in _walk(folder):
+    for rel, kind in entries:
         if kind == "link":
-            linked.append(rel)
-        elif rel.count("/") == 2 and rel.endswith("/latest.json") and kind == "file":
+            continue
+        if rel.count("/") == 2 and rel.endswith("/latest.json") and kind == "file":
             found[rel] = _read_in(os.path.join(folder, rel), folder, rel, MAX_LATEST_BYTES, "latest.json")
         elif rel not in accounted:
             unaccounted.append(rel)

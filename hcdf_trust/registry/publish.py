@@ -166,8 +166,8 @@ def _load_md(path: Path) -> Any:
     from tuf.api.metadata import Metadata
 
     data = read_input(path, limit=METADATA_LIMIT, what="site metadata")
-    parse_json(data, source=str(path), what="site metadata", limit=METADATA_LIMIT)  # strict: what clients check
     try:
+        parse_json(data, source=str(path), what="site metadata", limit=METADATA_LIMIT)  # strict, as clients read it
         return Metadata.from_bytes(data)
     except Exception as exc:  # tuf raises DeserializationError, ValueError, KeyError, TypeError
         raise InputError(f"{path}: not TUF metadata: {exc}", file=str(path)) from None
