@@ -345,11 +345,12 @@ def test_a_base_url_that_would_publish_a_secret_or_name_nothing_is_refused(robot
 
 def test_a_base_url_from_ota_toml_is_checked_the_same(robot, cli, tmp_path):
     (robot.root / "ota.toml").write_text(
-        'base_url = "https://u:secret@fw.example.com/"\n[images.scout-os]\ntype = "raw"\n'
+        '[release]\nbase_url = "https://u:secret@fw.example.com/"\n[images.scout-os]\ntype = "raw"\n'
     )
     out = tmp_path / "rel"
     r = cli("ota", "build", robot.doc, "--firmware-dir", robot.fw, "--key", robot.key, "--out", out)
-    assert r.exit_code == 3 and "base_url" in r.stderr and "secret" not in r.stderr and not out.exists()
+    assert r.exit_code == 3 and "base_url https://***@fw.example.com/ carries credentials" in r.stderr, r.stderr
+    assert "u:secret" not in r.stderr and not out.exists()
 
 
 def test_plain_http_is_an_explicit_choice(robot, cli, tmp_path):
