@@ -360,3 +360,108 @@ def test_plain_http_is_an_explicit_choice(robot, cli, tmp_path):
     assert r.exit_code == 0, r.stderr
     assert json.loads(latest_path(out).read_text())["latest"]["url"] == "http://fw.lan/r/mr_mcxn_t1/flex-io/0.2.0.bin"
     assert os.path.exists(out / "release.suit")
+
+
+# --- each field of the history, each shape of release.history ----------------------------
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("version", "0.2.1"), ("mcuboot_hash", "ab" * 32), ("size", 12345), ("url", "https://evil.example/a.bin")],
+)
+def test_every_field_of_a_previous_entry_is_the_signed_one(built, cli, field, value):
+    robot, out = built
+    second_release(robot, cli, out)
+    path = latest_path(out)
+    doc = json.loads(path.read_text())
+    doc["previous"][0][field] = value
+    path.write_text(json.dumps(doc, indent=2))
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "previous[0]" in r.stderr and "is not a release this key signed" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("data", "why"),
+    [
+        (b"\x80\x00", "not one CBOR array of envelopes"),  # an empty array, then a trailing byte
+        (b"\xa0", "not one CBOR array of envelopes"),  # a map
+        (b"\x81\x01", "not one CBOR array of envelopes"),  # an array of an integer
+        (b"\x9f", "is not CBOR"),  # an indefinite array that never ends
+    ],
+)
+def test_a_release_history_that_is_not_an_array_of_envelopes_is_refused(built, cli, data, why):
+    robot, out = built
+    (out / "release.history").write_bytes(data)
+    r = verify(cli, robot, out)
+    assert r.exit_code == 3 and why in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_an_empty_history_is_an_empty_history(built, cli):
+    robot, out = built
+    (out / "release.history").write_bytes(b"\x80")
+    assert verify(cli, robot, out).exit_code == 0
+
+
+def test_a_history_without_the_entries_previous_names_is_refused(built, cli):
+    """Deleting release.history does not make previous[] unchecked: it makes it unsigned."""
+    robot, out = built
+    second_release(robot, cli, out)
+    (out / "release.history").unlink()
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "previous[0] (0.2.0) is not a release this key signed" in r.stderr
+    assert "mr_mcxn_t1/flex-io/0.2.0.bin is in the release folder but no signed release accounts for it" in r.stderr
+
+
+def test_an_older_image_removed_from_the_folder_is_not_an_error(built, cli):
+    robot, out = built
+    second_release(robot, cli, out)
+    (out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin").unlink()
+    r = verify(cli, robot, out)
+    assert r.exit_code == 0, r.stderr
+
+
+def test_an_older_image_of_another_size_is_refused_unread(built, cli):
+    robot, out = built
+    second_release(robot, cli, out)
+    with (out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin").open("r+b") as f:
+        f.truncate(1 << 30)
+    r = verify(cli, robot, out)
+    assert r.exit_code == 1 and "0.2.0.bin of release 1 is not the one that release signed" in r.stderr
+    assert "(not read)" in r.stderr
+
+
+def test_the_history_carries_through_three_releases(built, cli):
+    robot, out = built
+    second_release(robot, cli, out)
+    second_release(robot, cli, out, version="0.4.0")
+    doc = json.loads(latest_path(out).read_text())
+    assert [e["version"] for e in doc["previous"]] == ["0.3.0", "0.2.0"]
+    r = verify(cli, robot, out, "--json")
+    assert r.exit_code == 0, r.stderr
+    import cbor2
+
+    assert len(cbor2.loads((out / "release.history").read_bytes())) == 2
+
+
+def test_verify_names_an_mcuboot_image_re_released_under_the_same_version(built, cli, tmp_path):
+    import dataclasses
+
+    from hcdf_trust.ota.keys import load_private, load_public
+    from hcdf_trust.ota.release import read_release, sign_release
+    from hcdf_trust.ota.signer import FileSigner
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = built
+    prev = tmp_path / "prev"
+    shutil.copytree(out, prev)
+    pub = load_public(str(robot.pub))
+    release, _ = read_release(str(out), pub)
+    comps = tuple(
+        dataclasses.replace(c, mcuboot_hash="cd" * 32) if c.app == "flex-io" else c for c in release.components
+    )
+    forged = dataclasses.replace(release, sequence_number=2, components=comps)
+    env, _, _ = sign_release(forged, FileSigner(load_private(str(robot.key), None)))
+    (out / "release.suit").write_bytes(env)
+    again, files = read_release(str(out), pub, previous=str(prev))
+    messages = [str(e).splitlines()[0] for e in check_release(again, files, pub)]
+    assert any("mr_mcxn_t1/flex-io: version 0.2.0 was already released with another image" in m for m in messages)
