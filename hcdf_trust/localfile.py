@@ -430,15 +430,3 @@ def _check_tree(doc: Any, *, what: str, source: str, strings: bool) -> None:
             elif strings and isinstance(value, str) and _SURROGATE.search(value):
                 raise JsonError(f"{what}: the string at {pointer((key, path))} holds a lone surrogate", file=source)
 
-
-def read_json(
-    path: Path | str, *, limit: int, what: str = "JSON file", source: str | None = None, floats: bool = True
-) -> Any:
-    """:func:`read_input` then :func:`parse_json`: a local JSON file, bounded and strict.
-
-    Raises:
-        NotFoundError, InputError (see :func:`read_input`), JsonError.
-    """
-    name = source or str(path)
-    data = read_input(path, limit=limit, what=what, source=name)
-    return parse_json(data, source=name, what=what, limit=limit, floats=floats)
