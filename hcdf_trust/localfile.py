@@ -429,4 +429,3 @@ def _check_tree(doc: Any, *, what: str, source: str, strings: bool) -> None:
                 stack.append((value, depth + 1, (key, path)))
             elif strings and isinstance(value, str) and _SURROGATE.search(value):
                 raise JsonError(f"{what}: the string at {pointer((key, path))} holds a lone surrogate", file=source)
-

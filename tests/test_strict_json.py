@@ -111,4 +111,3 @@ def test_a_syntax_error_names_its_line_and_column():
 def test_the_size_limit_is_checked_before_parsing():
     assert parse("[1]", limit=3) == [1]
     assert refused("[1] ", limit=3).message == "document is over the 3-byte limit"
-
