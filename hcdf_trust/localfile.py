@@ -365,10 +365,14 @@ def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, 
     def bad_constant(token: str) -> None:
         raise JsonError(f"{what}: {token} is not a JSON number", file=source)
 
+    duplicated = False
+
     def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
+        nonlocal duplicated
         out = dict(items)
         if len(out) == len(items):
             return out
+        duplicated = True
         seen: set[str] = set()
         marked = _Duplicated(items)
         marked.key = next(k for k, _ in items if k in seen or seen.add(k))  # type: ignore[func-returns-value]
@@ -384,8 +388,27 @@ def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, 
         ) from None
     except ValueError as exc:  # an integer of more than 4300 digits
         raise JsonError(f"{what} is not JSON: {exc}", file=source) from None
-    _check_tree(doc, what=what, source=source, strings=_SURROGATE_ESCAPE.search(text) is not None)
+    strings = _SURROGATE_ESCAPE.search(text) is not None
+    if duplicated or strings or not _shallow(doc):  # the walk that names where, only when needed
+        _check_tree(doc, what=what, source=source, strings=strings)
     return doc
+
+
+def _shallow(doc: Any) -> bool:
+    """Is ``doc`` at most :data:`MAX_JSON_DEPTH` deep? One level at a time, in C-speed comprehensions."""
+    level = [doc] if type(doc) is dict or type(doc) is list else []
+    depth = 0
+    while level:
+        depth += 1
+        if depth > MAX_JSON_DEPTH:
+            return False
+        level = [
+            v
+            for node in level
+            for v in (node.values() if type(node) is dict else node)
+            if type(v) is dict or type(v) is list
+        ]
+    return True
 
 
 def _check_tree(doc: Any, *, what: str, source: str, strings: bool) -> None:
