@@ -465,3 +465,20 @@ def test_verify_names_an_mcuboot_image_re_released_under_the_same_version(built,
     again, files = read_release(str(out), pub, previous=str(prev))
     messages = [str(e).splitlines()[0] for e in check_release(again, files, pub)]
     assert any("mr_mcxn_t1/flex-io: version 0.2.0 was already released with another image" in m for m in messages)
+
+
+def test_a_cached_tuf_file_with_two_signed_keys_counts_as_absent(tmp_path, cli, monkeypatch):
+    """A cached timestamp.json made ambiguous is not trusted: ngclient fetches and stores a
+    fresh one (it kept the ambiguous file before, the server's version being the same)."""
+    from tests._registry import PASSPHRASE, build
+
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path, cli)
+    assert reg.verify().exit_code == 0
+    cached = reg.base / "client" / "metadata" / "timestamp.json"
+    text = cached.read_text()
+    evil = json.dumps({**json.loads(text)["signed"], "version": 999})
+    cached.write_text(text.replace('"signed":', f'"signed": {evil}, "signed":', 1))
+    res = reg.verify()
+    assert res.exit_code == 0, res.stderr
+    assert cached.read_text().count('"signed"') == 1
