@@ -1,0 +1,150 @@
+"""Mutation-testing killers for ota/verify.py: the pure checks, every field of every error.
+
+The attacks themselves are in test_attack_ota.py and test_ota_verify.py; these pin what each
+refusal says (file, expected, actual) and the edges of each comparison, through the public
+functions, on a real signed release.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cbor2
+import pytest
+
+from hcdf_trust.ota.errors import MalformedReleaseError, RollbackError
+from hcdf_trust.ota.keys import load_private, load_public
+from hcdf_trust.ota.release import read_release, sign_release
+from hcdf_trust.ota.signer import FileSigner
+from hcdf_trust.ota.verify import check_rollback, verify_history
+from tests._ota import make_robot
+
+
+@pytest.fixture(scope="module")
+def signed(tmp_path_factory):
+    """A real release, its public key, and a function signing a changed copy of it."""
+    from click.testing import CliRunner
+
+    from hcdf_trust.cli import main
+    from tests.conftest import CliResult
+
+    def cli(*args):
+        r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+        return CliResult(r.exit_code, r.stdout, r.stderr)
+
+    tmp = tmp_path_factory.mktemp("kill-ota-verify")
+    robot = make_robot(tmp, cli)
+    out = tmp / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    pub = load_public(str(robot.pub))
+    release, _ = read_release(str(out), pub)
+    signer = FileSigner(load_private(str(robot.key), None))
+
+    def sign(**changes):
+        return sign_release(dataclasses.replace(release, **changes), signer)[0]
+
+    return release, pub, sign
+
+
+def with_counter(release, app, counter):
+    return tuple(dataclasses.replace(c, security_counter=counter) if c.app == app else c for c in release.components)
+
+
+# --- check_rollback ---------------------------------------------------------------------
+
+
+def test_a_sequence_number_not_above_the_previous_is_named_in_full(signed):
+    release, _, _ = signed
+    errors = check_rollback(release, release, source="rel/release.suit")
+    assert [e.to_dict() for e in errors] == [
+        {
+            "code": "rollback",
+            "message": "manifest sequence-number is not greater than the previous release's",
+            "file": "rel/release.suit",
+            "line": None,
+            "expected": f"> {release.sequence_number}",
+            "actual": str(release.sequence_number),
+        }
+    ]
+    assert isinstance(errors[0], RollbackError) and errors[0].exit_code == 1
+
+
+def test_a_security_counter_that_went_down_is_named_in_full(signed):
+    release, _, _ = signed
+    before = dataclasses.replace(release, sequence_number=0, components=with_counter(release, "rtk-gnss", 1 << 30))
+    errors = check_rollback(release, before, source="rel/release.suit")
+    gnss = release.component("mr_mcxn_t1", "rtk-gnss")
+    assert [(e.message, e.file, e.expected, e.actual) for e in errors] == [
+        (
+            "mr_mcxn_t1/rtk-gnss: security_counter went down since the previous release",
+            "rel/release.suit",
+            f"≥ {1 << 30}",
+            str(gnss.security_counter),
+        )
+    ]
+
+
+def test_a_component_new_in_this_release_does_not_end_the_counter_checks(signed):
+    """The first component has no previous counterpart; the ones after it are still checked."""
+    release, _, _ = signed
+    first = release.components[0]
+    others = with_counter(dataclasses.replace(release, components=release.components[1:]), "rtk-gnss", 1 << 30)
+    before = dataclasses.replace(release, sequence_number=0, components=others)
+    assert before.component(first.board, first.app) is None
+    assert [e.message for e in check_rollback(release, before, source="s")] == [
+        "mr_mcxn_t1/rtk-gnss: security_counter went down since the previous release"
+    ]
+
+
+def test_an_equal_security_counter_is_not_a_rollback(signed):
+    release, _, _ = signed
+    assert check_rollback(release, dataclasses.replace(release, sequence_number=0), source="s") == []
+
+
+# --- verify_history -----------------------------------------------------------------------
+
+
+def test_history_that_is_not_cbor_is_named_with_its_file(signed):
+    _, pub, _ = signed
+    with pytest.raises(MalformedReleaseError) as info:
+        verify_history(b"\x9f", pub, source="rel/release.history", below=5)
+    assert info.value.file == "rel/release.history" and info.value.message.startswith("release history is not CBOR: ")
+
+
+@pytest.mark.parametrize("data", [b"\x80\x00", b"\xa0", b"\x81\x01", cbor2.dumps([b"x", 1])])
+def test_history_that_is_not_one_array_of_byte_strings_is_named_with_its_file(signed, data):
+    _, pub, _ = signed
+    with pytest.raises(MalformedReleaseError) as info:
+        verify_history(data, pub, source="rel/release.history", below=5)
+    assert (info.value.message, info.value.file) == (
+        "release history is not one CBOR array of envelopes",
+        "rel/release.history",
+    )
+
+
+def test_history_sequence_numbers_go_strictly_down(signed):
+    release, pub, sign = signed
+    n = release.sequence_number
+    two, one = sign(sequence_number=n + 1), sign(sequence_number=n)
+    assert [r.sequence_number for _, r in verify_history(cbor2.dumps([two, one]), pub, source="h", below=n + 2)] == [
+        n + 1,
+        n,
+    ]
+    with pytest.raises(RollbackError) as info:  # equal to the release it is the history of
+        verify_history(cbor2.dumps([two]), pub, source="h", below=n + 1)
+    assert (info.value.message, info.value.file, info.value.expected, info.value.actual) == (
+        "release history is not in decreasing sequence-number order",
+        "h[0]",
+        f"< {n + 1}",
+        str(n + 1),
+    )
+    with pytest.raises(RollbackError) as info:  # two entries with one number
+        verify_history(cbor2.dumps([one, one]), pub, source="h", below=n + 2)
+    assert (info.value.file, info.value.expected, info.value.actual) == ("h[1]", f"< {n}", str(n))
+
+
+def test_history_envelopes_are_returned_with_their_bytes(signed):
+    release, pub, sign = signed
+    env = sign(sequence_number=release.sequence_number)
+    [(data, got)] = verify_history(cbor2.dumps([env]), pub, source="h", below=release.sequence_number + 1)
+    assert data == env and got == release
