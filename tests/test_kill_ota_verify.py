@@ -148,3 +148,78 @@ def test_history_envelopes_are_returned_with_their_bytes(signed):
     env = sign(sequence_number=release.sequence_number)
     [(data, got)] = verify_history(cbor2.dumps([env]), pub, source="h", below=release.sequence_number + 1)
     assert data == env and got == release
+
+
+# --- check_release over a folder: each error as --json reports it ------------------------
+
+
+@pytest.fixture
+def built(tmp_path, cli):
+    robot = make_robot(tmp_path, cli)
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    return robot, out
+
+
+def errors_of(cli, robot, out, *extra):
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json", *extra)
+    assert r.exit_code != 0
+    return [{k: v for k, v in e.items() if k != "line"} for e in r.json["errors"]]
+
+
+def test_a_symlinked_folder_is_named_with_its_file(built, cli, tmp_path):
+    robot, out = built
+    (tmp_path / "elsewhere").mkdir()
+    (out / "zz").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "release",
+            "message": "zz is a symlink: a release folder holds its files itself (a link can hide another "
+            "latest.json from this check)",
+            "file": "zz",
+        }
+    ]
+
+
+def test_an_unaccounted_file_is_named_with_its_file_and_what_is_accounted_for(built, cli):
+    robot, out = built
+    (out / "notes.txt").write_text("x")
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "release",
+            "message": "notes.txt is in the release folder but no signed release accounts for it",
+            "file": "notes.txt",
+            "expected": "release.suit, release.suit.json, release.history and the files the manifests list",
+        }
+    ]
+
+
+def test_a_stray_latest_json_does_not_end_the_checks_of_the_others(built, cli):
+    """a_board/x/latest.json sorts before every real one: each real one is still checked."""
+    robot, out = built
+    stray = out / "a_board" / "x"
+    stray.mkdir(parents=True)
+    (stray / "latest.json").write_text((out / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
+    path = out / "mr_mcxn_t1" / "flex-io" / "latest.json"
+    path.write_text(path.read_text().replace("https://fw.example.com/r/", "https://evil.example/r/"))
+    got = errors_of(cli, robot, out)
+    assert got[0] == {
+        "code": "release",
+        "message": "a_board/x/latest.json: no such component in the signed manifest (mix-and-match)",
+        "file": "a_board/x/latest.json",
+    }
+    assert [e["message"] for e in got[1:]] == [
+        "mr_mcxn_t1/flex-io: latest.json latest.url differs from the signed manifest"
+    ]
+
+
+def test_a_missing_latest_json_is_named_with_its_file(built, cli):
+    robot, out = built
+    (out / "mr_mcxn_t1" / "flex-io" / "latest.json").unlink()
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "release",
+            "message": "mr_mcxn_t1/flex-io: latest.json is missing",
+            "file": "mr_mcxn_t1/flex-io/latest.json",
+        }
+    ]
