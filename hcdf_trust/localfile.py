@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from .digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
-from .errors import InputError, NotFoundError, PathEscapeError, display_path
+from .errors import InputError, NotFoundError, PathEscapeError, SecretFileError, display_path
 
 # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
 # reads from a regular file, the only kind we go on to read.
@@ -279,6 +279,39 @@ def read_input(path: Path | str, *, limit: int, what: str = "file", source: str 
     fd, _ = open_regular(path, file=name, what=what)
     try:
         return read_bounded(fd, limit, source=name, what=what)
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
+    finally:
+        os.close(fd)
+
+
+def read_secret(path: Path | str, *, limit: int, what: str, public_ok: bool = False) -> bytes:
+    """The whole content of a private key, passphrase or PIN file (:func:`read_input`), refused
+    when its group or others have any access to it, the way ssh refuses an unprotected private
+    key: a secret others could read is no longer a secret, and one they could write is not ours.
+    ``public_ok``: a PEM public key given in its place is returned as it is, for the caller to
+    say that it is not the private key.
+
+    Raises:
+        SecretFileError: group or others have access (the message gives the ``chmod`` to run).
+        NotFoundError / InputError: as :func:`read_input`.
+    """
+    name = str(path)
+    fd, st = open_regular(path, file=name, what=what)
+    try:
+        data = read_bounded(fd, limit, source=name, what=what)
+        mode = stat.S_IMODE(st.st_mode)
+        if mode & 0o077 and not (public_ok and b"PUBLIC KEY-----" in data and b"PRIVATE KEY" not in data):
+            import shlex
+
+            raise SecretFileError(
+                f"permissions {mode:04o} are too open: a {what} must be accessible by its owner only "
+                f"(as ssh requires of a private key); run: chmod 600 {shlex.quote(display_path(name))}",
+                file=name,
+                expected="mode 0600 or 0400",
+                actual=f"mode {mode:04o}",
+            )
+        return data
     except OSError as exc:
         raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
     finally:

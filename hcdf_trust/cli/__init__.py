@@ -21,11 +21,23 @@ from .. import __version__
 from ..errors import ErrorGroup, HcdfTrustError
 
 
+def say(*lines: str, err: bool = True) -> None:
+    """Print a message, each argument one line, through the secret filter (:mod:`hcdf_trust.scrub`:
+    credentials, query strings, private keys and passphrases hidden, control characters escaped).
+    Every human message of every verb goes through here (stderr unless ``err=False``)."""
+    from ..scrub import scrub
+
+    click.echo("\n".join(scrub(line) for line in lines), err=err)  # noqa: TID251 -- the one place that prints messages
+
+
 def emit_json(payload: dict[str, Any]) -> None:
-    """The one JSON object of ``--json``: indented on a terminal, compact into a pipe or file
-    (where json's C encoder writes a 10,000-link macsec plan in 0.1 s instead of 0.4 s)."""
+    """The one JSON object of ``--json``, through the secret filter: indented on a terminal,
+    compact into a pipe or file (where json's C encoder writes a 10,000-link macsec plan in
+    0.1 s instead of 0.4 s)."""
+    from ..scrub import scrub_json
+
     indent = 2 if sys.stdout.isatty() else None
-    click.echo(json.dumps(payload, indent=indent, sort_keys=True))
+    click.echo(json.dumps(scrub_json(payload), indent=indent, sort_keys=True))  # noqa: TID251 -- filtered above
 
 
 def fail(errors: list[HcdfTrustError], *, as_json: bool, payload: dict[str, Any] | None = None) -> None:
@@ -38,7 +50,8 @@ def fail(errors: list[HcdfTrustError], *, as_json: bool, payload: dict[str, Any]
         emit_json(out)
     else:
         for e in errors:
-            click.echo(f"error: {e}", err=True)
+            first, *rest = e.lines()
+            say(f"error: {first}", *rest)
     sys.exit(group.exit_code)
 
 
@@ -270,12 +283,26 @@ class _Main(click.Group):
     An interrupt exits 130, as shells report SIGINT, not click's 1 ("Aborted!"), which a
     build script would read as an integrity failure."""
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        from ..scrub import forget_all
+
+        forget_all()  # an in-process caller's previous run: its passphrases are not this run's
+        return super().main(*args, **kwargs)
+
+    def make_context(self, *args: Any, **kwargs: Any) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except click.ClickException as exc:
+            raise _scrubbed(exc) from None
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
-            click.echo("interrupted: nothing more was written", err=True)
+            say("interrupted: nothing more was written")
             ctx.exit(130)
+        except click.ClickException as exc:  # a usage error of a verb: click prints it, filtered
+            raise _scrubbed(exc) from None
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *_LAZY_COMMANDS})
@@ -298,6 +325,15 @@ class _Main(click.Group):
         except SystemExit as exc:
             _leave(exc.code)
             raise
+
+
+def _scrubbed(exc: click.ClickException) -> click.ClickException:
+    """Click's own error (a bad value, an unknown option) with its message through the secret
+    filter: a key given to the wrong option is not echoed back."""
+    from ..scrub import scrub
+
+    exc.message = scrub(exc.message)  # type: ignore[misc]  # Final in click's stubs; rewritten once, here
+    return exc
 
 
 def _leave(code: object) -> None:
@@ -557,7 +593,7 @@ def _payload(res: Any) -> dict[str, Any]:
 
 def _warn(warnings: list[Any]) -> None:
     for w in warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
 
 
 def _summary(res: Any) -> dict[str, int]:
@@ -587,16 +623,15 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
         return
     _warn(res.warnings)
     s = _summary(res)
-    click.echo(
+    say(
         f"{s['references']} references to {s['files']} files: {s['pinned']} pinned, {s['weak']} weak, "
         f"{s['unpinned']} unpinned; {s['bytes_verified']} bytes verified "
-        f"({s['local']} local, {s['from_cache']} from cache, {s['fetched']} fetched)",
-        err=True,
+        f"({s['local']} local, {s['from_cache']} from cache, {s['fetched']} fetched)"
     )
     for path in wrote:
-        click.echo(f"wrote {path}", err=True)
+        say(f"wrote {path}")
     for path in unchanged or ():
-        click.echo(f"unchanged {path}", err=True)
+        say(f"unchanged {path}")
 
 
 # The verb groups and the verbs other than resolve and verify, each imported when it

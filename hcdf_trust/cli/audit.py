@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, say
 from .macsec import store_options
 
 
@@ -97,11 +97,10 @@ def audit_cmd(
         emit_json(report.to_dict())
     else:
         for f in report.sorted():
-            click.echo(str(f), err=True)
+            say(str(f))
         counts = report.to_dict()["counts"]
-        click.echo(
+        say(
             f"audit: {counts['error']} error(s), {counts['warning']} warning(s), {counts['info']} info "
             f"({', '.join(report.checked)}); {len(report.failing)} at or above {policy.threshold}",
-            err=True,
         )
     sys.exit(0 if report.ok else 1)

@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from ..errors import HcdfTrustError
-from . import emit_json, handle_errors, keep_until_exit
+from . import emit_json, handle_errors, keep_until_exit, say
 
 
 @click.group()
@@ -36,20 +36,20 @@ def _plan_lines(p: Any) -> None:
                 head += f" key-store {store['type']}" + (f":{store['ref']}" if store["ref"] else "")
             if not ca.keyed:
                 head += " (no key)"
-        click.echo(head)
+        say(head, err=False)
         for el in ca.elements:
             scope = f" scope {el.scope}" if el.scope else ""
-            click.echo(f"  {el.kind} {el.network}/{el.name} ({el.file}:{el.line}{scope})")
+            say(f"  {el.kind} {el.network}/{el.name} ({el.file}:{el.line}{scope})", err=False)
         if ca.shared:
-            click.echo(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s")
+            say(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s", err=False)
         members = ", ".join(f"{m.device}[{' '.join(m.ports)}]" for m in ca.members.values())
-        click.echo(f"  members: {members}")
+        say(f"  members: {members}", err=False)
     for el in p.unprotected:
-        click.echo(f"unprotected: {el.label} ({el.file}:{el.line})")
+        say(f"unprotected: {el.label} ({el.file}:{el.line})", err=False)
     for el, reason in p.skipped:
-        click.echo(f"skipped: {el.label}: {reason}")
+        say(f"skipped: {el.label}: {reason}", err=False)
     for w in p.warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
 
 
 @macsec.command("plan")
@@ -73,7 +73,7 @@ def plan_cmd(doc: str, as_json: bool) -> None:
         return
     _plan_lines(p)
     keyed = p.keyed()
-    click.echo(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled", err=True)
+    say(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled")
 
 
 # --- the key store ---------------------------------------------------------------------------
@@ -86,7 +86,11 @@ def store_options(func: Any, *, required: bool = True) -> Any:
         metavar="TCTI",
         help="Seal the store's data key to a TPM 2.0 (e.g. device:/dev/tpmrm0, swtpm:host=127.0.0.1,port=2321).",
     )(func)
-    func = click.option("--pin-file", type=click.Path(dir_okay=False), help="File holding the PKCS#11 user PIN.")(func)
+    func = click.option(
+        "--pin-file",
+        type=click.Path(dir_okay=False),
+        help="File holding the PKCS#11 user PIN (mode 0600) [default: $HCDF_TRUST_PKCS11_PIN].",
+    )(func)
     func = click.option("--token-label", help="PKCS#11 token label (with --pkcs11-module).")(func)
     func = click.option(
         "--pkcs11-module",
@@ -102,7 +106,8 @@ def store_options(func: Any, *, required: bool = True) -> Any:
     func = click.option(
         "--passphrase-file",
         type=click.Path(dir_okay=False),
-        help="File holding the store passphrase (else $HCDF_TRUST_MACSEC_PASSPHRASE; never an argument).",
+        help="File holding the store passphrase (the whole file minus one final newline, mode 0600) "
+        "[default: $HCDF_TRUST_PASSPHRASE]; never an argument.",
     )(func)
     func = click.option(
         "--store", "store_dir", required=required, type=click.Path(file_okay=False), help="Key store folder."
@@ -141,8 +146,8 @@ def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
         if label or pin_file:
             raise click.UsageError("--token-label and --pin-file need --pkcs11-module")
         return PassphraseWrapper(passphrase_from(passphrase_file))
-    if not label or not pin_file:
-        raise click.UsageError("--pkcs11-module needs --token-label and --pin-file")
+    if not label:
+        raise click.UsageError("--pkcs11-module needs --token-label")
     if passphrase_file:
         raise click.UsageError("--passphrase-file and --pkcs11-module are two different backends: give one")
     return Pkcs11Wrapper(module, label, pin_from(pin_file))
@@ -260,10 +265,10 @@ def generate(
         )
         return
     for w in warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
     if created:  # one write for 10,000 lines
-        click.echo("\n".join(f"created {ca_id} generation 1" for ca_id in created))
-    click.echo(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do", err=True)
+        say(*(f"created {ca_id} generation 1" for ca_id in created), err=False)
+    say(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do")
 
 
 @macsec.command()
@@ -294,9 +299,9 @@ def status(
         gens = " ".join(f"g{g['generation']}:{g['state']}:kcv={g['kcv']}" for g in row["generations"])
         age = f" age {row['age_sec']} s" if row["age_sec"] is not None else ""
         flags = (" DUE" if row["due"] else "") + ("" if row["described"] else " (no longer described)")
-        click.echo(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}")
+        say(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}", err=False)
     for ca_id in st.missing:
-        click.echo(f"{ca_id}: no key (run generate)")
+        say(f"{ca_id}: no key (run generate)", err=False)
 
 
 @macsec.command()
@@ -352,9 +357,9 @@ def rotate(
         emit_json({"ok": True, "rotated": rows})
         return
     for r in rows:
-        click.echo(f"{r['id']}: generation {r['generation']} pending, sends from {r['activation']}")
+        say(f"{r['id']}: generation {r['generation']} pending, sends from {r['activation']}", err=False)
     if not rows:
-        click.echo("nothing to rotate", err=True)
+        say("nothing to rotate")
 
 
 @macsec.command()
@@ -377,9 +382,9 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
         emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
         return
     for ca_id, g in removed:
-        click.echo(f"{ca_id}: generation {g} retired")
+        say(f"{ca_id}: generation {g} retired", err=False)
     if not removed:
-        click.echo("nothing to retire", err=True)
+        say("nothing to retire")
 
 
 def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
@@ -495,6 +500,6 @@ def export(
         )
         return
     for n in notices:
-        click.echo(f"warning: {n}", err=True)
+        say(f"warning: {n}")
     for w in written:
-        click.echo(f"wrote {w}", err=True)
+        say(f"wrote {w}")

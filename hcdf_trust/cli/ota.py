@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, say
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
 
@@ -24,7 +24,10 @@ def ota() -> None:
 @click.option("--type", "kind", type=click.Choice(KEY_TYPES), default="ecdsa-p256", show_default=True)
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Private key file (PEM, mode 0600).")
 @click.option(
-    "--passphrase-file", type=click.Path(dir_okay=False), help="Encrypt the private key with this file's content."
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Encrypt the private key with this passphrase (the file minus one final newline, mode 0600) "
+    "[default: $HCDF_TRUST_PASSPHRASE, else not encrypted].",
 )
 @click.option("--force", is_flag=True, help="Replace an existing key file.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
@@ -32,15 +35,15 @@ def ota() -> None:
 def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_json: bool) -> None:
     """Generate a signing key with imgtool; the public key goes beside it (KEY.pub.pem)."""
     from ..ota.errors import KeyFileError
-    from ..ota.keys import generate, key_type, private_pem, public_path, public_pem, read_passphrase
+    from ..ota.keys import generate, key_type, private_pem, public_path, public_pem
     from ..outputs import OutputPlan
+    from ..passphrase import read_passphrase
 
     pub = public_path(out)
     plan = OutputPlan()
-    passphrase = None
     if passphrase_file:
         plan.protect(passphrase_file, what="the passphrase file")
-        passphrase = read_passphrase(passphrase_file)
+    passphrase = read_passphrase(passphrase_file, required=False)
     if not force:
         for path in (out, pub):
             if os.path.lexists(path):
@@ -53,8 +56,8 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     if as_json:
         emit_json({"ok": True, **result, "errors": []})
     else:
-        click.echo(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)", err=True)
-        click.echo(f"wrote {pub}", err=True)
+        say(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)")
+        say(f"wrote {pub}")
 
 
 @ota.command()
@@ -63,7 +66,11 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 @click.option(
     "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
 )
-@click.option("--passphrase-file", type=click.Path(dir_okay=False), help="Passphrase of an encrypted key file.")
+@click.option(
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
+)
 @click.option(
     "--pin-file",
     type=click.Path(dir_okay=False),
@@ -162,15 +169,14 @@ def build(
         )
         return
     for n in report.notices:
-        click.echo(f"warning: {n}", err=True)
+        say(f"warning: {n}")
     for ch in report.hcdf_changes:
-        click.echo(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}", err=True)
+        say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
-        click.echo(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}", err=True)
-    click.echo(
+        say(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}")
+    say(
         f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
-        f"{len(report.wrote)} file(s) written to {out_dir}",
-        err=True,
+        f"{len(report.wrote)} file(s) written to {out_dir}"
     )
 
 
@@ -209,16 +215,16 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str 
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
     else:
-        click.echo(
+        say(
             f"release {release.sequence_number}: {len(release.components)} component(s) verified "
-            f"(signatures, digests, latest.json{', rollback' if before else ''})",
-            err=True,
+            f"(signatures, digests, latest.json{', rollback' if before else ''})"
         )
 
 
 def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
-    from ..ota.keys import load_private, read_passphrase
+    from ..ota.keys import load_private
     from ..ota.signer import FileSigner
+    from ..passphrase import read_passphrase
 
     if key.startswith("pkcs11:"):
         from ..ota.hsm import HsmSigner, parse_uri, read_pin

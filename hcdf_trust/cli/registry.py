@@ -13,7 +13,7 @@ from typing import Any
 import click
 
 from ..outputs import OutputPlan
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, say
 
 _DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
 _UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
@@ -32,7 +32,8 @@ def _duration(ctx: click.Context, param: click.Parameter, value: str) -> dt.time
 passphrase_option = click.option(
     "--passphrase-file",
     type=click.Path(dir_okay=False),
-    help="File whose first line is the keys' passphrase [default: $HCDF_TRUST_PASSPHRASE].",
+    help="File holding the keys' passphrase (the whole file minus one final newline, mode 0600) "
+    "[default: $HCDF_TRUST_PASSPHRASE].",
 )
 
 
@@ -95,8 +96,8 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
     _commit(plan, Path(keydir))
     for role, t in root.roles.items():
-        click.echo(f"{role}: key {t.keyids[0]}", err=True)
-    click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
+        say(f"{role}: key {t.keyids[0]}")
+    say(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}")
 
 
 @registry.command()
@@ -112,7 +113,7 @@ def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
     plan = OutputPlan()
     key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
     _commit(plan, Path(keydir))
-    click.echo(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key", err=True)
+    say(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key")
 
 
 @registry.command()
@@ -227,10 +228,10 @@ def add(
             )
             what = f"{domain} {version}" if version else f"domain {domain}"
     if done is None:
-        click.echo(f"{what}: already registered with the same content", err=True)
+        say(f"{what}: already registered with the same content")
         return
     plan.commit()
-    click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+    say(f"{what}: recorded in {plan.paths[0]}")
 
 
 @registry.command()
@@ -255,7 +256,7 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
     plan.protect(schema, what="the schema")
     plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
     plan.commit()
-    click.echo(f"statement for {domain} {version} written to {out}", err=True)
+    say(f"statement for {domain} {version} written to {out}")
 
 
 @registry.command()
@@ -294,7 +295,7 @@ def rotate(
         assert domain is not None
         key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
     _commit(plan, keydir)
-    click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
+    say(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change")
 
 
 @registry.command()
@@ -374,7 +375,7 @@ def publish(
         )
     else:
         versions = ", ".join(f"{k} v{v}" for k, v in result.versions.items())
-        click.echo(f"published {site}: {versions}; {len(result.written)} file(s) written", err=True)
+        say(f"published {site}: {versions}; {len(result.written)} file(s) written")
 
 
 def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
@@ -444,9 +445,8 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
     else:
-        click.echo(
+        say(
             f"{site}: verified (root v{report.root_version}, {report.roles} domain role(s), {report.targets} file(s))",
-            err=True,
         )
 
 
@@ -490,7 +490,7 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
         plan.protect_tree(site, what="the registry site")
     plan.add(out, data, flag="-o")
     plan.commit()
-    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
+    say(f"{name} {version}: {len(data)} bytes verified, written to {out}")
 
 
 def validate_with_registry(

@@ -9,7 +9,7 @@ import sys
 
 import click
 
-from . import handle_errors
+from . import handle_errors, say
 
 
 @click.command()
@@ -60,7 +60,7 @@ def sbom(
     options = ResolveOptions(locked=True, offline=True, write_cache=False, lock_path=lock_path, cache_dir=cache_dir)
     res = resolve(doc, options)
     for w in res.warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
@@ -71,7 +71,7 @@ def sbom(
         from ..sbom.spdx import render
     data = render(facts)
     for n in facts.notices:
-        click.echo(f"warning: {n}", err=True)
+        say(f"warning: {n}")
     if out is None:
         sys.stdout.buffer.write(data)
         sys.stdout.buffer.flush()
@@ -86,4 +86,4 @@ def sbom(
     from ..errors import display_path
 
     for path in plan.commit():
-        click.echo(f"wrote {display_path(path)}", err=True)
+        say(f"wrote {display_path(path)}")
