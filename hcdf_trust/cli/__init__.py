@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import gc
 import json
-import math
 import os
 import sys
 from collections.abc import Callable
@@ -19,6 +18,7 @@ import click
 
 from .. import __version__
 from ..errors import ErrorGroup, HcdfTrustError
+from .params import TIMEOUT
 
 
 def say(*lines: str, err: bool = True) -> None:
@@ -128,12 +128,6 @@ def _base(ctx: click.Context, param: click.Parameter, value: str | None) -> str 
     return value
 
 
-def _seconds(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    if not math.isfinite(value) or value <= 0:
-        raise click.BadParameter(f"{value} is not a finite number of seconds > 0")
-    return value
-
-
 def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options of every verb that resolves a document tree (resolve, verify, pin); none is about the network."""
     options = [
@@ -167,7 +161,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
         ),
         click.option(
             "--max-depth",
-            type=click.IntRange(min=1),
+            type=click.IntRange(1, 1000),
             default=16,
             show_default=True,
             help="Deepest include nesting accepted.",
@@ -241,16 +235,15 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
         ),
         click.option(
             "--timeout",
-            type=float,
+            type=TIMEOUT,
             default=30.0,
             show_default=True,
-            callback=_seconds,
             help="Seconds without data before a fetch fails.",
         ),
         click.option(
             "--max-size",
             "max_bytes",
-            type=click.IntRange(min=1),
+            type=click.IntRange(1, 1 << 40),
             default=4 << 30,
             show_default=True,
             help="Largest body accepted from a server, in bytes.",
@@ -394,7 +387,7 @@ def main(ctx: click.Context) -> None:
 )
 @click.option(
     "--max-elements",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, 1_000_000_000),
     default=250_000,
     show_default=True,
     help="Most elements the --out document may have once every include is expanded.",

@@ -7,12 +7,13 @@ times and key check values only.
 
 from __future__ import annotations
 
+from datetime import datetime, timedelta
 from typing import Any
 
 import click
 
-from ..errors import HcdfTrustError
 from . import emit_json, handle_errors, keep_until_exit, say
+from .params import UTC_TIME, Duration
 
 
 @click.group()
@@ -99,7 +100,8 @@ def store_options(func: Any, *, required: bool = True) -> Any:
     )(func)
     func = click.option(
         "--now",
-        "now_text",
+        "now_given",
+        type=UTC_TIME,
         metavar="TIME",
         help="Act as if the time were TIME (ISO 8601 UTC), e.g. to plan a rotation or in tests.",
     )(func)
@@ -115,16 +117,11 @@ def store_options(func: Any, *, required: bool = True) -> Any:
     return func
 
 
-def _now(text: str | None) -> Any:
-    from ..macsec.store import now_utc, parse_time
+def _now(given: datetime | None) -> datetime:
+    """``--now`` (already checked by its click type), else the clock."""
+    from ..macsec.store import now_utc
 
-    if text is None:
-        return now_utc()
-    try:
-        return parse_time(text, what="--now", source="--now")
-    except HcdfTrustError as exc:
-        example = "2026-01-01T00:00:00Z"
-        raise click.BadParameter(f"{exc.actual!r} is not an ISO 8601 time with a zone (e.g. {example})") from None
+    return now_utc() if given is None else given
 
 
 def _is_passphrase(backend: dict[str, Any]) -> bool:
@@ -233,12 +230,12 @@ def _save(
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
 def generate(
-    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+    doc: str, store_dir: str, passphrase_file: str | None, now_given: datetime | None, as_json: bool, **backend: Any
 ) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
     from ..macsec.store import KeyStore, locked
 
-    now = _now(now_text)
+    now = _now(now_given)
     fresh = None
     if not KeyStore.exists(store_dir) and _is_passphrase(backend):
         # A new store's data key is wrapped (scrypt, a pure computation) while the description
@@ -277,12 +274,12 @@ def generate(
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
 def status(
-    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+    doc: str, store_dir: str, passphrase_file: str | None, now_given: datetime | None, as_json: bool, **backend: Any
 ) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
     from ..macsec.store import KeyStore
 
-    now = _now(now_text)
+    now = _now(now_given)
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     from ..macsec.plan import plan
     from ..macsec.rotation import status as run
@@ -312,10 +309,11 @@ def status(
 @click.option("--due", is_flag=True, help="Only associations due under rekey-interval-sec.")
 @click.option(
     "--overlap",
-    type=click.IntRange(min=0),
-    default=3600,
+    type=Duration(),
+    default="1h",
     show_default=True,
-    help="Seconds until the new generation sends, and again until the old one stops being accepted.",
+    help="Time until the new generation sends, and again until the old one stops being accepted "
+    "(seconds, or 30m, 12h, 7d, 2w).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
@@ -323,18 +321,18 @@ def rotate(
     doc: str,
     store_dir: str,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     network: str | None,
     key_ref: str | None,
     due: bool,
-    overlap: int,
+    overlap: timedelta,
     as_json: bool,
     **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
     from ..macsec.store import KeyStore, fmt_time, locked
 
-    now = _now(now_text)
+    now = _now(now_given)
     warm = None
     if _is_passphrase(backend):
         # scrypt runs while the description is verified; the store is read again under the lock
@@ -350,7 +348,8 @@ def rotate(
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
-        done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
+        selected = select(p, network=network, key_ref=key_ref)
+        done = run(store, selected, now=now, overlap=int(overlap.total_seconds()), due_only=due)
         _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
@@ -366,12 +365,14 @@ def rotate(
 @store_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
-def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any) -> None:
+def retire(
+    store_dir: str, passphrase_file: str | None, now_given: datetime | None, as_json: bool, **backend: Any
+) -> None:
     """Remove generations past their overlap (and only those)."""
     from ..macsec.rotation import retire as run
     from ..macsec.store import KeyStore, locked
 
-    now = _now(now_text)
+    now = _now(now_given)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
@@ -431,7 +432,7 @@ def export(
     doc: str,
     store_dir: str,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     device: str,
     fmt: str,
     out_dir: str,
@@ -445,7 +446,7 @@ def export(
 
     from ..macsec.store import KeyStore
 
-    now = _now(now_text)
+    now = _now(now_given)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
     # the description verified and planned.
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))

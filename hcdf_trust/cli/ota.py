@@ -11,6 +11,7 @@ from typing import Any
 import click
 
 from . import emit_json, handle_errors, say
+from .params import source_date_epoch_option
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
 
@@ -102,6 +103,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
 )
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
+@source_date_epoch_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def build(
@@ -121,6 +123,7 @@ def build(
     online: bool,
     cache_dir: str | None,
     jobs: int,
+    source_date: Any,
     as_json: bool,
 ) -> None:
     """Build a signed release from DOC's verified tree: one MCUboot image per <comp> with
@@ -128,7 +131,7 @@ def build(
 
     Nothing is written unless every step succeeds.
     """
-    from ..ota.release import BuildOptions, build_release
+    from ..ota.release import BuildOptions, build_release, format_date
 
     signer, inputs = _signer(key, passphrase_file, pin_file)
     try:
@@ -145,6 +148,7 @@ def build(
                 changelog=changelog,
                 update_hcdf=update_hcdf,
                 lock_path=lock_path,
+                date=format_date(source_date.timestamp()) if source_date is not None else None,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
                 online=online,

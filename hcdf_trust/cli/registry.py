@@ -6,7 +6,6 @@ tuf and securesystemslib are imported inside the commands, so ``hcdf-trust --hel
 from __future__ import annotations
 
 import datetime as dt
-import re
 from pathlib import Path
 from typing import Any
 
@@ -14,20 +13,7 @@ import click
 
 from ..outputs import OutputPlan
 from . import emit_json, handle_errors, say
-
-_DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
-_UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
-
-
-def _duration(ctx: click.Context, param: click.Parameter, value: str) -> dt.timedelta:
-    m = _DURATION.fullmatch(value.strip())
-    if not m:
-        raise click.BadParameter(f"{value!r} is not a duration like 30m, 12h, 7d or 2w")
-    delta = dt.timedelta(**{_UNITS[m.group(2)]: int(m.group(1))})
-    if delta > dt.timedelta(days=3650):
-        raise click.BadParameter(f"{value!r} is longer than 10 years")
-    return delta
-
+from .params import TIMEOUT, Duration
 
 passphrase_option = click.option(
     "--passphrase-file",
@@ -133,7 +119,7 @@ def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
 )
 @click.option(
     "--threshold",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, 255),
     default=1,
     show_default=True,
     help="Owner signatures a version needs (a new domain).",
@@ -327,7 +313,7 @@ def rotate(
     "lifetime",
     default="7d",
     show_default=True,
-    callback=_duration,
+    type=Duration(min=dt.timedelta(minutes=1), max=dt.timedelta(days=3650)),
     help="Timestamp lifetime (30m, 12h, 7d, 2w): clients stop trusting a site not re-published within it.",
 )
 @sigstore_root_option
@@ -384,19 +370,12 @@ def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float 
     return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
 
 
-def _timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    if not 0 < value <= 3600:
-        raise click.BadParameter(f"{value} is not a number of seconds in (0, 3600]")
-    return value
-
-
 client_options = [
     click.option(
         "--timeout",
-        type=float,
+        type=TIMEOUT,
         default=30.0,
         show_default=True,
-        callback=_timeout,
         help="Seconds to wait for a connection or between bytes (http(s) sites).",
     ),
     click.option(

@@ -6,10 +6,12 @@ The SBOM libraries are imported inside the command only (start-up stays light).
 from __future__ import annotations
 
 import sys
+from datetime import datetime
 
 import click
 
 from . import handle_errors, say
+from .params import source_date_epoch_option
 
 
 @click.command()
@@ -31,6 +33,7 @@ from . import handle_errors, say
 @click.option(
     "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
 )
+@source_date_epoch_option
 @handle_errors
 def sbom(
     doc: str,
@@ -40,6 +43,7 @@ def sbom(
     key: str | None,
     lock_path: str | None,
     cache_dir: str | None,
+    source_date: datetime | None,
 ) -> None:
     """Write a bill of materials of DOC's verified tree: sub-assemblies with their author and
     license, comps (devices) with their board, firmware, drivers, every file with its SHA-256,
@@ -64,7 +68,7 @@ def sbom(
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
-    facts = collect(res, release=release, fmt=fmt)
+    facts = collect(res, release=release, fmt=fmt, created=source_date)
     if fmt == "cyclonedx":
         from ..sbom.cyclonedx import render
     else:
