@@ -33,7 +33,7 @@ SHOWN = "***"
 _URL = r"(?:\b[A-Za-z][A-Za-z0-9+.-]*://|\b[Hh][Tt][Tt][Pp][Ss]?:|\b[Pp][Kk][Cc][Ss]11:)[^\s'\"<>\[\]]*"
 # A PEM private key, to its END line, or (cut short in a message) to the end of its base64.
 _PEM = r"-----BEGIN (?P<pem>[A-Z0-9 ]*PRIVATE KEY[A-Z0-9 ]*)-----(?:.*?-----END (?P=pem)-----|[A-Za-z0-9+/=\s\\:,-]*)"
-_AGE = r"(?i:\bAGE-(?:SECRET-KEY|PLUGIN-[A-Z0-9-]+?)-1[02-9AC-HJ-NP-Z]+)"
+_AGE = r"(?i:AGE-(?:SECRET-KEY|PLUGIN-[A-Z0-9-]+?)-1[02-9AC-HJ-NP-Z]+)"
 # 32 or 64 hex digits after a key word. "key" alone needs "=" or ":" (registry messages say
 # "key <keyid>" of public keys); iproute2 writes "key <key-id> <hex>".
 _HEX = r"(?:[0-9A-Fa-f]{64}|[0-9A-Fa-f]{32})(?![0-9A-Fa-f])"
