@@ -406,7 +406,7 @@ def _toml_nesting(text: str) -> tuple[int, int | None]:
 def _depth(value: object) -> int:
     """How deep tables and arrays nest in a parsed document (iteratively: no recursion)."""
     deepest = 0
-    stack: list[tuple[object, int]] = [(value, 1)]
+    stack: list[tuple[object, int]] = [(value, 0)]  # the document itself is no nesting
     while stack:
         item, level = stack.pop()
         children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else None

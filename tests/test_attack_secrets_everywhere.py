@@ -113,8 +113,19 @@ def test_an_age_identity_given_as_the_recipient_is_not_echoed(store):
     [
         ("resolve", "{doc}", "--mirror", "{secret}"),  # click.BadParameter of our own
         ("resolve", "{doc}", "--{secret}"),  # click's "No such option"
-        ("macsec", "export", "{doc}", "--store", "{tmp}/none", "--device", "a", "--format", "{secret}",
-         "--out", "{tmp}/o"),  # click.Choice  # fmt: skip
+        (
+            "macsec",
+            "export",
+            "{doc}",
+            "--store",
+            "{tmp}/none",
+            "--device",
+            "a",
+            "--format",
+            "{secret}",
+            "--out",
+            "{tmp}/o",
+        ),  # click.Choice  # fmt: skip
     ],
     ids=["bad-parameter", "no-such-option", "choice"],
 )
@@ -180,7 +191,8 @@ def _open_to_others(path: Path) -> None:
 
 
 def test_ota_refuses_a_key_or_passphrase_file_others_can_read(cli, tmp_path):
-    from ._ota import make_robot, tree as files_of
+    from ._ota import make_robot
+    from ._ota import tree as files_of
 
     robot = make_robot(tmp_path, cli)
     pp = tmp_path / "pw"
