@@ -32,7 +32,7 @@ def parse_time(text: str) -> datetime:
     except ValueError:
         raise ValueError(f"{text!r} is not an ISO 8601 time (e.g. 2026-01-01T00:00:00Z)") from None
     if t.tzinfo is None:
-        raise ValueError(f"{text!r} has no time zone (add Z for UTC)")
+        raise ValueError(f"{text!r} has no time zone: an ISO 8601 time with a zone is needed (add Z for UTC)")
     return _in_range(t, text)
 
 

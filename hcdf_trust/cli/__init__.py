@@ -161,7 +161,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
         ),
         click.option(
             "--max-depth",
-            type=click.IntRange(1, 1000),
+            type=click.IntRange(1, 1_000_000),
             default=16,
             show_default=True,
             help="Deepest include nesting accepted.",
