@@ -44,9 +44,12 @@ _KEYED = (
     rf"(?P<hex>{_HEX})"
 )
 _SECRET = re.compile(rf"(?P<url>{_URL})|(?P<key>{_PEM})|(?P<age>{_AGE})|(?P<keyed>{_KEYED})", re.S)
-# What every match of _SECRET contains: a text without any is left as it is, at the cost of
-# one search (a 10,000-association --json payload is 70,000 strings, mostly names).
-_HINT = re.compile(r"(?i)://|https?:|pkcs11:|PRIVATE KEY|AGE-|[0-9a-f]{32}")
+# What every match of _SECRET contains (hex only after a key word): a text without any is
+# left as it is, at the cost of one search.
+_HINT = re.compile(
+    r"(?i)://|https?:|pkcs11:|PRIVATE KEY|AGE-"
+    r"|(?:cak|sak|psk|secret|pass|pin|key)[^0-9a-z]{0,4}(?:[0-9a-f]{1,2}\s+)?[0-9a-f]{32}"
+)
 
 # C0 and C1 controls, DEL, the Unicode line and paragraph separators, bidirectional overrides.
 _CONTROLS = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e\u2066-\u2069]")
@@ -101,11 +104,36 @@ def scrub(text: str, *, controls: bool = True) -> str:
 
 
 def scrub_json(value: Any) -> Any:
-    """A ``--json`` payload with every string scrubbed (JSON escapes control characters itself)."""
+    """A ``--json`` payload with every string scrubbed (JSON escapes control characters itself).
+
+    Each distinct string is looked at once, and the payload is rebuilt only when one of them
+    changed: a 10,000-association plan is 145,000 strings, few of them distinct, none a secret.
+    """
+    strings: set[str] = set()
+    stack = [value]
+    pop, push, more, add = stack.pop, stack.append, stack.extend, strings.add
+    while stack:  # exact types (what json.dumps is given), checked the fastest way
+        item = pop()
+        kind = type(item)
+        if kind is str:
+            add(item)
+        elif kind is dict:
+            more(item.values())
+        elif kind is list or kind is tuple:
+            more(item)
+        elif isinstance(item, str):  # a str enum: json writes its text
+            add(str.__str__(item))
+        elif isinstance(item, dict | list | tuple):  # a subclass: rare
+            push(dict(item) if isinstance(item, dict) else list(item))
+    changed = {text: shown for text in strings if (shown := scrub(text, controls=False)) != text}
+    return _replaced(value, changed) if changed else value
+
+
+def _replaced(value: Any, changed: dict[str, str]) -> Any:
     if isinstance(value, str):
-        return scrub(value, controls=False)
+        return changed.get(str.__str__(value), value)
     if isinstance(value, dict):
-        return {k: scrub_json(v) for k, v in value.items()}
+        return {k: _replaced(v, changed) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [scrub_json(v) for v in value]
+        return [_replaced(v, changed) for v in value]
     return value

@@ -307,3 +307,35 @@ def test_every_verb_takes_the_same_passphrase_rule(cli, tmp_path, monkeypatch, v
         with pytest.raises(Exception, match="wrong passphrase"):
             load_private(tmp_path / "file" / "k.pem")
     assert os.environ["HCDF_TRUST_PASSPHRASE"]
+
+
+# --- the filter itself ---------------------------------------------------------------------------
+
+SHA = hashlib.sha256(b"x").hexdigest()
+
+
+@pytest.mark.parametrize(
+    ("text", "shown"),
+    [
+        (f"https://u:pw@h/p?token={TOKEN}#frag", "https://***@h/p?***#frag"),
+        (f"'https:u:pw@h/p?t={TOKEN}'", "'https:***@h/p?***'"),
+        (f"pkcs11:token=t;object=k?pin-value={TOKEN}", "pkcs11:token=t;object=k?***"),
+        (f"got {PEM} after", "got [PRIVATE KEY redacted]\\n after"),
+        (f"actual: {PEM[:60]!r}", "actual: '[PRIVATE KEY redacted]'"),
+        (f"x {AGE_IDENTITY} y", "x AGE-SECRET-KEY-1*** y"),
+        ("mka_cak=" + "0f" * 16, "mka_cak=***"),
+        ('"cak": "' + "0f" * 32 + '"', '"cak": "***"'),
+        ("Key=" + "AB" * 16, "Key=***"),
+        ("ip macsec add m0 tx sa 0 pn 1 on key 01 " + "ab" * 16, "ip macsec add m0 tx sa 0 pn 1 on key 01 ***"),
+        # what must stay: digests, key ids of public keys, file:line, ordinary punctuation
+        (f"expected: {SHA}", f"expected: {SHA}"),
+        (f"root: key {SHA}", f"root: key {SHA}"),
+        ("robot.hcdf:12: is this ok? sha256:abc", "robot.hcdf:12: is this ok? sha256:abc"),
+        ("name\twith\nnewline \x1b[31m \u2028", "name\\twith\\nnewline \\x1b[31m \\u2028"),
+    ],
+)
+def test_the_filter(text, shown):
+    from hcdf_trust.scrub import scrub
+
+    assert scrub(text) == shown
+    assert scrub(shown) == shown  # idempotent: a message filtered twice reads the same
