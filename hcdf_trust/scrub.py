@@ -38,9 +38,9 @@ _AGE = r"(?i:AGE-(?:SECRET-KEY|PLUGIN-[A-Z0-9-]+?)-1[02-9AC-HJ-NP-Z]+)"
 # "key <keyid>" of public keys); iproute2 writes "key <key-id> <hex>".
 _HEX = r"(?:[0-9A-Fa-f]{64}|[0-9A-Fa-f]{32})(?![0-9A-Fa-f])"
 _KEYED = (
-    r"(?i:\b(?P<word>(?:mka_)?cak|sak|psk|secret|passphrase|password|pin)\b[\"']?\s*[=:]?\s*[\"']?"
-    r"|\b(?:private[ _-]?)?key\b[\"']?\s*[=:]\s*[\"']?"
-    r"|\bkey\s+[0-9A-Fa-f]{1,2}\s+)"
+    r"(?i:\b(?P<word>(?:mka_)?cak|sak|psk|secret|passphrase|password|pin)\b[\"']?\s{0,3}[=:]?\s{0,3}[\"']?"
+    r"|\b(?:private[ _-]?)?key\b[\"']?\s{0,3}[=:]\s{0,3}[\"']?"
+    r"|\bkey\s{1,3}[0-9A-Fa-f]{1,2}\s{1,3})"
     rf"(?P<hex>{_HEX})"
 )
 _SECRET = re.compile(rf"(?P<url>{_URL})|(?P<key>{_PEM})|(?P<age>{_AGE})|(?P<keyed>{_KEYED})", re.S)
@@ -48,7 +48,7 @@ _SECRET = re.compile(rf"(?P<url>{_URL})|(?P<key>{_PEM})|(?P<age>{_AGE})|(?P<keye
 # left as it is, at the cost of one search.
 _HINT = re.compile(
     r"(?i)://|https?:|pkcs11:|PRIVATE KEY|AGE-"
-    r"|(?:cak|sak|psk|secret|pass|pin|key)[^0-9a-z]{0,4}(?:[0-9a-f]{1,2}\s+)?[0-9a-f]{32}"
+    r"|(?:cak|sak|psk|secret|passphrase|password|pin|key)[^0-9a-z]{0,9}(?:[0-9a-f]{1,2}\s{1,3})?[0-9a-f]{32}"
 )
 
 # C0 and C1 controls, DEL, the Unicode line and paragraph separators, bidirectional overrides.
@@ -85,12 +85,12 @@ def _replace(m: re.Match[str]) -> str:
 
 def escape_controls(text: str) -> str:
     """``text`` with every control character (newline included) written as an escape."""
-    return _CONTROLS.sub(
-        lambda m: _NAMED.get(
-            m.group(), f"\\x{ord(m.group()):02x}" if ord(m.group()) < 0x100 else f"\\u{ord(m.group()):04x}"
-        ),
-        text,
-    )
+    return _CONTROLS.sub(_escape, text)
+
+
+def _escape(m: re.Match[str]) -> str:
+    ch = m.group()
+    return _NAMED.get(ch) or (f"\\x{ord(ch):02x}" if ord(ch) < 0x100 else f"\\u{ord(ch):04x}")
 
 
 def scrub(text: str, *, controls: bool = True) -> str:

@@ -326,6 +326,8 @@ SHA = hashlib.sha256(b"x").hexdigest()
         ("mka_cak=" + "0f" * 16, "mka_cak=***"),
         ('"cak": "' + "0f" * 32 + '"', '"cak": "***"'),
         ("Key=" + "AB" * 16, "Key=***"),
+        ("passphrase: " + "0f" * 16, "passphrase: ***"),
+        ("cak =  '" + "0f" * 16 + "'", "cak =  '***'"),
         ("ip macsec add m0 tx sa 0 pn 1 on key 01 " + "ab" * 16, "ip macsec add m0 tx sa 0 pn 1 on key 01 ***"),
         # what must stay: digests, key ids of public keys, file:line, ordinary punctuation
         (f"expected: {SHA}", f"expected: {SHA}"),
