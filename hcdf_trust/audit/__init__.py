@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from ..errors import InputError, LockFileError
+from ..errors import AmbiguousError, InputError, LockFileError
 from ..include import lockfile
 from ..include.resolver import ResolveOptions, resolve
 from . import extensions, firmware, macsec, references
@@ -66,8 +66,10 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
         ResolveOptions(lock_path=o.lock_path, offline=o.offline, write_cache=False, cache_dir=o.cache_dir, root=o.root),
     )
     for error in res.errors:
-        if isinstance(error, LockFileError):
-            raise error  # a lock that cannot be read: nothing about the tree can be trusted to it
+        # A lock that cannot be read, or a document that reads two ways: nothing about the tree
+        # can be trusted to it (exit 3, as every other verb refuses it).
+        if isinstance(error, LockFileError | AmbiguousError):
+            raise error
     lock = lockfile.load(res.lock_path) if os.path.lexists(res.lock_path) else None
     report = Report(document=res.root.source, policy=o.policy)
     report.checked.append("references")

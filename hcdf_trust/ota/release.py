@@ -27,7 +27,7 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
-from ..document import Kind, software_elements
+from ..document import Kind, single, single_text, software_elements
 from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
 from ..localfile import open_checked, read_bounded, read_input
 from ..outputs import OutputPlan
@@ -315,7 +315,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     hashes = {}
     for _source, ref in res.others:
         if ref.kind is Kind.FIRMWARE and ref.element is not None:
-            hashes[ref.element.getparent()] = ref
+            hashes[ref.element] = ref
     plans: dict[tuple[str, str], Planned] = {}
     for doc_url, doc in res.documents.items():
         for sw in software_elements(doc):
@@ -330,7 +330,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
             comp_name = comp.get("name") or "?"
             if not app:
                 raise FirmwareError(f"comp {comp_name!r}: <software> has no name", file=doc.source, line=line)
-            board = (comp.findtext("board") or "").strip() or comp_name
+            board = single_text(comp, "board", source=doc.source) or comp_name
             for what, value in (("board", board), ("software name", app)):
                 if not _SAFE.fullmatch(value) or value in (".", ".."):
                     raise FirmwareError(
@@ -340,8 +340,8 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
                         expected="letters, digits, '.', '_', '+', '-'",
                         actual=value,
                     )
-            version = sw.findtext("version")
-            ref = hashes.get(sw)
+            version = single_text(sw, "version", source=doc.source)
+            ref = hashes.get(single(sw, "hash", source=doc.source))
             use = Use(
                 comp_name,
                 doc.source,

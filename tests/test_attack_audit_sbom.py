@@ -1,0 +1,206 @@
+"""Attack: make audit, sbom, ota and macsec read a description differently from resolve.
+
+An element the schema allows once (hcdf.xsd ``maxOccurs="1"``), written twice, used to pass
+resolve and verify while ``ota build`` and ``sbom`` took the last ``<hash>`` and ``audit`` the
+first: the auditor checked one image, the release shipped another. Every verb now reads such
+elements through one accessor (``hcdf_trust.document.single``) and refuses a second one: exit 3,
+code ``ambiguous``, both lines named. Published ``hcdf_models`` boards (site-root hrefs) are
+audited and given an SBOM with resolve's ``--base``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import MODELS
+
+GOOD = "1" * 64
+EVIL = "2" * 64
+
+# One <software> whose duplicated child is chosen per test; line numbers are the oracle.
+ROBOT = """<?xml version="1.0"?>
+<hcdf version="1.0" name="dup">
+  <comp name="mcu">
+    <board>fmu</board>{board2}
+    <software name="app">
+      <version>1.0.0</version>{version2}
+      <hash>{good}</hash>{hash2}
+      <firmware-manifest-uri>app.latest.json</firmware-manifest-uri>{manifest2}
+    </software>{software2}
+  </comp>
+</hcdf>
+"""
+SECOND = {
+    "board2": "\n    <board>evil</board>",
+    "version2": "\n      <version>9.9.9</version>",
+    "hash2": f"\n      <hash>{EVIL}</hash>",
+    "manifest2": "\n      <firmware-manifest-uri>evil.latest.json</firmware-manifest-uri>",
+    "software2": f'\n    <software name="app"><version>1.0.0</version><hash>{EVIL}</hash></software>',
+}
+FIRST_LINE = {"board2": 4, "version2": 6, "hash2": 7, "manifest2": 8, "software2": 5}
+TAG = {"board2": "board", "version2": "version", "hash2": "hash", "manifest2": "firmware-manifest-uri"}
+TAG["software2"] = "software"
+
+
+def _robot(folder: Path, twice: str | None = None) -> Path:
+    """The robot, locked while clean; then (``twice``) with one element written a second time."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "app.latest.json").write_text("{}\n")
+    (folder / "evil.latest.json").write_text("{}\n")
+    doc = folder / "robot.hcdf"
+    doc.write_text(ROBOT.format(good=GOOD, **dict.fromkeys(SECOND, "")))
+    return doc if twice is None else _with(doc, twice)
+
+
+def _with(doc: Path, twice: str) -> Path:
+    fields = dict.fromkeys(SECOND, "")
+    fields[twice] = SECOND[twice]
+    doc.write_text(ROBOT.format(good=GOOD, **fields))
+    return doc
+
+
+def _second_line(doc: Path, twice: str) -> int:
+    text = doc.read_text().splitlines()
+    marker = SECOND[twice].strip().split(">")[0]  # e.g. '<hash' or '<software name="app"'
+    hits = [i + 1 for i, line in enumerate(text) if line.strip().startswith(marker)]
+    return hits[1] if twice != "software2" else hits[-1]
+
+
+VERBS = {
+    "resolve": lambda doc, extra: ("resolve", doc, "--json"),
+    "verify": lambda doc, extra: ("verify", doc, "--json"),
+    "pin": lambda doc, extra: ("pin", doc, "--json"),
+    "validate": lambda doc, extra: ("validate", doc, "--json"),
+    "audit": lambda doc, extra: ("audit", doc, "--json"),
+    "sbom": lambda doc, extra: ("sbom", doc, "--format", "cyclonedx", "--json"),
+    "macsec plan": lambda doc, extra: ("macsec", "plan", doc, "--json"),
+    "ota build": lambda doc, extra: ("ota", "build", doc, "--json", *extra),
+}
+
+
+@pytest.fixture(scope="module")
+def ota_key(tmp_path_factory):
+    from hcdf_trust.ota.keys import generate, private_pem
+
+    folder = tmp_path_factory.mktemp("key")
+    key = folder / "k.pem"
+    key.write_bytes(private_pem(generate("ecdsa-p256"), None))
+    return key
+
+
+@pytest.mark.parametrize("twice", sorted(SECOND))
+@pytest.mark.parametrize("verb", sorted(VERBS))
+def test_an_element_written_twice_is_refused_by_every_verb_naming_both_lines(cli, tmp_path, ota_key, verb, twice):
+    doc = _robot(tmp_path / "robot")
+    assert cli("resolve", doc).exit_code == 0  # the lock, made while the document was clean
+    _with(doc, twice)
+    extra = ("--firmware-dir", tmp_path, "--key", ota_key, "--out", tmp_path / "release")
+    r = cli(*VERBS[verb](doc, extra))
+    assert r.exit_code == 3, (r.stdout, r.stderr)
+    errors = r.json["errors"]
+    codes = {e["code"] for e in errors}
+    assert "ambiguous" in codes, errors
+    (error,) = [e for e in errors if e["code"] == "ambiguous"]
+    first, second = FIRST_LINE[twice], _second_line(doc, twice)
+    assert f"2 <{TAG[twice]}> elements, at lines {first} and {second}" in error["message"]
+    assert error["line"] == second and error["file"].endswith("robot.hcdf")
+    assert not (tmp_path / "release").exists()
+
+
+@pytest.mark.parametrize("twice", ["hash2", "version2", "board2"])
+def test_an_included_assembly_with_an_element_twice_is_refused(cli, tmp_path, twice):
+    # The duplicate hides one level down, in a sub-assembly pinned by its sha: the include is
+    # read (its digest is right) and refused, by resolve as by audit and pin (sbom, ota and macsec
+    # need the lock resolve refuses to write).
+    sub = _robot(tmp_path / "robot" / "arm", twice)
+    sha = hashlib.sha256(sub.read_bytes()).hexdigest()
+    doc = tmp_path / "robot" / "robot.hcdf"
+    doc.write_text(f'<hcdf version="1.0" name="r"><include uri="arm/robot.hcdf" sha="{sha}" name="arm"/></hcdf>\n')
+    for args in (("resolve", doc), ("audit", doc), ("pin", doc)):
+        r = cli(*args)
+        assert r.exit_code == 3, (args, r.stderr)
+        assert f"2 <{TAG[twice]}> elements" in r.stderr and "arm/robot.hcdf" in r.stderr
+
+
+@pytest.mark.parametrize("element", ["version", "board"])
+def test_text_that_reads_two_ways_is_refused(cli, tmp_path, element):
+    # "1.0<!-- -->.1": .text says 1.0, the string value 1.0.1. One reading or none.
+    doc = _robot(tmp_path / "robot")
+    assert cli("resolve", doc).exit_code == 0
+    text = doc.read_text()
+    old = "<version>1.0.0</version>" if element == "version" else "<board>fmu</board>"
+    new = "<version>1.0<!-- -->.1</version>" if element == "version" else "<board>f<!-- x -->mu</board>"
+    doc.write_text(text.replace(old, new))
+    for args in (("verify", doc), ("audit", doc), ("sbom", doc, "--format", "cyclonedx")):
+        r = cli(*args)
+        assert r.exit_code == 3, (args, r.stderr)
+        assert f"<{element}> contains a comment" in r.stderr
+
+
+NETWORK = """<?xml version="1.0"?>
+<hcdf version="1.0" name="net">
+  <comp name="a"><port name="p0" type="ethernet"><capabilities>
+    <speed unit="Mbps">100</speed>{speed2}
+    <macsec><cipher>gcm-aes-128</cipher></macsec>
+  </capabilities></port></comp>
+  <comp name="b"><port name="p0" type="ethernet"><capabilities>
+    <speed unit="Mbps">100</speed>
+    <macsec><cipher>gcm-aes-128</cipher></macsec>
+  </capabilities></port></comp>
+  <network name="n">
+    <link name="l"><wired>
+      <port>a/p0</port><port>b/p0</port>
+      <macsec policy="must-secure" key-ref="k"/>{override2}
+    </wired></link>
+    <macsec policy="must-secure" cipher="gcm-aes-128">
+      <key-store type="file" ref="keys/a"/>{store2}
+    </macsec>{network2}
+  </network>
+</hcdf>
+"""
+NET_SECOND = {
+    "speed2": ('\n    <speed unit="Gbps">10</speed>', "speed", 4),
+    "override2": ('\n      <macsec policy="disabled" key-ref="k2"/>', "macsec", 14),
+    "store2": ('\n      <key-store type="file" ref="keys/b"/>', "key-store", 17),
+    "network2": ('\n    <macsec policy="should-secure"/>', "macsec", 16),
+}
+
+
+@pytest.mark.parametrize("twice", sorted(NET_SECOND))
+@pytest.mark.parametrize("verb", ["macsec plan", "audit"])
+def test_macsec_elements_written_twice_are_refused(cli, tmp_path, verb, twice):
+    # Which <macsec> secures the link, which key store, which speed (10 Gb/s decides whether a
+    # static non-XPN key may be used): the planner and the audit read them through document.only.
+    doc = tmp_path / "net.hcdf"
+    fields = dict.fromkeys(NET_SECOND, "")
+    fields[twice] = NET_SECOND[twice][0]
+    doc.write_text(NETWORK.format(**fields))
+    assert cli("resolve", doc).exit_code == 0
+    args = ("macsec", "plan", doc, "--json") if verb == "macsec plan" else ("audit", doc, "--json")
+    r = cli(*args)
+    assert r.exit_code == 3, (r.stdout, r.stderr)
+    (error,) = [e for e in r.json["errors"] if e["code"] == "ambiguous"]
+    inserted, tag, first = NET_SECOND[twice]
+    second = doc.read_text().splitlines().index(inserted.lstrip("\n")) + 1
+    assert f"2 <{tag}> elements, at lines {first} and {second}" in error["message"]
+
+
+def test_the_clean_robot_passes_every_verb(cli, tmp_path):
+    # The control: without the second element, the same commands succeed.
+    doc = _robot(tmp_path / "robot")
+    assert cli("resolve", doc).exit_code == 0
+    for args in (("verify", doc), ("sbom", doc, "--format", "cyclonedx"), ("macsec", "plan", doc)):
+        r = cli(*args)
+        assert r.exit_code == 0, (args, r.stderr)
+    assert cli("audit", doc).exit_code in (0, 1)  # findings (no release) are the audit's business
+    net = tmp_path / "net.hcdf"
+    net.write_text(NETWORK.format(**dict.fromkeys(NET_SECOND, "")))
+    assert cli("resolve", net).exit_code == 0
+    r = cli("macsec", "plan", net, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert [a["id"] for a in r.json["associations"]] == ["key-ref:k"]
