@@ -121,37 +121,84 @@ def _seconds(ctx: click.Context, param: click.Parameter, value: float) -> float:
     return value
 
 
+# The options that say where a description tree is, shared by every verb that reads one, so
+# that each means the same and reads the same in every --help (tests/test_flags_uniform.py).
+LOCK_OPTION = click.option(
+    "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC]."
+)
+CACHE_DIR_OPTION = click.option(
+    "--cache-dir",
+    type=click.Path(file_okay=False),
+    help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
+)
+BASE_OPTION = click.option(
+    "--base",
+    callback=_base,
+    metavar="DIR|URL",
+    help="Existing folder, or https URL, that relative references resolve against (default: the referencing document).",
+)
+ROOT_OPTION = click.option(
+    "--root",
+    type=click.Path(exists=True, file_okay=False),
+    help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
+)
+MIRROR_OPTION = click.option(
+    "--mirror",
+    "mirrors",
+    multiple=True,
+    callback=_mirror,
+    metavar="PREFIX=DIR|URL",
+    help="Rewrite a URL prefix to an existing folder or an https URL (repeatable).",
+)
+OFFLINE_HELP = "Use only local files, mirrors and the cache; never open a socket."
+JSON_OPTION = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+_LOCATION_KEYS = ("base", "mirrors", "root")
+_TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
+
+
+def tree_location_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``--base``, ``--mirror``, ``--root`` (resolve's), passed to ``func`` as one
+    ``tree``: a :class:`~hcdf_trust.include.resolver.TreeOptions`. For a verb that reads
+    local files only (validate)."""
+    return _tree_decorator(func, (BASE_OPTION, MIRROR_OPTION, ROOT_OPTION), _LOCATION_KEYS)
+
+
+def tree_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock`` and
+    ``--offline`` (default here; ``--online`` fetches what the cache lacks, still checked
+    against the lock), passed to ``func`` as one ``tree``: a
+    :class:`~hcdf_trust.include.resolver.TreeOptions`. For every verb that reads a description
+    tree under its lock (audit, sbom, macsec, ota build)."""
+    offline = click.option(
+        "--offline/--online",
+        default=True,
+        show_default=True,
+        help=OFFLINE_HELP + " --online fetches what they lack (still checked against the lock).",
+    )
+    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline)
+    return _tree_decorator(func, options, _TREE_KEYS)
+
+
+def _tree_decorator(func: Callable[..., Any], options: tuple[Any, ...], keys: tuple[str, ...]) -> Callable[..., Any]:
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from ..include.resolver import TreeOptions
+
+        return func(*args, tree=TreeOptions(**{k: kwargs.pop(k) for k in keys}), **kwargs)
+
+    for option in reversed(options):
+        wrapper = option(wrapper)
+    return wrapper
+
+
 def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options of every verb that resolves a document tree (resolve, verify, pin); none is about the network."""
     options = [
-        click.option(
-            "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC]."
-        ),
-        click.option(
-            "--cache-dir",
-            type=click.Path(file_okay=False),
-            help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
-        ),
-        click.option(
-            "--base",
-            callback=_base,
-            metavar="DIR|URL",
-            help="Existing folder, or https URL, that relative references resolve against "
-            "(default: the referencing document).",
-        ),
-        click.option(
-            "--root",
-            type=click.Path(exists=True, file_okay=False),
-            help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
-        ),
-        click.option(
-            "--mirror",
-            "mirrors",
-            multiple=True,
-            callback=_mirror,
-            metavar="PREFIX=DIR|URL",
-            help="Rewrite a URL prefix to an existing folder or an https URL (repeatable).",
-        ),
+        LOCK_OPTION,
+        CACHE_DIR_OPTION,
+        BASE_OPTION,
+        ROOT_OPTION,
+        MIRROR_OPTION,
         click.option(
             "--max-depth",
             type=click.IntRange(min=1),
@@ -165,7 +212,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             help="Refuse weak pins (hex prefixes shorter than 64 digits); with --registry, also unregistered "
             "extension domains and versions.",
         ),
-        click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout."),
+        JSON_OPTION,
     ]
     for option in reversed(options):
         func = option(func)
@@ -203,9 +250,7 @@ def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offli
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options of the verbs that may fetch (resolve, pin); verify never does, and neither offers nor reads them."""
     options = [
-        click.option(
-            "--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket."
-        ),
+        click.option("--offline", is_flag=True, help=OFFLINE_HELP),
         click.option(
             "--allow-http",
             is_flag=True,
@@ -354,7 +399,11 @@ def main(ctx: click.Context) -> None:
 )
 @fetch_options
 @click.option(
-    "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
+    "-o",
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False),
+    help="Write one flattened document with every include expanded.",
 )
 @click.option(
     "--max-elements",

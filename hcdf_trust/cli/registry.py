@@ -253,7 +253,7 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
-    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out")
     plan.commit()
     click.echo(f"statement for {domain} {version} written to {out}", err=True)
 
@@ -315,6 +315,7 @@ def rotate(
     help="Folder holding the files the entries name.",
 )
 @click.option(
+    "-o",
     "--out",
     "site",
     required=True,
@@ -488,13 +489,20 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
     plan.protect_tree(client.cache_dir, what="the registry cache")
     if "://" not in site:
         plan.protect_tree(site, what="the registry site")
-    plan.add(out, data, flag="-o")
+    plan.add(out, data, flag="--out")
     plan.commit()
     click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
 
 
 def validate_with_registry(
-    doc: str, *, schema: str | None, site: str, trusted_root: str | None, strict: bool, cache_dir: str | None = None
+    doc: str,
+    *,
+    schema: str | None,
+    site: str,
+    trusted_root: str | None,
+    strict: bool,
+    cache_dir: str | None = None,
+    tree: Any = None,
 ) -> Any:
     """``validate --registry``: the registry supplies the schema (unless ``--schema``) and
     checks extension domains, versions, content and registered stream-profile digests."""
@@ -509,7 +517,7 @@ def validate_with_registry(
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
-    report = validate_document(doc, schema=schema or schemas)
+    report = validate_document(doc, schema=schema or schemas, tree_options=tree)
     path = Path(os.path.abspath(doc))
     source = display_path(path)
     tree = parse_bytes(read_local(path, path.parent, source=source), source=source)

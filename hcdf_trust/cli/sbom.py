@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, tree_options
 
 
 @click.command()
@@ -28,10 +28,7 @@ from . import emit_json, handle_errors
 @click.option(
     "--key", type=click.Path(dir_okay=False), help="Public key (PEM) the --release must verify with (required with it)."
 )
-@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC].")
-@click.option(
-    "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
-)
+@tree_options
 @click.option(
     "--json",
     "as_json",
@@ -45,27 +42,26 @@ def sbom(
     out: str | None,
     release_dir: str | None,
     key: str | None,
-    lock_path: str | None,
-    cache_dir: str | None,
+    tree: Any,
     as_json: bool,
 ) -> None:
     """Write a bill of materials of DOC's verified tree: sub-assemblies with their author and
     license, comps (devices) with their board, firmware, drivers, every file with its SHA-256,
     and the dependency graph.
 
-    The tree is verified first, offline, under its lock (as `verify` does); any error stops
+    The tree is verified first, under its lock (offline unless --online, as `verify` does); any error stops
     the run with nothing written. The same inputs give byte-identical output: the serial
     number comes from the lock's, root document's (and release's) digests, the time from
     SOURCE_DATE_EPOCH (else 1970-01-01T00:00:00Z).
     """
     from ..errors import ErrorGroup
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import resolve
     from ..outputs import OutputPlan, protect_inputs
     from ..sbom.model import collect, read_release
 
     if (release_dir is None) != (key is None):
         raise click.UsageError("--release and --key go together: a release's signer is only named once verified")
-    options = ResolveOptions(locked=True, offline=True, write_cache=False, lock_path=lock_path, cache_dir=cache_dir)
+    options = tree.resolve_options(locked=True)
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:

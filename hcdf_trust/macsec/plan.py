@@ -51,13 +51,16 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, cast
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 from lxml import etree
 
 from ..document import Document, only
 from ..errors import ErrorGroup, HcdfTrustError, InputError, Notice
 from ..xml import sourceline
+
+if TYPE_CHECKING:
+    from ..include.resolver import TreeOptions
 
 # The include prefix separator, as hcdf_trust.include.flatten.SEPARATOR (a test checks they agree);
 # not imported from there, so that planning does not load the flattener.
@@ -246,8 +249,9 @@ class Plan:
         }
 
 
-def plan(doc_path: str | Path, *, device: str | None = None) -> Plan:
-    """Resolve and verify ``doc_path`` (locked, offline), then plan its associations.
+def plan(doc_path: str | Path, *, device: str | None = None, tree: TreeOptions | None = None) -> Plan:
+    """Resolve and verify ``doc_path`` (locked; offline unless ``tree`` says otherwise, where
+    ``tree`` holds resolve's --base, --mirror, --root, --cache-dir, --lock), then plan its associations.
 
     With ``device``, only the networks that can hold that device's associations are planned
     (see :func:`plan_resolution`); when the device is in none of them, the whole description
@@ -257,9 +261,9 @@ def plan(doc_path: str | Path, *, device: str | None = None) -> Plan:
         ErrorGroup / HcdfTrustError: the tree fails to resolve or verify (a missing or
             drifted lock included), or its MACsec policy is malformed or contradictory.
     """
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import TreeOptions, resolve
 
-    res = resolve(doc_path, ResolveOptions(locked=True, offline=True, write_cache=False))
+    res = resolve(doc_path, (tree or TreeOptions()).resolve_options(locked=True))
     if res.errors:
         raise ErrorGroup(list(res.errors))
     result = plan_resolution(res.documents, res.includes, res.root_location.url, device=device)

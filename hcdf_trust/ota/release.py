@@ -29,6 +29,7 @@ from urllib.parse import unquote, urlsplit
 from ..digest import parse_pin
 from ..document import Kind, single, single_text, software_elements
 from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
+from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
 from ..outputs import OutputPlan
 from ..xml import sourceline
@@ -59,12 +60,11 @@ class BuildOptions:
     config: str | None = None
     changelog: str | None = None
     update_hcdf: bool = False
-    lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
-    online: bool = False  # resolve the tree with the network (still under its lock)
-    cache_dir: str | None = None
+    # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline (the default) / --online
+    tree: TreeOptions = field(default_factory=TreeOptions)
 
 
 @dataclass
@@ -114,20 +114,10 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         ErrorGroup / HcdfTrustError: the tree does not verify, an input is missing or
             malformed, a hash or counter check fails, or an output cannot be written.
     """
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import resolve
 
     # 1. a verified description: the tree under its lock (offline unless --online)
-    res = resolve(
-        doc_path,
-        ResolveOptions(
-            locked=True,
-            offline=not options.online,
-            write_cache=options.online,
-            lock_path=options.lock_path,
-            cache_dir=options.cache_dir,
-            ca_bundle=options.ca_bundle,
-        ),
-    )
+    res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
     lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
