@@ -11,13 +11,9 @@ audited and given an SBOM with resolve's ``--base``.
 from __future__ import annotations
 
 import hashlib
-import json
-import shutil
 from pathlib import Path
 
 import pytest
-
-from tests.conftest import MODELS
 
 GOOD = "1" * 64
 EVIL = "2" * 64

@@ -391,7 +391,40 @@ def main(ctx: click.Context) -> None:
             ctx.call_on_close(gc.enable)
 
 
-@main.command()
+class _OptionalValueCommand(click.Command):
+    """A command with one positional argument and an option whose value may be omitted
+    (resolve's ``--update [URI]``). Click gives such an option the next word as its value,
+    so ``resolve --update robot.hcdf`` lost DOC ("Missing argument"); when that leaves no
+    positional argument at all, the word was the positional: the option gets no value."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        options = [p for p in self.params if isinstance(p, click.Option)]
+        optional = {o for p in options if p._flag_needs_value for o in p.opts}
+        valued = {o for p in options if not p.is_flag and not p.count and not p._flag_needs_value for o in p.opts}
+        args = list(args)
+        positionals, omitted, i = 0, None, 0
+        while i < len(args):
+            word = args[i]
+            if word == "--":
+                positionals += len(args) - i - 1
+                break
+            if word.startswith("-") and len(word) > 1:
+                follows = i + 1 < len(args) and not args[i + 1].startswith("-")
+                if word in valued:
+                    i += 2
+                    continue
+                if word in optional and follows:
+                    omitted, i = i, i + 2
+                    continue
+            else:
+                positionals += 1
+            i += 1
+        if positionals == 0 and omitted is not None:
+            args[omitted] += "="  # "--update=": the value left out; the next word is the positional
+        return super().parse_args(ctx, args)
+
+
+@main.command(cls=_OptionalValueCommand)
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
 @click.option(
@@ -422,7 +455,7 @@ def main(ctx: click.Context) -> None:
     flag_value="",
     metavar="[URI]",
     help="Accept new content for a reference the lock pins: --update alone re-pins every entry, "
-    "--update URI (repeatable; the uri as written or the lock's url) only that one. Put it after DOC.",
+    "--update URI (repeatable; the uri as written or the lock's url) only that one.",
 )
 @handle_errors
 def resolve(
