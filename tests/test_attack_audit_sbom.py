@@ -11,9 +11,12 @@ audited and given an SBOM with resolve's ``--base``.
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import MODELS, PROJECT
 
 GOOD = "1" * 64
 EVIL = "2" * 64
@@ -200,3 +203,97 @@ def test_the_clean_robot_passes_every_verb(cli, tmp_path):
     r = cli("macsec", "plan", net, "--json")
     assert r.exit_code == 0, r.stderr
     assert [a["id"] for a in r.json["associations"]] == ["key-ref:k"]
+
+
+# --- published boards and flattened documents: resolve's tree flags on audit, sbom, macsec ---
+
+BOARDS = sorted(
+    p
+    for p in MODELS.glob("*/*/*.hcdf")
+    if not p.is_symlink() and len(p.name.split("-", 1)[0]) == 8  # {short-sha}-{device}.hcdf
+)
+
+
+def _glb_digests(board: Path) -> dict[str, str]:
+    """The oracle: every GLB the fragment names, hashed here from the site root."""
+    import re
+
+    hrefs = re.findall(r'href="(models/[^"]+\.glb)"', board.read_text())
+    return {h: hashlib.sha256((MODELS / h).read_bytes()).hexdigest() for h in hrefs}
+
+
+def test_the_published_boards_are_there():
+    assert len(BOARDS) >= 5 and all(_glb_digests(b) for b in BOARDS[:1])
+
+
+@pytest.mark.parametrize("board", BOARDS, ids=lambda p: p.parent.name)
+def test_a_published_board_is_audited_and_given_an_sbom_with_base(cli, tmp_path, board):
+    tree = ("--base", MODELS, "--lock", tmp_path / "board.lock", "--cache-dir", tmp_path / "cache")
+    assert cli("resolve", board, *tree).exit_code == 0
+    audit = cli("audit", board, *tree, "--json")
+    assert audit.exit_code == 0, audit.stdout
+    assert not [f for f in audit.json["findings"] if f["severity"] == "error"]
+    r = cli("sbom", board, "--format", "cyclonedx", *tree, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["ok"] is True and r.json["errors"] == []
+    listed = {}
+    for c in r.json["sbom"]["components"]:
+        for h in c.get("hashes", []):
+            if h["alg"] == "SHA-256" and c["name"].endswith(".glb"):
+                listed[c["name"]] = h["content"]
+    expected = _glb_digests(board)
+    assert {name.rsplit("/", 1)[-1]: d for name, d in listed.items()} == {
+        h.rsplit("/", 1)[-1]: d for h, d in expected.items()
+    }
+
+
+def test_without_base_the_message_names_a_flag_the_verb_takes(cli, tmp_path):
+    board = BOARDS[0]
+    tree = ("--lock", tmp_path / "board.lock", "--cache-dir", tmp_path / "cache")
+    assert cli("resolve", board, "--base", MODELS, *tree).exit_code == 0
+    r = cli("sbom", board, "--format", "spdx", *tree)
+    assert r.exit_code == 1  # not found where the document is, and so not what the lock says
+    assert f"resolve with --base {MODELS}" in r.stderr
+    # ... and following the advice works on this very verb:
+    assert cli("sbom", board, "--format", "spdx", "--base", MODELS, *tree).exit_code == 0
+
+
+def test_base_does_not_widen_what_the_tree_may_read(cli, tmp_path):
+    # An attacker's fragment reaches out of the site root through --base: refused by sbom and
+    # audit exactly as by resolve (path-escape, exit 3), never read.
+    site = tmp_path / "site"
+    (site / "models").mkdir(parents=True)
+    (tmp_path / "secret.glb").write_bytes(b"not yours")
+    board = site / "b" / "x.hcdf"
+    board.parent.mkdir()
+    board.write_text(
+        '<hcdf version="1.0" name="x"><comp name="c"><visual name="v">'
+        '<model href="models/../../secret.glb"/></visual></comp></hcdf>\n'
+    )
+    tree = ("--base", site, "--lock", tmp_path / "x.lock", "--cache-dir", tmp_path / "cache")
+    for args in (("resolve", board, *tree), ("sbom", board, "--format", "spdx", *tree)):
+        r = cli(*args, "--json")
+        assert r.exit_code == 3, (args, r.stdout)
+        assert "path-escape" in [e["code"] for e in r.json["errors"]]
+    r = cli("audit", board, "--base", site, "--json")  # no lock: audit reports what it finds
+    assert r.exit_code == 1 and any(f["code"] == "path-escape" for f in r.json["findings"])
+
+
+def test_the_demos_flattened_document_is_planned_and_given_an_sbom_with_root(cli, tmp_path, monkeypatch):
+    shutil.copytree(PROJECT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("out"))
+    monkeypatch.chdir(tmp_path)
+    flat = "examples/out/scout2.flat.hcdf"
+    cache = ("--cache-dir", "cache")
+    r = cli("resolve", "examples/robot/robot.hcdf", "--locked", "--root", "examples", "--out", flat, *cache)
+    assert r.exit_code == 0, r.stderr
+    assert cli("resolve", flat, "--root", "examples", *cache).exit_code == 0
+    # Without --root, the flattened document's references leave its folder: refused.
+    assert cli("macsec", "plan", flat, *cache).exit_code != 0
+    plan = cli("macsec", "plan", flat, "--root", "examples", *cache, "--json")
+    assert plan.exit_code == 0, plan.stderr
+    original = cli("macsec", "plan", "examples/robot/robot.hcdf", *cache, "--json")
+    assert original.exit_code == 0, original.stderr
+    assert sorted(a["id"] for a in plan.json["associations"]) == sorted(a["id"] for a in original.json["associations"])
+    sbom = cli("sbom", flat, "--format", "cyclonedx", "--root", "examples", *cache, "--json")
+    assert sbom.exit_code == 0, sbom.stderr
+    assert sbom.json["ok"] is True and sbom.json["sbom"]["bomFormat"] == "CycloneDX"
