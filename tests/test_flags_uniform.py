@@ -132,3 +132,63 @@ def test_resolve_update_before_or_after_doc(tmp_path, monkeypatch, cli, order, u
     else:
         assert r.exit_code == 0, r.stderr
         assert json.loads(r.stdout)["ok"] is True
+
+
+def _shape(r, *keys: str) -> dict:
+    """The README's --json rules: exit 0, one JSON object on stdout, ok true, errors [], the keys."""
+    assert r.exit_code == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ok"] is True and out["errors"] == []
+    assert set(keys) <= set(out), (keys, sorted(out))
+    return out
+
+
+def test_the_registry_verbs_print_one_json_object(cli, tmp_path, monkeypatch):
+    from tests._registry import PASSPHRASE, PROFILE, ROS2_XSD
+
+    from .conftest import HCDFORMAT
+
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    src, keys, owner = tmp_path / "src", tmp_path / "keys", tmp_path / "keys-ros2"
+    init = _shape(cli("registry", "init", src, "--keys", keys, "--json"), "roles")
+    assert set(init["roles"]) == {"root", "targets", "snapshot", "timestamp"}
+    keygen = _shape(cli("registry", "keygen", "--keys", owner, "-o", tmp_path / "ros2.pub", "--json"), "keyid")
+    assert (owner / f"{keygen['keyid']}.key").is_file()
+    add = ["registry", "add", src, "--domain", "org.ros2", "--version", "1.0", "--schema", ROS2_XSD]
+    add += ["--content", HCDFORMAT, "--keys", owner, "--owner", "ROS 2", "--owner-key", tmp_path / "ros2.pub"]
+    assert _shape(cli(*add, "--json"), "recorded")["unchanged"] is False
+    profile = ["registry", "add", src, "--profile", PROFILE, "--content", HCDFORMAT, "--json"]
+    _shape(cli(*profile), "recorded")
+    assert _shape(cli(*profile), "recorded")["unchanged"] is True  # again: nothing to record
+    statement = ["registry", "statement", "--domain", "org.ros2", "--version", "1.0", "--schema", ROS2_XSD]
+    stmt = _shape(cli(*statement, "--content", HCDFORMAT, "-o", tmp_path / "s.json", "--json"), "wrote")
+    assert stmt["wrote"] == [str(tmp_path / "s.json")] and (tmp_path / "s.json").is_file()
+    site = tmp_path / "site"
+    publish = ["registry", "publish", src, "--keys", keys, "--keys", owner, "--content", HCDFORMAT, "-o", site]
+    _shape(cli(*publish, "--json"), "versions")
+    client = ["--from", site, "--trusted-root", site / "metadata" / "1.root.json", "--cache-dir", tmp_path / "c"]
+    fetched = _shape(cli("registry", "fetch", "org.ros2", *client, "-o", tmp_path / "ros2.xsd", "--json"), "size")
+    assert fetched["size"] == len(ROS2_XSD.read_bytes()) == len((tmp_path / "ros2.xsd").read_bytes())
+    rotated = _shape(cli("registry", "rotate", src, "--role", "timestamp", "--keys", keys, "--json"), "keyid")
+    assert rotated["role"] == "timestamp" and rotated["keyid"] != init["roles"]["timestamp"]
+
+
+@pytest.mark.parametrize("fmt", ["cyclonedx", "spdx"])
+def test_sbom_json_holds_the_sbom_or_names_the_file(cli, tmp_path, monkeypatch, fmt):
+    shutil.copytree(PROJECT / "examples" / "robot", tmp_path / "robot")
+    monkeypatch.chdir(tmp_path)
+    plain = cli("sbom", "robot/robot.hcdf", "--format", fmt)
+    assert plain.exit_code == 0, plain.stderr
+    inline = _shape(cli("sbom", "robot/robot.hcdf", "--format", fmt, "--json"), "sbom", "warnings", "wrote")
+    assert inline["sbom"] == json.loads(plain.stdout) and inline["wrote"] == []
+    written = _shape(cli("sbom", "robot/robot.hcdf", "--format", fmt, "-o", "bom.json", "--json"), "wrote")
+    assert written["wrote"] == ["bom.json"] and "sbom" not in written
+    assert json.loads((tmp_path / "bom.json").read_bytes()) == inline["sbom"]
+
+
+def test_every_json_object_has_ok_and_errors(cli, tmp_path, monkeypatch):
+    # emit_json adds the README's "errors" to a payload that lacks it (macsec plan did).
+    shutil.copytree(PROJECT / "examples" / "robot", tmp_path / "robot")
+    monkeypatch.chdir(tmp_path)
+    _shape(cli("macsec", "plan", "robot/robot.hcdf", "--json"), "associations")
+    _shape(cli("verify", "robot/robot.hcdf", "--json"), "artifacts")

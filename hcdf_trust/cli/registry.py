@@ -400,6 +400,7 @@ def publish(
                 "versions": result.versions,
                 "signed": result.signed,
                 "written": [str(p) for p in result.written],
+                "errors": [],
             }
         )
     else:
