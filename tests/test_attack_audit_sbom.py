@@ -297,3 +297,15 @@ def test_the_demos_flattened_document_is_planned_and_given_an_sbom_with_root(cli
     sbom = cli("sbom", flat, "--format", "cyclonedx", "--root", "examples", *cache, "--json")
     assert sbom.exit_code == 0, sbom.stderr
     assert sbom.json["ok"] is True and sbom.json["sbom"]["bomFormat"] == "CycloneDX"
+
+
+@pytest.mark.parametrize("twice", ["override2", "network2"])
+def test_validate_reads_a_links_macsec_as_the_planner_does(cli, tmp_path, twice):
+    # validate's cipher rule judged the first <macsec>, the planner refuses two: one reading.
+    doc = tmp_path / "net.hcdf"
+    fields = dict.fromkeys(NET_SECOND, "")
+    fields[twice] = NET_SECOND[twice][0]
+    doc.write_text(NETWORK.format(**fields))
+    r = cli("validate", doc, "--json")
+    assert r.exit_code == 3, r.stdout
+    assert [e["code"] for e in r.json["errors"]] == ["ambiguous"]
