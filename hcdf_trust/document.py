@@ -218,17 +218,13 @@ _ATTRIBUTE_REFERENCES = ("include", "model", "mesh", "stream-profile")
 _TEXT_REFERENCES = ("hash", "firmware-manifest-uri")
 _REFERENCE_TAGS = (*_ATTRIBUTE_REFERENCES, *_TEXT_REFERENCES, "extension")
 _REFERENCE_ATTR_NAMES = frozenset((*URI_ATTRS, "sha"))
-# Children that hcdf.xsd allows once (maxOccurs="1") and that a verb reads: child -> parent.
-# The walker refuses a second one; every verb reads them through single() / single_text().
-_ONCE_IN = {
-    "version": "software",
-    "hash": "software",
-    "firmware-manifest-uri": "software",
-    "board": "comp",
-    "software": "comp",
-}
-_WALK_TAGS = (*_REFERENCE_TAGS, *(t for t in _ONCE_IN if t not in _REFERENCE_TAGS))
-_TEXT_ONCE = frozenset(("version", "board"))  # read by single_text(): plain text only
+# Children that hcdf.xsd allows once (maxOccurs="1") and that a verb reads, checked from the
+# <software> they belong to (or sit in): a second one is refused, and every verb reads them
+# through single() / single_text(). (Walking <software>, not <version>, keeps root.iter() free
+# on documents without firmware: lxml skips a walk for names the document never uses, and
+# "version" is the root's attribute in every document.)
+_ONCE_IN_SOFTWARE = ("version", "hash", "firmware-manifest-uri")
+_WALK_TAGS = (*_REFERENCE_TAGS, "software")
 _XML_BASE = "{http://www.w3.org/XML/1998/namespace}base"
 _XML_SPACE = " \t\r\n"
 _NAMESPACED_ELEMENTS = etree.XPath("//*[namespace-uri()]")
@@ -305,16 +301,9 @@ def _walk(
         if opaque and _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
         tag = el.tag
-        if tag in _ONCE_IN:  # a second <hash>, <version>, <board>...: one of the lines that make it ambiguous
-            parent = el.getparent()
-            if parent is not None and parent.tag == _ONCE_IN[tag]:
-                first = next(el.itersiblings(tag, preceding=True), None)
-                if first is not None:
-                    problems.append(_twice(parent, [first, el], source))
-                if tag in _TEXT_ONCE and len(el):
-                    problems.append(_not_plain_text(el, source))
-            if tag not in _REFERENCE_TAGS:
-                continue
+        if tag == "software":
+            _check_software(el, source, problems)
+            continue
         try:
             ref = (tag == "model" and _plain_model(el)) or _reference(el, tag, source)
         except AmbiguousError as exc:
@@ -322,6 +311,30 @@ def _walk(
             continue
         if ref is not None:
             add(ref)
+
+
+def _check_software(sw: etree._Element, source: str, problems: list[AmbiguousError]) -> None:
+    """Refuse what the verbs read of a ``<software>`` written so that two readers could
+    differ: its ``<version>``, ``<hash>``, ``<firmware-manifest-uri>`` twice, a second
+    ``<software>`` in its ``<comp>``, the comp's ``<board>`` twice, and a ``<version>`` or
+    ``<board>`` that is not plain text."""
+    tags = [child.tag for child in sw]
+    if len(set(tags)) < len(tags):  # some child twice (the common case, all distinct, stops here)
+        for tag in _ONCE_IN_SOFTWARE:
+            if tags.count(tag) > 1:
+                problems.append(_twice(sw, list(sw.iterchildren(tag)), source))
+    texts = [el for el in sw.iterchildren("version") if len(el)][:1]
+    comp = sw.getparent()
+    if comp is not None and comp.tag == "comp":
+        first = next(sw.itersiblings("software", preceding=True), None)
+        if first is not None:
+            problems.append(_twice(comp, [first, sw], source))
+        else:  # (the comp's board checked once, from its first <software>)
+            boards = list(comp.iterchildren("board"))
+            if len(boards) > 1:
+                problems.append(_twice(comp, boards, source))
+            texts += [el for el in boards[:1] if len(el)]
+    problems.extend(_not_plain_text(el, source) for el in texts)
 
 
 def _plain_model(el: etree._Element) -> Reference | None:

@@ -253,7 +253,7 @@ def test_without_base_the_message_names_a_flag_the_verb_takes(cli, tmp_path):
     assert cli("resolve", board, "--base", MODELS, *tree).exit_code == 0
     r = cli("sbom", board, "--format", "spdx", *tree)
     assert r.exit_code == 1  # not found where the document is, and so not what the lock says
-    assert f"resolve with --base {MODELS}" in r.stderr
+    assert f"give --base {MODELS} (every verb that reads a tree takes it)" in r.stderr
     # ... and following the advice works on this very verb:
     assert cli("sbom", board, "--format", "spdx", "--base", MODELS, *tree).exit_code == 0
 

@@ -391,7 +391,8 @@ def explain_missing(exc: NotFoundError, *, uri: str | None, referrer_url: str, b
                 shown = display_path(above)
                 hint = (
                     f"; {relative} exists under {shown}: if the reference is relative to a site root "
-                    f"(as published hcdf_models fragments write it), resolve with --base {shown}"
+                    f"(as published hcdf_models fragments write it), give --base {shown} "
+                    "(every verb that reads a tree takes it)"
                 )
                 break
         else:
