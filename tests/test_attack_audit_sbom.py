@@ -309,3 +309,23 @@ def test_validate_reads_a_links_macsec_as_the_planner_does(cli, tmp_path, twice)
     r = cli("validate", doc, "--json")
     assert r.exit_code == 3, r.stdout
     assert [e["code"] for e in r.json["errors"]] == ["ambiguous"]
+
+
+def test_validate_finds_site_root_includes_with_base_and_stays_inside_root(cli, tmp_path):
+    # A site-root include hides a frame-convention mismatch from validate without --base (the
+    # include is "not read", a warning); with resolve's --base it is read and judged.
+    site = tmp_path / "site"
+    (site / "b").mkdir(parents=True)
+    (site / "parts").mkdir()
+    doc = site / "b" / "x.hcdf"
+    doc.write_text('<hcdf version="1.0" name="x" body-frame="FLU"><include uri="parts/p.hcdf" name="p"/></hcdf>\n')
+    (site / "parts" / "p.hcdf").write_text('<hcdf version="1.0" name="p" body-frame="FRD"><comp name="c"/></hcdf>\n')
+    blind = cli("validate", doc, "--json")
+    assert blind.exit_code == 0 and [f["code"] for f in blind.json["findings"]] == ["include-unchecked"]
+    seen = cli("validate", doc, "--base", site, "--json")
+    assert seen.exit_code == 1
+    assert [e["code"] for e in seen.json["errors"]] == ["frame-convention-mismatch"]
+    # --root narrower than --base: the include lies outside it, refused as resolve refuses it.
+    narrow = cli("validate", doc, "--base", site, "--root", site / "b", "--json")
+    assert narrow.exit_code == 1
+    assert [e["code"] for e in narrow.json["errors"]] == ["include-refused"]
