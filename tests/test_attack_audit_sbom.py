@@ -329,3 +329,28 @@ def test_validate_finds_site_root_includes_with_base_and_stays_inside_root(cli, 
     narrow = cli("validate", doc, "--base", site, "--root", site / "b", "--json")
     assert narrow.exit_code == 1
     assert [e["code"] for e in narrow.json["errors"]] == ["include-refused"]
+
+
+def test_macsec_keys_for_the_flattened_document_with_root_and_no_index_for_it(cli, tmp_path, monkeypatch):
+    # generate/export take --root like resolve. The export index (a fast path that assumes the
+    # tree is where resolve finds it by default) is not written for such a run, so an export
+    # without --root cannot reuse a plan made with it: it plans in full, and fails as resolve does.
+    from hcdf_trust.macsec import index
+
+    shutil.copytree(PROJECT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("out"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HCDF_TRUST_MACSEC_PASSPHRASE", "not a secret, a test")
+    flat = "examples/out/scout2.flat.hcdf"
+    r = cli("resolve", "examples/robot/robot.hcdf", "--root", "examples", "--out", flat, "--cache-dir", "c")
+    assert r.exit_code == 0, r.stderr
+    assert cli("resolve", flat, "--root", "examples", "--cache-dir", "c").exit_code == 0
+    store = ("--store", "store")
+    r = cli("macsec", "generate", flat, *store, "--root", "examples", "--cache-dir", "c", "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["created"]
+    assert not (tmp_path / index.path_in("store")).exists()
+    out = ["--device", "compute", "--format", "json", "-o", "keys"]
+    r = cli("macsec", "export", flat, *store, *out, "--root", "examples", "--cache-dir", "c", "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["planned_from"] == "description" and r.json["files"]
+    assert cli("macsec", "export", flat, *store, *out, "--cache-dir", "c").exit_code != 0

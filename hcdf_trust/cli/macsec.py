@@ -203,6 +203,14 @@ def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]
     return out
 
 
+def _indexed(doc: str, tree: Any) -> str | None:
+    """``doc``, whose export index generate and rotate write, when its tree is found where
+    resolve finds it by default (the index's fast path assumes so); None otherwise."""
+    from ..include.resolver import TreeOptions
+
+    return doc if tree == TreeOptions() else None
+
+
 def _save(
     store: Any, now: Any, *, doc: str | None, p: Any, passphrase_file: str | None, backend: dict[str, Any]
 ) -> None:
@@ -260,7 +268,7 @@ def generate(
             store = fresh.result() if fresh is not None else KeyStore.create(store_dir, wrapper)
         keep_until_exit(store)
         created, notices = run(store, p, now=now)
-        _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=_indexed(doc, tree), p=p, passphrase_file=passphrase_file, backend=backend)
     warnings = [*p.warnings, *notices]
     if as_json:
         emit_json(
@@ -363,7 +371,7 @@ def rotate(
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
-        _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=_indexed(doc, tree), p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
