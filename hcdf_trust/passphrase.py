@@ -22,6 +22,7 @@ from .scrub import remember
 
 PASSPHRASE_ENV = "HCDF_TRUST_PASSPHRASE"
 PIN_ENV = "HCDF_TRUST_PKCS11_PIN"
+RENAMED = "HCDF_TRUST_MACSEC_PASSPHRASE"  # macsec's own variable before the one rule: named, not read
 MAX_SECRET_BYTES = 4 << 10
 
 
@@ -55,7 +56,10 @@ def _read(file: str | os.PathLike[str] | None, *, env: str, what: str, flag: str
         source = env
         data = os.environ[env].encode("utf-8", "surrogateescape")
     elif required:
-        raise SecretFileError(f"no {what}: give {flag} FILE or set {env} (a {what} is never taken on the command line)")
+        renamed = f"; {RENAMED} is now {env}" if env == PASSPHRASE_ENV and os.environ.get(RENAMED) else ""
+        raise SecretFileError(
+            f"no {what}: give {flag} FILE or set {env} (a {what} is never taken on the command line){renamed}"
+        )
     else:
         return None
     return _value(data, source=source, what=what)
