@@ -439,6 +439,7 @@ def export(
     import os
 
     from ..macsec.store import KeyStore
+    from ..outputs import key_kind
 
     now = _now(now_text)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
@@ -477,9 +478,19 @@ def export(
         found.protect(out)
     out.protect(store.path, what="the key store")
     out.protect(index.path_in(store_dir), what="the export index")
+    out.protect_tree(store.path.parent, what="the key store's folder")
     for name in sorted(files):
-        out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
-    os.makedirs(out_dir, mode=0o700, exist_ok=True)
+        # a re-export replaces the previous one's EAP-TLS device key: key material of the same kind
+        kind = key_kind(files[name])
+        out.add(
+            os.path.join(out_dir, name),
+            files[name],
+            flag="--out",
+            mode=0o600,
+            under=out_dir,
+            folder_mode=0o700,
+            replaces=None if kind is None else (kind,),
+        )
     written = out.commit()
     if as_json:
         emit_json(

@@ -43,6 +43,14 @@ def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
     return KeyRing(keys, lambda: read_passphrase(passphrase_file))
 
 
+def _plan(passphrase_file: str | None) -> OutputPlan:
+    """The run's OutputPlan, with the passphrase file (an input of every verb that signs) protected."""
+    plan = OutputPlan()
+    if passphrase_file is not None:
+        plan.protect(passphrase_file, what="the passphrase file")
+    return plan
+
+
 def _commit(plan: OutputPlan, keydir: Path) -> None:
     """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
     from ..registry.keys import prepare_keydir
@@ -91,7 +99,7 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
     _commit(plan, Path(keydir))
     for role, t in root.roles.items():
@@ -102,15 +110,16 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
 @registry.command()
 @click.option("--keys", "keydir", required=True, type=click.Path(file_okay=False), help="Folder for the private key.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Public key file to write.")
+@click.option("--force", is_flag=True, help="Replace an existing public key file at --out.")
 @passphrase_option
 @handle_errors
-def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
+def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None) -> None:
     """Make an owner key: the private half in --keys, the public half in --out."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
-    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
+    plan = _plan(passphrase_file)
+    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan, force=force)
     _commit(plan, Path(keydir))
     click.echo(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key", err=True)
 
@@ -190,7 +199,7 @@ def add(
     if len(chosen) != 1:
         raise click.UsageError("give exactly one of --domain, --profile or --core")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     content = Path(content_dir)
     if profile:
         name, ver = edit.profile_identity(profile)
@@ -245,7 +254,9 @@ def add(
     show_default=True,
     help="Content folder the schema lies in.",
 )
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@click.option(
+    "-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement (- for stdout)."
+)
 @handle_errors
 def statement(domain: str, version: str, schema: str, content_dir: str, out: str) -> None:
     """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
@@ -253,9 +264,11 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
-    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
+    plan.protect_tree(content_dir, what="the content folder")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o", stdout=True)
     plan.commit()
-    click.echo(f"statement for {domain} {version} written to {out}", err=True)
+    if out != "-":
+        click.echo(f"statement for {domain} {version} written to {out}", err=True)
 
 
 @registry.command()
@@ -285,7 +298,7 @@ def rotate(
     if (role is None) == (domain is None):
         raise click.UsageError("give exactly one of --role or --domain")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     keydir = Path(keydirs[0])
     passphrase = read_passphrase(passphrase_file)
     if role:
@@ -348,7 +361,7 @@ def publish(
     from ..registry.source import load_source
 
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     plan.protect_tree(source_dir, what="the registry source")
     plan.protect_tree(content_dir, what="the content folder")
     for k in keydirs:
@@ -456,7 +469,13 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 )
 @click.option("--from", "site", required=True, help="Registry site: an http(s) URL or a folder.")
 @_with_client_options
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
+@click.option(
+    "-o",
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Where to write the verified file (- for stdout).",
+)
 @handle_errors
 def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str) -> None:
     """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
@@ -488,9 +507,9 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
     plan.protect_tree(client.cache_dir, what="the registry cache")
     if "://" not in site:
         plan.protect_tree(site, what="the registry site")
-    plan.add(out, data, flag="-o")
+    plan.add(out, data, flag="-o", stdout=True)
     plan.commit()
-    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
+    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {'stdout' if out == '-' else out}", err=True)
 
 
 def validate_with_registry(

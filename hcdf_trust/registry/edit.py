@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import NEW_ONLY, PUBLIC_KEY, OutputPlan
 from . import keys as keymod
 from .errors import RefusedError, SourceError
 from .source import (
@@ -71,12 +71,17 @@ def init(source_dir: Path, keydir: Path, passphrase: bytes, *, plan: OutputPlan)
     return root
 
 
-def keygen(keydir: Path, public_out: Path, passphrase: bytes, *, plan: OutputPlan) -> PublicKey:
-    """A new owner key: the private half in ``keydir``, the public half (TOML) in ``public_out``."""
+def keygen(keydir: Path, public_out: Path, passphrase: bytes, *, plan: OutputPlan, force: bool = False) -> PublicKey:
+    """A new owner key: the private half in ``keydir``, the public half (TOML) in ``public_out``.
+
+    An existing ``public_out`` is replaced only with ``force``, and only when it is a public key.
+    """
+    replaces = (PUBLIC_KEY,) if force else NEW_ONLY
+    plan.check(public_out, flag="--out", replaces=replaces)  # before the passphrase is spent on a key
     key = keymod.plan_private(plan, keydir, keymod.generate(), passphrase)
     text = f'# hcdf-trust registry owner public key\nkeyid = "{key.keyid}"\n'
     text += "".join(f'{k} = "{v}"\n' for k, v in key.to_toml().items())
-    plan.add(public_out, text.encode(), flag="--out")
+    plan.add(public_out, text.encode(), flag="--out", replaces=replaces)
     return key
 
 

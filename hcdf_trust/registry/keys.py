@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..localfile import read_input
-from ..outputs import OutputPlan
+from ..outputs import NEW_ONLY, OutputPlan
 from .errors import KeyFileError, RefusedError
 from .source import PublicKey, compute_keyid
 
@@ -65,7 +65,7 @@ def plan_private(plan: OutputPlan, keydir: Path, private: Ed25519PrivateKey, pas
 
     pem = private.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, BestAvailableEncryption(passphrase))
     key = public_of(private)
-    plan.add(keydir / f"{key.keyid}.key", pem, flag="--keys", mode=0o600)
+    plan.add(keydir / f"{key.keyid}.key", pem, flag="--keys", mode=0o600, replaces=NEW_ONLY)
     return key
 
 
