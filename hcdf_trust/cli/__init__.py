@@ -6,6 +6,7 @@ need them, so ``--help`` and an offline ``verify`` start fast.
 
 from __future__ import annotations
 
+import errno
 import functools
 import gc
 import json
@@ -248,6 +249,63 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
+class _ClosedStdout:
+    """Standard output when the process was started with it closed (``>&-``): every write fails,
+    so a verb that prints its result exits 3 instead of printing nothing and succeeding."""
+
+    def write(self, data: object) -> int:
+        raise OSError(errno.EBADF, "standard output is closed")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    @property
+    def buffer(self) -> _ClosedStdout:  # sys.stdout.buffer.write(bytes) fails the same way
+        return self
+
+
+def _standard_streams() -> None:
+    """Keep descriptors 0-2 taken (/dev/null where the process was started with one closed), so
+    that no file this run opens becomes its stdout or stderr; a closed stdout then refuses writes."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+            if fd == 1:
+                sys.stdout = _ClosedStdout()
+
+
+def _stdout_failed(exc: OSError) -> None:
+    """When standard output cannot be written (closed, full, a closed pipe), say so and exit 3;
+    otherwise return (``exc`` is someone else's to report)."""
+    stream: Any = sys.stdout
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    frame = tb.tb_frame if tb is not None else None
+    # every line a verb prints goes through click.echo (err=False: stdout), which also flushes it
+    echoed = frame is not None and frame.f_code.co_name == "echo" and frame.f_globals.get("__name__") == "click.utils"
+    if not (isinstance(stream, _ClosedStdout) or (echoed and frame is not None and not frame.f_locals.get("err"))):
+        return
+    try:  # what is still buffered goes nowhere, so the exit's own flush does not fail again
+        fd = stream.fileno()
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, fd)
+        os.close(null)
+    except (AttributeError, OSError, ValueError):
+        pass
+    why = exc.strerror or str(exc)
+    click.echo(f"error: cannot write to standard output: {why}", err=True)
+    raise click.exceptions.Exit(3)
+
+
 # Objects that a console-script run leaves for the kernel to reclaim (see _Main); None in-process.
 _KEPT: list[object] | None = None
 
@@ -270,12 +328,26 @@ class _Main(click.Group):
     An interrupt exits 130, as shells report SIGINT, not click's 1 ("Aborted!"), which a
     build script would read as an integrity failure."""
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        _standard_streams()
+        return super().main(*args, **kwargs)
+
+    def make_context(self, *args: Any, **kwargs: Any) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except OSError as exc:  # --help into a full or closed stdout
+            _stdout_failed(exc)
+            raise
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
             click.echo("interrupted: nothing more was written", err=True)
             ctx.exit(130)
+        except OSError as exc:
+            _stdout_failed(exc)
+            raise
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *_LAZY_COMMANDS})

@@ -5,8 +5,6 @@ The SBOM libraries are imported inside the command only (start-up stays light).
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from . import handle_errors
@@ -17,7 +15,9 @@ from . import handle_errors
 @click.option(
     "--format", "fmt", required=True, type=click.Choice(["cyclonedx", "spdx"]), help="CycloneDX 1.6 or SPDX 3.0.1 JSON."
 )
-@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout].")
+@click.option(
+    "-o", "--out", default="-", type=click.Path(dir_okay=False), help="Write the SBOM here (- for stdout) [default: -]."
+)
 @click.option(
     "--release",
     "release_dir",
@@ -35,7 +35,7 @@ from . import handle_errors
 def sbom(
     doc: str,
     fmt: str,
-    out: str | None,
+    out: str,
     release_dir: str | None,
     key: str | None,
     lock_path: str | None,
@@ -72,17 +72,13 @@ def sbom(
     data = render(facts)
     for n in facts.notices:
         click.echo(f"warning: {n}", err=True)
-    if out is None:
-        sys.stdout.buffer.write(data)
-        sys.stdout.buffer.flush()
-        return
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)
     plan.protect(res.lock_path, what="the lock file")
     if release_dir is not None and key is not None:
         plan.protect_tree(release_dir, what="the release folder")
         plan.protect(key, what="the public key")
-    plan.add(out, data, flag="--out")
+    plan.add(out, data, flag="--out", stdout=True)
     from ..errors import display_path
 
     for path in plan.commit():
