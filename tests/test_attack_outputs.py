@@ -156,7 +156,6 @@ def _build_args(robot, out: Path) -> list[str]:
 def test_a_killed_ota_build_leaves_nothing_behind_once_the_next_build_ran(robot, cli, tmp_path):
     out = tmp_path / "rel"
     assert robot.build(cli, out).exit_code == 0
-    release = tree(out)
     robot.rewrite(cli, flex_version="v0.3.0")
     # killed with every file staged and the first ones renamed (their backups made, not yet removed)
     _killed(_build_args(robot, out), "before", "release.suit")
@@ -215,9 +214,7 @@ def victims(tmp_path, cli):
     (tmp_path / "pass").write_text(PASSPHRASE + "\n")
     (tmp_path / "pass").chmod(0o600)
     (tmp_path / "robot.hcdf").write_text('<?xml version="1.0"?>\n<hcdf version="1.0" name="r"/>\n')
-    return {
-        name: (tmp_path / name).read_bytes() for name in ("fw.pem", "fw.pub.pem", "pass", "robot.hcdf")
-    }
+    return {name: (tmp_path / name).read_bytes() for name in ("fw.pem", "fw.pub.pem", "pass", "robot.hcdf")}
 
 
 @pytest.mark.parametrize("force", [False, True])
@@ -363,3 +360,36 @@ def test_a_full_or_closed_stdout_is_exit_3_with_a_message(tmp_path, case, stdout
 def test_a_verb_that_prints_nothing_on_stdout_is_unaffected_by_a_closed_one(tmp_path):
     proc = _run(["validate", str(_doc(tmp_path))], stdout=subprocess.DEVNULL, preexec_fn=lambda: os.close(1))
     assert proc.returncode == 0, proc.stderr
+
+
+# -- the registry client's downloads ------------------------------------------------------------
+
+KILLED_DOWNLOAD = """
+import os, signal, sys
+from tuf.ngclient import Updater
+real = Updater.download_target
+def download_target(self, *args, **kwargs):
+    real(self, *args, **kwargs)
+    os.kill(os.getpid(), signal.SIGKILL)  # downloaded, not yet read back nor cleaned up
+Updater.download_target = download_target
+from hcdf_trust.cli import main
+main(sys.argv[1:], prog_name="hcdf-trust")
+"""
+
+
+def test_a_killed_registry_fetch_leaves_no_partial_download_in_the_cache(registry_env, tmp_path):
+    """A target is downloaded into memory: nothing in the client cache outlives a kill."""
+    reg = registry_env
+    reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
+    reg.publish()
+    name = PROFILE.name.removesuffix(".streams.xml")
+    cache = reg.base / "client"
+    args = ["registry", "fetch", "profile", name, "--from", str(reg.site), "--trusted-root", str(reg.root_json)]
+    args += ["--cache-dir", str(cache), "-o", str(tmp_path / "got.xml")]
+    proc = subprocess.run([sys.executable, "-c", KILLED_DOWNLOAD, *args], cwd=PROJECT, capture_output=True, timeout=120)
+    assert proc.returncode == -9, proc.stderr
+    assert [p for p in (cache / "targets").rglob("*")] == []
+    assert not (tmp_path / "got.xml").exists()
+    r = reg.fetch("profile", name, out=tmp_path / "got.xml")
+    assert r.exit_code == 0, r.stderr
+    assert (tmp_path / "got.xml").read_bytes() == PROFILE.read_bytes()

@@ -51,19 +51,6 @@ def _plan(passphrase_file: str | None) -> OutputPlan:
     return plan
 
 
-def _commit(plan: OutputPlan, keydir: Path) -> None:
-    """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
-    from ..registry.keys import prepare_keydir
-
-    created = prepare_keydir(keydir)
-    try:
-        plan.commit()
-    except BaseException:
-        if created and not any(keydir.iterdir()):
-            keydir.rmdir()
-        raise
-
-
 sigstore_root_option = click.option(
     "--sigstore-trusted-root",
     "sigstore_root",
@@ -101,7 +88,7 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
 
     plan = _plan(passphrase_file)
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
+    plan.commit()
     for role, t in root.roles.items():
         click.echo(f"{role}: key {t.keyids[0]}", err=True)
     click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
@@ -120,7 +107,7 @@ def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None) -> N
 
     plan = _plan(passphrase_file)
     key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan, force=force)
-    _commit(plan, Path(keydir))
+    plan.commit()
     click.echo(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key", err=True)
 
 
@@ -306,7 +293,7 @@ def rotate(
     else:
         assert domain is not None
         key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
-    _commit(plan, keydir)
+    plan.commit()
     click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
 
 
