@@ -19,9 +19,10 @@ its outputs here first:
 
 What no output may replace, whoever writes it:
 
-- an input of the run (step 1), and key material found at the destination (a private
-  key, a public key, a MACsec key store: :func:`key_kind` reads its first bytes) unless
-  the output says it ``replaces`` that kind (``--force`` of a keygen, a store rewriting itself);
+- an input of the run (step 1), and a file that is a private or public key, a MACsec key
+  store, a registry source file or an HCDF document (:func:`kind_of` reads its first bytes)
+  unless the output says it ``replaces`` that kind (``--force`` of a keygen, a store
+  rewriting itself, a flattened document replacing the previous one);
 - a file reached through a symlinked folder inside an output tree: an output added
   ``under`` a tree root is written by opening each folder below the root relative to its
   parent's descriptor with ``O_NOFOLLOW | O_DIRECTORY`` (checked when planned, and again
@@ -56,18 +57,31 @@ class OutputError(InputError):
     code = "output"
 
 
+ORDINARY = "an ordinary file"  # none of the kinds below
 PRIVATE_KEY = "a private key"
 PUBLIC_KEY = "a public key"
 KEY_STORE = "a MACsec key store"
-NEW_ONLY = ()  # ``replaces=NEW_ONLY``: an existing destination is never replaced
+DOCUMENT = "an HCDF document"
+REGISTRY_SOURCE = "a registry source file"
+NEW_ONLY: tuple[str, ...] = ()  # ``replaces=NEW_ONLY``: an existing destination is never replaced
 
-# What key material starts with (within its first 4 KiB), and what it is called.
-_KEY_MARKS = (
+# What a file that no output may replace by default holds within its first 4 KiB (the first
+# mark found names it). Our own formats are named by the first line their writer puts there
+# (registry/source.py ``dump``, registry/edit.py ``keygen``): tests check the two agree.
+_MARKS = (
     (b"PRIVATE KEY-----", PRIVATE_KEY),  # PEM: PKCS#8, encrypted, EC, RSA, OpenSSH
     (b"AGE-SECRET-KEY-1", PRIVATE_KEY),
     (b'"hcdf-trust-macsec-store"', KEY_STORE),
     (b"-----BEGIN PUBLIC KEY-----", PUBLIC_KEY),
     (b"# hcdf-trust registry owner public key", PUBLIC_KEY),
+    (b"# An HCDF extension domain: only its owner's keys", REGISTRY_SOURCE),
+    (b"# Signed by the registry's targets key;", REGISTRY_SOURCE),
+    (b"# The registry's root of trust:", REGISTRY_SOURCE),
+    (b"<hcdf ", DOCUMENT),
+    (b"<hcdf>", DOCUMENT),
+    (b"<hcdf\n", DOCUMENT),
+    (b"<hcdf\t", DOCUMENT),
+    (b"<hcdf\r", DOCUMENT),
 )
 _SNIFF_BYTES = 4096
 
@@ -183,8 +197,9 @@ class OutputPlan:
         untouched (a build system then sees no change); :attr:`unchanged` lists it.
         ``under``: the root of the output tree ``path`` lies in (as the caller spelled
         it: ``path`` must start with it); no folder below it may be a symlink.
-        ``replaces``: None replaces any regular file but key material (:func:`key_kind`);
-        a tuple of kinds replaces only a file of those kinds (``NEW_ONLY``: nothing).
+        ``replaces``: the kinds (:func:`kind_of`) of existing file this output may replace:
+        None is ``(ORDINARY,)`` (never a key, key store, registry source or document);
+        ``NEW_ONLY`` is nothing (the destination must not exist).
         ``stdout``: ``path`` ``-`` means standard output. ``folder_mode``: of folders made.
 
         Raises:
@@ -413,8 +428,9 @@ class _Folders:
             except OSError as exc:
                 if exc.errno not in (errno.ELOOP, errno.ENOTDIR):
                     raise
-                folder = display_path(Path(out.base, *out.parts[:depth]))
-                what = "a symlink" if os.path.islink(folder) else "not a folder"
+                real = Path(out.base, *out.parts[:depth])
+                folder = display_path(real)
+                what = "a symlink" if os.path.islink(real) else "not a folder"
                 raise _SymlinkedFolder(
                     f"cannot write {out.flag} {out.shown}: {folder} is {what}: refusing to write through it",
                     out.shown,
@@ -581,14 +597,15 @@ def _existing(folder: Path) -> tuple[str, tuple[str, ...]]:
     return os.fspath(folder), tuple(reversed(missing))
 
 
-def key_kind(data: bytes) -> str | None:
-    """What key material ``data`` (a file's first bytes) holds: :data:`PRIVATE_KEY`,
-    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, or None."""
+def kind_of(data: bytes) -> str:
+    """What ``data`` (a file's first bytes) is, for the replace rule: :data:`PRIVATE_KEY`,
+    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, :data:`REGISTRY_SOURCE`, :data:`DOCUMENT`, else
+    :data:`ORDINARY`."""
     head = data[:_SNIFF_BYTES]
-    for mark, kind in _KEY_MARKS:
+    for mark, kind in _MARKS:
         if mark in head:
             return kind
-    return None
+    return ORDINARY
 
 
 def _check_replace(real: str, replaces: tuple[str, ...] | None, *, flag: str, shown: str) -> None:
@@ -598,20 +615,18 @@ def _check_replace(real: str, replaces: tuple[str, ...] | None, *, flag: str, sh
     try:
         fd = os.open(real, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError:
-        head = b""  # unreadable: replacing it is refused by nothing here (the rename may still fail)
+        head = None  # unreadable: it cannot be told apart from what it must not be
     else:
         try:
             head = os.read(fd, _SNIFF_BYTES)
         except OSError:
-            head = b""
+            head = None
         finally:
             os.close(fd)
-    kind = key_kind(head)
-    if replaces is None:
-        if kind is not None:
-            raise OutputError(f"{flag} {shown} holds {kind}: refusing to replace it", file=shown)
-    elif kind not in replaces:
-        what = f"holds {kind}" if kind else "is not " + " or ".join(replaces)
+    kind = kind_of(head) if head is not None else "a file that cannot be read"
+    allowed = (ORDINARY,) if replaces is None else replaces
+    if kind not in allowed:
+        what = f"is not {' or '.join(allowed)}" if kind == ORDINARY else f"is {kind}"
         raise OutputError(f"{flag} {shown} {what}: refusing to replace it", file=shown)
 
 

@@ -19,13 +19,23 @@ from pathlib import Path
 import pytest
 
 from hcdf_trust.ota.keys import generate, private_pem, public_pem
-from hcdf_trust.outputs import NEW_ONLY, PUBLIC_KEY, OutputError, OutputPlan
+from hcdf_trust.outputs import (
+    DOCUMENT,
+    NEW_ONLY,
+    PRIVATE_KEY,
+    PUBLIC_KEY,
+    REGISTRY_SOURCE,
+    OutputError,
+    OutputPlan,
+    kind_of,
+)
 
 from ._macsec import KILLER, humanoid
 from ._ota import make_robot, tree
 from ._registry import PASSPHRASE, PROFILE, ROS2_XSD, Registry
 
 PROJECT = Path(__file__).resolve().parents[1]
+ROBOT = PROJECT / "examples" / "robot" / "robot.hcdf"
 BOARD = "mr_mcxn_t1"
 
 
@@ -253,13 +263,17 @@ def test_ota_keygen_force_replaces_only_keys(tmp_path, victims, cli):
     assert (tmp_path / "fw.pem").read_bytes() != victims["fw.pem"]
 
 
-@pytest.mark.parametrize("victim", ["fw.pem", "fw.pub.pem"])
-def test_registry_statement_never_replaces_a_key(tmp_path, victims, cli, victim):
+@pytest.mark.parametrize("victim", ["fw.pem", "fw.pub.pem", "robot.hcdf", "src/root.toml"])
+def test_registry_statement_never_replaces_a_key_a_document_or_a_registry_source(
+    registry_env, tmp_path, victims, cli, victim
+):
+    path = tmp_path / victim if victim != "src/root.toml" else registry_env.src / "root.toml"
+    before = path.read_bytes()
     args = ["registry", "statement", "--domain", "org.ros2", "--version", "1.0", "--schema", ROS2_XSD]
-    r = cli(*args, "--content", ROS2_XSD.parents[1], "-o", tmp_path / victim)
+    r = cli(*args, "--content", ROS2_XSD.parents[1], "-o", path)
     assert r.exit_code == 3, r.stderr
     assert "refusing to replace it" in r.stderr
-    assert (tmp_path / victim).read_bytes() == victims[victim]
+    assert path.read_bytes() == before
     # -o - is standard output: the same bytes as a file
     r = cli(*args, "--content", ROS2_XSD.parents[1], "-o", "-")
     assert r.exit_code == 0, r.stderr
@@ -279,6 +293,20 @@ def test_macsec_export_refuses_the_key_store_folder(tmp_path, cli):
     assert r.exit_code == 3, r.stderr
     assert "inside the key store's folder" in r.stderr
     assert tree(tmp_path / "keys") == before
+
+
+def test_the_marks_match_what_our_own_writers_put_first(registry_env, tmp_path):
+    """The replace rule knows our formats by their first line: the writers must still write it."""
+    reg = registry_env
+    reg.run("keygen", "--keys", tmp_path / "k", "-o", tmp_path / "owner.pub")
+    reg.add_domain("org.ros2", "1.0", ROS2_XSD)
+    reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
+    assert kind_of((tmp_path / "owner.pub").read_bytes()) == PUBLIC_KEY
+    sources = [reg.src / "root.toml", *(p for p in reg.src.rglob("*.toml") if p.name != "root.toml")]
+    assert len(sources) >= 3
+    assert {kind_of(p.read_bytes()) for p in sources} == {REGISTRY_SOURCE}
+    assert kind_of(next((tmp_path / "k").iterdir()).read_bytes()) == PRIVATE_KEY
+    assert kind_of(ROBOT.read_bytes()) == DOCUMENT
 
 
 def test_key_material_is_replaced_only_by_an_output_that_says_so(tmp_path):

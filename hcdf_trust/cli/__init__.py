@@ -492,13 +492,16 @@ def resolve(
         plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
+        from ..outputs import DOCUMENT, ORDINARY
 
-        plan.check(out, flag="--out")  # an input is named as such, before flattening
+        flat = (ORDINARY, DOCUMENT)  # the previous flattened document; never one of the tree (an input)
+        plan.check(out, flag="--out", replaces=flat)  # an input is named as such, before flattening
         plan.add(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),
             flag="--out",
             if_changed=True,
+            replaces=flat,
         )
     wrote = plan.commit()
     _report(

@@ -439,7 +439,7 @@ def export(
     import os
 
     from ..macsec.store import KeyStore
-    from ..outputs import key_kind
+    from ..outputs import ORDINARY, kind_of
 
     now = _now(now_text)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
@@ -481,7 +481,7 @@ def export(
     out.protect_tree(store.path.parent, what="the key store's folder")
     for name in sorted(files):
         # a re-export replaces the previous one's EAP-TLS device key: key material of the same kind
-        kind = key_kind(files[name])
+        kind = kind_of(files[name])
         out.add(
             os.path.join(out_dir, name),
             files[name],
@@ -489,7 +489,7 @@ def export(
             mode=0o600,
             under=out_dir,
             folder_mode=0o700,
-            replaces=None if kind is None else (kind,),
+            replaces=(ORDINARY, kind),
         )
     written = out.commit()
     if as_json:

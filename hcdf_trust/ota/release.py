@@ -30,7 +30,7 @@ from ..digest import parse_pin
 from ..document import Kind, software_elements
 from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import DOCUMENT, ORDINARY, OutputPlan
 from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
@@ -260,7 +260,9 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         plan.add(path, data, flag="--out", under=options.out_dir)
     for url, data in edited.items():
         local = unquote(urlsplit(url).path)
-        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+        plan.add(
+            local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode), replaces=(ORDINARY, DOCUMENT)
+        )
     if edited:
         plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
