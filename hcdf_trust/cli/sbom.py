@@ -15,9 +15,7 @@ from . import handle_errors
 @click.option(
     "--format", "fmt", required=True, type=click.Choice(["cyclonedx", "spdx"]), help="CycloneDX 1.6 or SPDX 3.0.1 JSON."
 )
-@click.option(
-    "-o", "--out", default="-", type=click.Path(dir_okay=False), help="Write the SBOM here (- for stdout) [default: -]."
-)
+@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout, also -].")
 @click.option(
     "--release",
     "release_dir",
@@ -35,7 +33,7 @@ from . import handle_errors
 def sbom(
     doc: str,
     fmt: str,
-    out: str,
+    out: str | None,
     release_dir: str | None,
     key: str | None,
     lock_path: str | None,
@@ -78,7 +76,7 @@ def sbom(
     if release_dir is not None and key is not None:
         plan.protect_tree(release_dir, what="the release folder")
         plan.protect(key, what="the public key")
-    plan.add(out, data, flag="--out", stdout=True)
+    plan.add(out or "-", data, flag="--out", stdout=True)
     from ..errors import display_path
 
     for path in plan.commit():
