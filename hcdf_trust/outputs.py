@@ -306,6 +306,10 @@ class OutputPlan:
                 self.unchanged.append(out.path)
             else:
                 outputs.append(out)
+        # a folder whose outputs are all in place already is still swept (the lock beside a
+        # document, after a resolve killed while rewriting it)
+        for folder in {path.parent for path in self.unchanged} - {out.path.parent for out in outputs}:
+            sweep_folder(folder)
         folders = _Folders()
         staged: list[tuple[int, str, _Output]] = []  # (folder descriptor, temporary name, output)
         done: list[tuple[int, _Output, str | None]] = []  # renamed so far, with a link to the file they replaced

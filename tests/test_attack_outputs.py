@@ -421,3 +421,18 @@ def test_a_killed_registry_fetch_leaves_no_partial_download_in_the_cache(registr
     r = reg.fetch("profile", name, out=tmp_path / "got.xml")
     assert r.exit_code == 0, r.stderr
     assert (tmp_path / "got.xml").read_bytes() == PROFILE.read_bytes()
+
+
+def test_a_killed_resolve_leaves_nothing_once_the_next_resolve_ran_even_with_nothing_to_change(robot, cli):
+    """The lock beside the document: the next resolve finds it unchanged, and still sweeps its folder."""
+    folder = robot.doc.parent
+    lock = robot.doc.with_name(robot.doc.name + ".lock")
+    canonical = lock.read_bytes()
+    lock.write_bytes(canonical + b" ")  # so that resolve rewrites it (and is killed doing so)
+    _killed(["resolve", str(robot.doc)], "before", lock.name)
+    assert [n for n in hidden(folder) if n.startswith(f".{lock.name}.")], hidden(folder)
+    lock.write_bytes(canonical)  # the next resolve has nothing to write
+    r = cli("resolve", robot.doc)
+    assert r.exit_code == 0, r.stderr
+    assert lock.read_bytes() == canonical
+    assert [n for n in hidden(folder) if n.startswith(f".{lock.name}.")] == []
