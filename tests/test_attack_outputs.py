@@ -436,3 +436,18 @@ def test_a_killed_resolve_leaves_nothing_once_the_next_resolve_ran_even_with_not
     assert r.exit_code == 0, r.stderr
     assert lock.read_bytes() == canonical
     assert [n for n in hidden(folder) if n.startswith(f".{lock.name}.")] == []
+
+
+def test_a_killed_registry_refresh_leaves_no_temporary_file_in_the_client_cache(registry_env):
+    """python-tuf's metadata writes go through OutputPlan: the next refresh removes what a killed one staged."""
+    reg = registry_env
+    reg.run("add", reg.src, "--profile", PROFILE, "--content", reg.content)
+    reg.publish()
+    args = ["registry", "verify", *map(str, reg.client_args())]
+    _killed(args, "before", "timestamp.json")
+    metadata = reg.base / "client" / "metadata"
+    strays = lambda: sorted(p.name for p in metadata.iterdir() if not p.name.endswith(".json") and p.is_file())  # noqa: E731
+    assert strays() or hidden(metadata), sorted(p.name for p in metadata.iterdir())  # the kill left something
+    r = reg.run("verify", *reg.client_args())
+    assert r.exit_code == 0, r.stderr
+    assert strays() == [] and hidden(metadata) == []

@@ -135,7 +135,7 @@ class RegistryClient:
     """
 
     def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
-        from tuf.ngclient import Updater, Urllib3Fetcher
+        from tuf.ngclient import Urllib3Fetcher
 
         self.site = site
         local = "://" not in site
@@ -155,7 +155,7 @@ class RegistryClient:
                 raise InputError(f"{site}: a registry is an http(s) URL or a folder", file=site)
             base, fetcher = site.rstrip("/"), Urllib3Fetcher(socket_timeout=timeout)  # type: ignore[arg-type]
         try:
-            self.updater: Updater = Updater(
+            self.updater: Updater = _planned_updater()(
                 str(self.metadata_dir),
                 f"{base}/metadata/",
                 str(self.cache_dir / "targets"),
@@ -320,6 +320,24 @@ class RegistryClient:
                     actual=f"sha256:{now.hashes.get('sha256')} ({now.length} bytes)",
                     url=self.site,
                 )
+
+
+def _planned_updater() -> type[Updater]:
+    """python-tuf's Updater with its metadata written through OutputPlan: staged beside the
+    file, renamed, and a killed refresh's temporary file removed by the next one (python-tuf's
+    own ``tmpXXXX`` files would stay in the client cache for ever). Its one writer,
+    ``_persist_file``, is overridden; the test of a killed refresh notices if it is renamed."""
+    from tuf.ngclient import Updater
+
+    class PlannedUpdater(Updater):
+        def _persist_file(self, filename: str, data: bytes) -> None:
+            from ..outputs import OutputPlan
+
+            plan = OutputPlan()
+            plan.add(filename, data, flag="the registry client cache")
+            plan.commit()
+
+    return PlannedUpdater
 
 
 def default_cache_dir(site: str, trusted_root: bytes) -> Path:
