@@ -384,7 +384,7 @@ def write_stdout(data: bytes) -> None:
         stream.buffer.flush()
     except (OSError, ValueError) as exc:  # ValueError: the stream object was closed
         why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise OutputError(f"cannot write to standard output: {why}", file="-") from None
+        raise OutputError(f"cannot write to standard output: {why}") from None
 
 
 class _SymlinkedFolder(Exception):

@@ -344,7 +344,7 @@ def _run(args: list[str], **kw) -> subprocess.CompletedProcess[bytes]:
     return subprocess.run([sys.executable, "-c", RUN, *args], stderr=subprocess.PIPE, timeout=120, **kw)
 
 
-@pytest.mark.parametrize("case", ["validate-json", "error-json", "help", "statement"])
+@pytest.mark.parametrize("case", ["validate-json", "error-json", "help", "statement", "sbom"])
 @pytest.mark.parametrize("stdout", ["full", "closed", "broken-pipe"])
 def test_a_full_or_closed_stdout_is_exit_3_with_a_message(tmp_path, case, stdout):
     doc = _doc(tmp_path)
@@ -352,6 +352,7 @@ def test_a_full_or_closed_stdout_is_exit_3_with_a_message(tmp_path, case, stdout
         "validate-json": ["validate", str(doc), "--json"],
         "error-json": ["validate", str(tmp_path / "missing.hcdf"), "--json"],
         "help": ["--help"],
+        "sbom": ["sbom", str(ROBOT), "--format", "cyclonedx"],
         "statement": [
             "registry",
             "statement",
