@@ -326,8 +326,8 @@ def _standard_streams() -> None:
             if null != fd:
                 os.dup2(null, fd)
                 os.close(null)
-            if fd == 1:
-                sys.stdout = _ClosedStdout()
+    if sys.stdout is None:  # Python found fd 1 closed at start (it may hold another file by now)
+        sys.stdout = _ClosedStdout()
 
 
 def _stdout_failed(exc: OSError) -> None:
