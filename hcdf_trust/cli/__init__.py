@@ -6,6 +6,7 @@ need them, so ``--help`` and an offline ``verify`` start fast.
 
 from __future__ import annotations
 
+import errno
 import functools
 import gc
 import json
@@ -302,6 +303,63 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
+class _ClosedStdout:
+    """Standard output when the process was started with it closed (``>&-``): every write fails,
+    so a verb that prints its result exits 3 instead of printing nothing and succeeding."""
+
+    def write(self, data: object) -> int:
+        raise OSError(errno.EBADF, "standard output is closed")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    @property
+    def buffer(self) -> _ClosedStdout:  # sys.stdout.buffer.write(bytes) fails the same way
+        return self
+
+
+def _standard_streams() -> None:
+    """Keep descriptors 0-2 taken (/dev/null where the process was started with one closed), so
+    that no file this run opens becomes its stdout or stderr; a closed stdout then refuses writes."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+    if sys.stdout is None:  # Python found fd 1 closed at start (it may hold another file by now)
+        sys.stdout = _ClosedStdout()
+
+
+def _stdout_failed(exc: OSError) -> None:
+    """When standard output cannot be written (closed, full, a closed pipe), say so and exit 3;
+    otherwise return (``exc`` is someone else's to report)."""
+    stream: Any = sys.stdout
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    frame = tb.tb_frame if tb is not None else None
+    # every line a verb prints goes through click.echo (in say and emit_json; err=False: stdout), which flushes it
+    echoed = frame is not None and frame.f_code.co_name == "echo" and frame.f_globals.get("__name__") == "click.utils"
+    if not (isinstance(stream, _ClosedStdout) or (echoed and frame is not None and not frame.f_locals.get("err"))):
+        return
+    try:  # what is still buffered goes nowhere, so the exit's own flush does not fail again
+        fd = stream.fileno()
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, fd)
+        os.close(null)
+    except (AttributeError, OSError, ValueError):
+        pass
+    why = exc.strerror or str(exc)
+    say(f"error: cannot write to standard output: {why}")
+    raise click.exceptions.Exit(3)
+
+
 # Objects that a console-script run leaves for the kernel to reclaim (see _Main); None in-process.
 _KEPT: list[object] | None = None
 
@@ -328,6 +386,7 @@ class _Main(click.Group):
         from ..scrub import forget_all
 
         forget_all()  # an in-process caller's previous run: its passphrases are not this run's
+        _standard_streams()
         return super().main(*args, **kwargs)
 
     def make_context(self, *args: Any, **kwargs: Any) -> click.Context:
@@ -335,6 +394,9 @@ class _Main(click.Group):
             return super().make_context(*args, **kwargs)
         except click.ClickException as exc:
             raise _scrubbed(exc) from None
+        except OSError as exc:  # --help into a full or closed stdout
+            _stdout_failed(exc)
+            raise
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -344,6 +406,9 @@ class _Main(click.Group):
             ctx.exit(130)
         except click.ClickException as exc:  # a usage error of a verb: click prints it, filtered
             raise _scrubbed(exc) from None
+        except OSError as exc:
+            _stdout_failed(exc)
+            raise
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *_LAZY_COMMANDS})
@@ -534,13 +599,16 @@ def resolve(
         plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
+        from ..outputs import DOCUMENT, ORDINARY
 
-        plan.check(out, flag="--out")  # an input is named as such, before flattening
+        flat = (ORDINARY, DOCUMENT)  # the previous flattened document; never one of the tree (an input)
+        plan.check(out, flag="--out", replaces=flat)  # an input is named as such, before flattening
         plan.add(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),
             flag="--out",
             if_changed=True,
+            replaces=flat,
         )
     wrote = plan.commit()
     _report(

@@ -472,6 +472,7 @@ def export(
     import os
 
     from ..macsec.store import KeyStore
+    from ..outputs import ORDINARY, kind_of
 
     now = _now(now_given)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
@@ -513,9 +514,19 @@ def export(
         found.protect(out)
     out.protect(store.path, what="the key store")
     out.protect(index.path_in(store_dir), what="the export index")
+    out.protect_tree(store.path.parent, what="the key store's folder")
     for name in sorted(files):
-        out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
-    os.makedirs(out_dir, mode=0o700, exist_ok=True)
+        # a re-export replaces the previous one's EAP-TLS device key: key material of the same kind
+        kind = kind_of(files[name])
+        out.add(
+            os.path.join(out_dir, name),
+            files[name],
+            flag="--out",
+            mode=0o600,
+            under=out_dir,
+            folder_mode=0o700,
+            replaces=(ORDINARY, kind),
+        )
     written = out.commit()
     if as_json:
         emit_json(

@@ -5,7 +5,6 @@ imgtool, cbor2 and the COSE library are imported inside the commands only.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import click
@@ -35,9 +34,8 @@ def ota() -> None:
 @handle_errors
 def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_json: bool) -> None:
     """Generate a signing key with imgtool; the public key goes beside it (KEY.pub.pem)."""
-    from ..ota.errors import KeyFileError
     from ..ota.keys import generate, key_type, private_pem, public_path, public_pem
-    from ..outputs import OutputPlan
+    from ..outputs import NEW_ONLY, PRIVATE_KEY, PUBLIC_KEY, OutputPlan
     from ..passphrase import read_passphrase
 
     pub = public_path(out)
@@ -45,13 +43,14 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     if passphrase_file:
         plan.protect(passphrase_file, what="the passphrase file")
     passphrase = read_passphrase(passphrase_file, required=False)
-    if not force:
-        for path in (out, pub):
-            if os.path.lexists(path):
-                raise KeyFileError("exists: refusing to replace a key (use --force)", file=str(path))
+    # an existing key is replaced only with --force, and only by a key: never a document, never a passphrase file
+    plan.check(out, flag="--out", replaces=(PRIVATE_KEY,) if force else NEW_ONLY)
+    plan.check(pub, flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
     key = generate(kind)
-    plan.add(out, private_pem(key, passphrase), flag="--out", mode=0o600)
-    plan.add(pub, public_pem(key), flag="public key")
+    plan.add(
+        out, private_pem(key, passphrase), flag="--out", mode=0o600, replaces=(PRIVATE_KEY,) if force else NEW_ONLY
+    )
+    plan.add(pub, public_pem(key), flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
     plan.commit()
     result = {"type": key_type(key), "private": out, "public": str(pub), "encrypted": passphrase is not None}
     if as_json:

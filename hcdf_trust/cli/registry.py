@@ -30,17 +30,12 @@ def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
     return KeyRing(keys, lambda: read_passphrase(passphrase_file))
 
 
-def _commit(plan: OutputPlan, keydir: Path) -> None:
-    """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
-    from ..registry.keys import prepare_keydir
-
-    created = prepare_keydir(keydir)
-    try:
-        plan.commit()
-    except BaseException:
-        if created and not any(keydir.iterdir()):
-            keydir.rmdir()
-        raise
+def _plan(passphrase_file: str | None) -> OutputPlan:
+    """The run's OutputPlan, with the passphrase file (an input of every verb that signs) protected."""
+    plan = OutputPlan()
+    if passphrase_file is not None:
+        plan.protect(passphrase_file, what="the passphrase file")
+    return plan
 
 
 sigstore_root_option = click.option(
@@ -79,9 +74,9 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None, as_json: boo
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
+    plan.commit()
     if as_json:
         roles = {role: t.keyids[0] for role, t in root.roles.items()}
         emit_json({"ok": True, "source": source_dir, "keys": keydir, "roles": roles, "errors": []})
@@ -94,17 +89,18 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None, as_json: boo
 @registry.command()
 @click.option("--keys", "keydir", required=True, type=click.Path(file_okay=False), help="Folder for the private key.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Public key file to write.")
+@click.option("--force", is_flag=True, help="Replace an existing public key file at --out.")
 @passphrase_option
 @JSON_OPTION
 @handle_errors
-def keygen(keydir: str, out: str, passphrase_file: str | None, as_json: bool) -> None:
+def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None, as_json: bool) -> None:
     """Make an owner key: the private half in --keys, the public half in --out."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
-    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
+    plan = _plan(passphrase_file)
+    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan, force=force)
+    plan.commit()
     private = f"{keydir}/{key.keyid}.key"
     if as_json:
         emit_json({"ok": True, "keyid": key.keyid, "public": out, "private": private, "errors": []})
@@ -189,7 +185,7 @@ def add(
     if len(chosen) != 1:
         raise click.UsageError("give exactly one of --domain, --profile or --core")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     content = Path(content_dir)
     if profile:
         name, ver = edit.profile_identity(profile)
@@ -248,7 +244,9 @@ def add(
     show_default=True,
     help="Content folder the schema lies in.",
 )
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@click.option(
+    "-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement (- for stdout)."
+)
 @JSON_OPTION
 @handle_errors
 def statement(domain: str, version: str, schema: str, content_dir: str, out: str, as_json: bool) -> None:
@@ -257,12 +255,16 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
-    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out")
+    plan.protect_tree(content_dir, what="the content folder")
+    if out == "-" and as_json:
+        raise click.UsageError("-o - and --json would both write to stdout")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out", stdout=True)
     plan.commit()
     if as_json:
         emit_json({"ok": True, "domain": domain, "version": version, "wrote": [out], "errors": []})
         return
-    say(f"statement for {domain} {version} written to {out}")
+    if out != "-":
+        say(f"statement for {domain} {version} written to {out}")
 
 
 @registry.command()
@@ -298,7 +300,7 @@ def rotate(
     if (role is None) == (domain is None):
         raise click.UsageError("give exactly one of --role or --domain")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     keydir = Path(keydirs[0])
     passphrase = read_passphrase(passphrase_file)
     if role:
@@ -306,7 +308,7 @@ def rotate(
     else:
         assert domain is not None
         key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
-    _commit(plan, keydir)
+    plan.commit()
     if as_json:
         emit_json({"ok": True, "role": role, "domain": domain, "keyid": key.keyid, "errors": []})
         return
@@ -365,7 +367,7 @@ def publish(
     from ..registry.source import load_source
 
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     plan.protect_tree(source_dir, what="the registry source")
     plan.protect_tree(content_dir, what="the content folder")
     for k in keydirs:
@@ -466,7 +468,13 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 )
 @click.option("--from", "site", required=True, help="Registry site: an http(s) URL or a folder.")
 @_with_client_options
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
+@click.option(
+    "-o",
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Where to write the verified file (- for stdout).",
+)
 @JSON_OPTION
 @handle_errors
 def fetch(
@@ -501,13 +509,15 @@ def fetch(
     plan.protect_tree(client.cache_dir, what="the registry cache")
     if "://" not in site:
         plan.protect_tree(site, what="the registry site")
-    plan.add(out, data, flag="--out")
+    if out == "-" and as_json:
+        raise click.UsageError("-o - and --json would both write to stdout")
+    plan.add(out, data, flag="--out", stdout=True)
     plan.commit()
     if as_json:
         result = {"kind": kind, "name": name, "version": version, "size": len(data), "wrote": [out]}
         emit_json({"ok": True, **result, "errors": []})
         return
-    say(f"{name} {version}: {len(data)} bytes verified, written to {out}")
+    say(f"{name} {version}: {len(data)} bytes verified, written to {'stdout' if out == '-' else out}")
 
 
 def validate_with_registry(

@@ -5,7 +5,6 @@ The SBOM libraries are imported inside the command only (start-up stays light).
 
 from __future__ import annotations
 
-import sys
 from datetime import datetime
 from typing import Any
 
@@ -20,7 +19,7 @@ from .params import source_date_epoch_option
 @click.option(
     "--format", "fmt", required=True, type=click.Choice(["cyclonedx", "spdx"]), help="CycloneDX 1.6 or SPDX 3.0.1 JSON."
 )
-@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout].")
+@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout, also -].")
 @click.option(
     "--release",
     "release_dir",
@@ -83,14 +82,15 @@ def sbom(
     if not as_json:
         for n in facts.notices:
             say(f"warning: {n}")
-    if out is None:
+    if out is None or out == "-":
         if as_json:
             import json
 
             emit_json(_payload(fmt, warnings, wrote=[], document=json.loads(data)))
             return
-        sys.stdout.buffer.write(data)
-        sys.stdout.buffer.flush()
+        from ..outputs import write_stdout
+
+        write_stdout(data)  # a full or closed stdout: exit 3, with a message
         return
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)

@@ -31,7 +31,7 @@ from ..document import Kind, single, single_text, software_elements
 from ..errors import ErrorGroup, HcdfTrustError, InputError, NotFoundError, Notice
 from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import DOCUMENT, ORDINARY, OutputPlan
 from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
@@ -247,10 +247,12 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     plan = OutputPlan()
     _protect(plan, res, options, config_path, edited=set(edited))
     for path, data in outputs:
-        plan.add(path, data, flag="--out")
+        plan.add(path, data, flag="--out", under=options.out_dir)
     for url, data in edited.items():
         local = unquote(urlsplit(url).path)
-        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+        plan.add(
+            local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode), replaces=(ORDINARY, DOCUMENT)
+        )
     if edited:
         plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
@@ -263,12 +265,13 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         components=tuple(components),
     )
     env, alg, kid = sign_release(release, options.signer)
-    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
+    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
     plan.add(
         Path(options.out_dir, MANIFEST_JSON_NAME),
         (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
         flag="--out",
+        under=options.out_dir,
     )
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
