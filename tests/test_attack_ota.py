@@ -482,3 +482,21 @@ def test_a_cached_tuf_file_with_two_signed_keys_counts_as_absent(tmp_path, cli, 
     res = reg.verify()
     assert res.exit_code == 0, res.stderr
     assert cached.read_text().count('"signed"') == 1
+
+
+def test_an_entry_injected_into_the_previous_latest_json_is_not_carried(built, cli):
+    """The server's latest.json gains an entry for the attacker's image; the next build
+    carries only what a release this key signed lists (it carried the whole file before)."""
+    robot, out = built
+    path = latest_path(out)
+    doc = json.loads(path.read_text())
+    doc["previous"] = [{**doc["latest"], "version": "0.1.0", "url": "https://evil.example/0.1.0.bin"}]
+    path.write_text(json.dumps(doc, indent=2))
+    robot.rewrite(cli, flex_version="0.3.0")
+    r = robot.build(cli, out, "--json")
+    assert r.exit_code == 0, r.stderr
+    [warning] = [w for w in r.json["warnings"] if w["code"] == "unsigned-history"]
+    assert warning["message"].startswith("mr_mcxn_t1/flex-io: 0.1.0 not carried into the new latest.json")
+    after = json.loads(path.read_text())
+    assert [e["version"] for e in after["previous"]] == ["0.2.0"] and "evil" not in path.read_text()
+    assert verify(cli, robot, out).exit_code == 0

@@ -14,6 +14,7 @@ The steps, in order (any error stops the build before anything is written):
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -27,10 +28,11 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
-from ..document import Kind, software_elements
-from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
+from ..document import Kind, single, single_text, software_elements
+from ..errors import ErrorGroup, HcdfTrustError, InputError, NotFoundError, Notice
+from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import DOCUMENT, ORDINARY, OutputPlan
 from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
@@ -61,12 +63,11 @@ class BuildOptions:
     config: str | None = None
     changelog: str | None = None
     update_hcdf: bool = False
-    lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
-    online: bool = False  # resolve the tree with the network (still under its lock)
-    cache_dir: str | None = None
+    # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline (the default) / --online
+    tree: TreeOptions = field(default_factory=TreeOptions)
     allow_http: bool = False  # a plain http:// base URL
     import_unsigned_history: bool = False  # a --previous without a signed manifest (see load_previous)
 
@@ -122,20 +123,10 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         ErrorGroup / HcdfTrustError: the tree does not verify, an input is missing or
             malformed, a hash or counter check fails, or an output cannot be written.
     """
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import resolve
 
     # 1. a verified description: the tree under its lock (offline unless --online)
-    res = resolve(
-        doc_path,
-        ResolveOptions(
-            locked=True,
-            offline=not options.online,
-            write_cache=options.online,
-            lock_path=options.lock_path,
-            cache_dir=options.cache_dir,
-            ca_bundle=options.ca_bundle,
-        ),
-    )
+    res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
     lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
@@ -175,6 +166,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         ca_bundle=options.ca_bundle,
         import_unsigned=options.import_unsigned_history,
     )
+    previous = carried(previous, notices)
     if previous.imported and previous.release is None:
         notices.append(
             Notice(
@@ -300,10 +292,12 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     plan = OutputPlan()
     _protect(plan, res, options, config_path, edited=set(edited))
     for path, data in outputs:
-        plan.add(path, data, flag="--out")
+        plan.add(path, data, flag="--out", under=options.out_dir)
     for url, data in edited.items():
         local = unquote(urlsplit(url).path)
-        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+        plan.add(
+            local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode), replaces=(ORDINARY, DOCUMENT)
+        )
     if edited:
         plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
@@ -316,16 +310,18 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         components=tuple(components),
     )
     env, alg, kid = sign_release(release, options.signer)
-    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
+    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
     if previous.envelope is not None:  # the signed history that vouches for every previous[] entry
         import cbor2
 
-        plan.add(Path(options.out_dir, HISTORY_NAME), cbor2.dumps([previous.envelope, *previous.history]), flag="--out")
+        history = cbor2.dumps([previous.envelope, *previous.history])
+        plan.add(Path(options.out_dir, HISTORY_NAME), history, flag="--out", under=options.out_dir)
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
     plan.add(
         Path(options.out_dir, MANIFEST_JSON_NAME),
         (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
         flag="--out",
+        under=options.out_dir,
     )
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
@@ -362,7 +358,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     hashes = {}
     for _source, ref in res.others:
         if ref.kind is Kind.FIRMWARE and ref.element is not None:
-            hashes[ref.element.getparent()] = ref
+            hashes[ref.element] = ref
     plans: dict[tuple[str, str], Planned] = {}
     for doc_url, doc in res.documents.items():
         for sw in software_elements(doc):
@@ -377,7 +373,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
             comp_name = comp.get("name") or "?"
             if not app:
                 raise FirmwareError(f"comp {comp_name!r}: <software> has no name", file=doc.source, line=line)
-            board = (comp.findtext("board") or "").strip() or comp_name
+            board = single_text(comp, "board", source=doc.source) or comp_name
             for what, value in (("board", board), ("software name", app)):
                 if not _SAFE.fullmatch(value) or value in (".", ".."):
                     raise FirmwareError(
@@ -387,8 +383,8 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
                         expected="letters, digits, '.', '_', '+', '-'",
                         actual=value,
                     )
-            version = sw.findtext("version")
-            ref = hashes.get(sw)
+            version = single_text(sw, "version", source=doc.source)
+            ref = hashes.get(single(sw, "hash", source=doc.source))
             use = Use(
                 comp_name,
                 doc.source,
@@ -509,8 +505,7 @@ def load_previous(
     import_unsigned: bool = False,
 ) -> PreviousRelease:
     """The previous release (a folder or an https URL): its manifest and history, verified
-    with our key, and each wanted image's latest.json, every entry of which must be a
-    release this key signed (that manifest or its history).
+    with our key, and each wanted image's latest.json as it is (see :func:`carried`).
 
     ``import_unsigned`` (``--import-unsigned-history``, the same meaning in build and
     verify): a folder without a signed manifest (the fleet's own latest.json files, e.g.
@@ -520,10 +515,9 @@ def load_previous(
     Raises:
         MalformedReleaseError: no signed manifest (without ``import_unsigned``).
         SignatureError / MalformedReleaseError: the manifest or history does not verify with our key.
-        ErrorGroup: a latest.json entry that no signed release vouches for.
         FetchError / InputError: a file that exists cannot be read or fetched.
     """
-    from .verify import check_history, verify_envelope, verify_history
+    from .verify import verify_envelope, verify_history
 
     if source is None:
         return PreviousRelease(None, {}, "")
@@ -556,13 +550,6 @@ def load_previous(
     finally:
         reader.close()
     signed = (release, *(r for _, r in history)) if release is not None else ()
-    if not import_unsigned:
-        errors: list[HcdfTrustError] = []
-        for (board, app), doc in found.items():
-            entries = (("latest", doc.latest), *((f"previous[{i}]", e) for i, e in enumerate(doc.previous)))
-            errors += check_history(doc, signed, rel=reader.name(f"{board}/{app}/latest.json"), entries=entries)
-        if errors:
-            raise ErrorGroup(errors)
     return PreviousRelease(
         release,
         found,
@@ -572,6 +559,36 @@ def load_previous(
         signed=signed,
         imported=import_unsigned,
     )
+
+
+def carried(previous: PreviousRelease, notices: list[Notice]) -> PreviousRelease:
+    """``previous`` with only the latest.json entries a release this key signed lists (its
+    manifest or history): the rest (left by a killed build, edited on the server) is not
+    carried into the new release, with a notice. With ``--import-unsigned-history`` every
+    entry is carried, on the user's word."""
+    from .verify import vouched
+
+    if previous.imported:
+        return previous
+    kept: dict[tuple[str, str], latest_json.Latest] = {}
+    for (board, app), doc in previous.latest.items():
+        if (doc.board, doc.app) != (board, app):  # another device's: latest_json.advance names it
+            kept[(board, app)] = doc
+            continue
+        entries = [e for e in (doc.latest, *doc.previous) if vouched(board, app, e, previous.signed)]
+        dropped = [e.version for e in (doc.latest, *doc.previous) if e not in entries]
+        if dropped:
+            notices.append(
+                Notice(
+                    "unsigned-history",
+                    f"{board}/{app}: {', '.join(dropped)} not carried into the new latest.json: no release this "
+                    "key signed lists them (--import-unsigned-history carries them on your word)",
+                    file=previous.source,
+                )
+            )
+        if entries:
+            kept[(board, app)] = latest_json.Latest(board, app, entries[0], tuple(entries[1:]))
+    return dataclasses.replace(previous, latest=kept)
 
 
 class PreviousReader:
@@ -690,9 +707,23 @@ def _join(base: str | None, rel: str) -> str:
 
 
 def _now() -> str:
-    epoch = os.environ.get("SOURCE_DATE_EPOCH")
-    t = int(epoch) if epoch and epoch.isdigit() else int(time.time())
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+    """``SOURCE_DATE_EPOCH`` (checked by :func:`hcdf_trust.clock.parse_epoch`), else the clock.
+
+    Raises:
+        InputError: ``SOURCE_DATE_EPOCH`` is refused (the CLI refuses it first, as a usage error).
+    """
+    from ..clock import source_date_epoch
+
+    try:
+        epoch = source_date_epoch()
+    except ValueError as exc:
+        raise InputError(f"SOURCE_DATE_EPOCH: {exc}", file="SOURCE_DATE_EPOCH") from None
+    return format_date(epoch.timestamp() if epoch is not None else time.time())
+
+
+def format_date(seconds: float) -> str:
+    """How a release is dated (``latest.json``'s ``date``): UTC, to the second."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(int(seconds)))
 
 
 def read_release(
@@ -727,7 +758,8 @@ def read_release(
     unsigned: dict[tuple[str, str], tuple[latest_json.Entry, ...]] = {}
     before = None
     if previous is not None:
-        wanted = [(c.board, c.app) for c in release.components if c.type == "mcuboot"]
+        # its latest.json files count only as history imported on the user's word
+        wanted = [(c.board, c.app) for c in release.components if c.type == "mcuboot" and import_unsigned]
         given = load_previous(previous, public_key, wanted, ca_bundle=ca_bundle, import_unsigned=import_unsigned)
         before = given.release
         history += given.signed
