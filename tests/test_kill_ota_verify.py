@@ -223,3 +223,99 @@ def test_a_missing_latest_json_is_named_with_its_file(built, cli):
             "file": "mr_mcxn_t1/flex-io/latest.json",
         }
     ]
+
+
+# --- the history's images, the re-release check, the rollback source ----------------------
+
+
+@pytest.fixture
+def two_releases(built, cli):
+    """A folder holding release 2 (flex-io 0.3.0) and, as its history, release 1 (0.2.0)."""
+    robot, out = built
+    robot.rewrite(cli, flex_version="0.3.0")
+    assert robot.build(cli, out).exit_code == 0
+    return robot, out
+
+
+def _tamper(path):
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 1
+    path.write_bytes(bytes(data))
+
+
+def test_an_image_the_current_release_also_lists_does_not_end_the_history_images_checks(two_releases):
+    """Release 1 read with rtk-gnss (also in release 2) listed before flex-io 0.2.0."""
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = two_releases
+    _tamper(out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin")
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    [r1] = files.history
+    reordered = dataclasses.replace(r1, components=tuple(reversed(r1.components)))
+    for history in ((r1,), (reordered,)):
+        errors = check_release(release, dataclasses.replace(files, history=history), pub)
+        assert [e.message for e in errors] == [
+            "mr_mcxn_t1/flex-io: image mr_mcxn_t1/flex-io/0.2.0.bin of release 1 is not the one that release signed"
+        ]
+
+
+def test_an_image_two_history_releases_list_is_reported_once(two_releases):
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = two_releases
+    _tamper(out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin")
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    errors = check_release(release, dataclasses.replace(files, history=files.history * 2), pub)
+    assert len(errors) == 1
+
+
+def test_an_older_image_of_another_size_is_named_with_its_size(two_releases):
+    robot, out = two_releases
+    image = out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin"
+    signed_size = image.stat().st_size
+    with image.open("r+b") as f:
+        f.truncate(signed_size + 7)
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    from hcdf_trust.ota.verify import check_release
+
+    [error] = check_release(release, files, pub)
+    assert error.file == "mr_mcxn_t1/flex-io/0.2.0.bin"
+    assert error.expected.endswith(f" ({signed_size} bytes)")
+    assert error.actual == f"(not read) ({signed_size + 7} bytes)"
+
+
+def test_a_re_release_names_both_contents(signed, tmp_path):
+    """check_release against a history release that listed flex-io 0.2.0 with another hash."""
+    from hcdf_trust.ota.verify import ReleaseFiles, check_release
+
+    release, pub, _ = signed
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    before = dataclasses.replace(
+        release,
+        sequence_number=0,
+        components=tuple(
+            dataclasses.replace(c, mcuboot_hash="cd" * 32) if c is flex else c for c in release.components
+        ),
+    )
+    files = ReleaseFiles(manifest=b"", manifest_source="rel/release.suit", history=(before,))
+    got = [e for e in check_release(release, files, pub) if "already released" in e.message]
+    assert [(e.message, e.file, e.expected, e.actual) for e in got] == [
+        (
+            "mr_mcxn_t1/flex-io: version 0.2.0 was already released with another image (release 0)",
+            "rel/release.suit",
+            "cd" * 32,
+            flex.mcuboot_hash,
+        )
+    ]
+
+
+def test_a_rollback_found_through_previous_names_the_manifest(signed):
+    from hcdf_trust.ota.verify import ReleaseFiles, check_release
+
+    release, pub, _ = signed
+    files = ReleaseFiles(manifest=b"", manifest_source="rel/release.suit", previous=release)
+    got = [e for e in check_release(release, files, pub) if "sequence-number" in e.message]
+    assert [e.file for e in got] == ["rel/release.suit"]
