@@ -319,3 +319,34 @@ def test_a_rollback_found_through_previous_names_the_manifest(signed):
     files = ReleaseFiles(manifest=b"", manifest_source="rel/release.suit", previous=release)
     got = [e for e in check_release(release, files, pub) if "sequence-number" in e.message]
     assert [e.file for e in got] == ["rel/release.suit"]
+
+
+def test_a_swapped_older_image_is_named_with_its_digest(two_releases):
+    import hashlib
+
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = two_releases
+    image = out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin"
+    _tamper(image)
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    [error] = check_release(release, files, pub)
+    assert error.actual == f"{hashlib.sha256(image.read_bytes()).hexdigest()} ({image.stat().st_size} bytes)"
+
+
+def test_an_image_of_another_size_is_named_with_both_sizes_unread(built, cli):
+    robot, out = built
+    image = out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin"
+    signed_size = image.stat().st_size
+    with image.open("r+b") as f:
+        f.truncate(3 << 30)
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "release",
+            "message": "mr_mcxn_t1/flex-io: size differs from the signed manifest (the file was not read)",
+            "file": "mr_mcxn_t1/flex-io/0.2.0.bin",
+            "expected": str(signed_size),
+            "actual": str(3 << 30),
+        }
+    ]
