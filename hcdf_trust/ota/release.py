@@ -762,7 +762,7 @@ def read_release(
         wanted = [(c.board, c.app) for c in release.components if c.type == "mcuboot" and import_unsigned]
         given = load_previous(previous, public_key, wanted, ca_bundle=ca_bundle, import_unsigned=import_unsigned)
         before = given.release
-        history += given.signed
+        history += [r for r in given.signed if r not in history]  # it may hold release.history's too
         if given.imported:
             unsigned = {k: (doc.latest, *doc.previous) for k, doc in given.latest.items()}
     images: dict[str, bytes | None] = {}
