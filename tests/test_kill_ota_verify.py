@@ -350,3 +350,73 @@ def test_an_image_of_another_size_is_named_with_both_sizes_unread(built, cli):
             "actual": str(3 << 30),
         }
     ]
+
+
+# --- _check_image: each refusal, field by field --------------------------------------------
+
+
+def _flex_errors(release, files, pub):
+    from hcdf_trust.ota.verify import check_release
+
+    return [e for e in check_release(release, files, pub) if e.message.startswith("mr_mcxn_t1/flex-io:")]
+
+
+def test_a_missing_image_and_a_uri_that_does_not_name_it_are_named_in_full(built):
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    rel = "mr_mcxn_t1/flex-io/0.2.0.bin"
+    missing = dataclasses.replace(files, images={**files.images, rel: None})
+    [e] = _flex_errors(release, missing, pub)
+    assert (e.message, e.file) == (f"mr_mcxn_t1/flex-io: image {rel} is missing", rel)
+    moved = tuple(
+        dataclasses.replace(c, uri="https://fw.example.com/r/other.bin") if c.app == "flex-io" else c
+        for c in release.components
+    )
+    errors = _flex_errors(dataclasses.replace(release, components=moved), files, pub)
+    [e] = [e for e in errors if "latest.json" not in e.message]  # latest.json's url differs too
+    assert (e.message, e.file, e.expected, e.actual) == (
+        f"mr_mcxn_t1/flex-io: uri does not name {rel}",
+        rel,
+        rel,
+        "https://fw.example.com/r/other.bin",
+    )
+
+
+def test_an_image_of_the_signed_size_with_other_bytes_is_named_in_full(built):
+    import hashlib
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    rel = "mr_mcxn_t1/flex-io/0.2.0.bin"
+    data = bytearray(files.images[rel])
+    data[-1] ^= 1
+    [e] = _flex_errors(release, dataclasses.replace(files, images={**files.images, rel: bytes(data)}), pub)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    assert (e.message, e.file, e.expected, e.actual) == (
+        "mr_mcxn_t1/flex-io: file_sha256 differs from the signed manifest",
+        rel,
+        flex.sha256,
+        hashlib.sha256(data).hexdigest(),
+    )
+
+
+def test_another_components_image_in_place_is_named_with_both_sizes(built):
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    rel, other = "mr_mcxn_t1/flex-io/0.2.0.bin", "mr_mcxn_t1/rtk-gnss/1.0.0+3.bin"
+    swapped = dataclasses.replace(files, images={**files.images, rel: files.images[other]})
+    got = [(e.message, e.file, e.expected, e.actual) for e in _flex_errors(release, swapped, pub)]
+    flex, gnss = release.component("mr_mcxn_t1", "flex-io"), release.component("mr_mcxn_t1", "rtk-gnss")
+    assert got == [
+        (
+            "mr_mcxn_t1/flex-io: file_sha256 differs from the signed manifest "
+            "(mix-and-match: it is the image of mr_mcxn_t1/rtk-gnss)",
+            rel,
+            flex.sha256,
+            gnss.sha256,
+        ),
+        ("mr_mcxn_t1/flex-io: size differs from the signed manifest", rel, str(flex.size), str(gnss.size)),
+    ]
