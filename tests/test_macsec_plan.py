@@ -315,7 +315,7 @@ def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]]:
     """The port rule of macsec.plan written plainly with lxml's filtered iterators and QName."""
     from lxml import etree
 
-    from hcdf_trust.macsec.plan import _mbps
+    from hcdf_trust.units import UnitError, bit_rate
 
     out: dict[str, tuple[object, ...]] = {}
     for el in comp_el.iter("{*}port"):
@@ -324,18 +324,20 @@ def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]]:
             continue
         ciphers: list[str] = []
         speeds: list[float] = []
+        bad = None
         for caps in el.iterchildren("{*}capabilities"):
             for item in caps.iterchildren(etree.Element):
                 local = etree.QName(item).localname
                 if local == "macsec":
                     ciphers += [(c.text or "").strip() for c in item.iterchildren("{*}cipher")]
                 elif local in ("speed", "speed-tx", "speed-rx"):
-                    mbps = _mbps(item.text, item.get("unit"))
-                    if mbps is not None:
-                        speeds.append(mbps)
+                    try:
+                        speeds.append(bit_rate(item.text, item.get("unit"), default_unit="Mb/s") / 1e6)
+                    except UnitError as exc:  # unreadable: kept, an error on a secured link (issue 16 §6)
+                        bad = bad or (item.sourceline, f"<{local}>: {exc}")
         kind = (el.get("type") or "").strip().lower()
         iface = (el.get("iface") or "").strip() or name
-        out[name] = (file, el.sourceline, kind, iface, max(speeds, default=None), tuple(ciphers))
+        out[name] = (file, el.sourceline, kind, iface, max(speeds, default=None), tuple(ciphers), bad)
     return out
 
 

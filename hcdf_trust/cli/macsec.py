@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from ..errors import HcdfTrustError
-from . import emit_json, handle_errors, keep_until_exit
+from . import emit_json, fail, handle_errors, keep_until_exit
 
 
 @click.group()
@@ -288,15 +288,20 @@ def status(
     keep_until_exit(store)
     st = run(store, p, now=now)
     if as_json:
+        if not st.ok:  # an association without a usable key: exit 1, the status beside the errors
+            fail(st.problems, as_json=True, payload=st.to_dict())
         emit_json({"ok": True, **st.to_dict()})
         return
     for row in st.rows:
         gens = " ".join(f"g{g['generation']}:{g['state']}:kcv={g['kcv']}" for g in row["generations"])
         age = f" age {row['age_sec']} s" if row["age_sec"] is not None else ""
         flags = (" DUE" if row["due"] else "") + ("" if row["described"] else " (no longer described)")
-        click.echo(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}")
+        active = f"active g{row['active_generation']}" if row["active_generation"] is not None else "NO ACTIVE KEY"
+        click.echo(f"{row['id']}: {active}{age}{flags}  {gens}")
     for ca_id in st.missing:
         click.echo(f"{ca_id}: no key (run generate)")
+    if not st.ok:
+        fail(st.problems, as_json=False)
 
 
 @macsec.command()
@@ -345,6 +350,7 @@ def rotate(
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
+        store.bind(p.robot, document=p.document)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
         _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]

@@ -57,6 +57,7 @@ from lxml import etree
 
 from ..document import Document
 from ..errors import ErrorGroup, HcdfTrustError, InputError, Notice
+from ..units import UnitError, bit_rate
 from ..xml import sourceline
 
 # The include prefix separator, as hcdf_trust.include.flatten.SEPARATOR (a test checks they agree);
@@ -223,6 +224,7 @@ class Association:
 @dataclass
 class Plan:
     document: str
+    robot: str = ""  # the root document's <hcdf name>: the identity a key store is bound to
     associations: dict[str, Association] = field(default_factory=dict)
     unprotected: list[Element] = field(default_factory=list)
     skipped: list[tuple[Element, str]] = field(default_factory=list)
@@ -239,6 +241,7 @@ class Plan:
     def to_dict(self) -> dict[str, Any]:
         return {
             "document": self.document,
+            "robot": self.robot,
             "associations": [ca.to_dict() for ca in self.associations.values()],
             "unprotected": [e.to_dict() for e in self.unprotected],
             "skipped": [dict(e.to_dict(), reason=r) for e, r in self.skipped],
@@ -401,7 +404,7 @@ class _Planner:
         self.includes = includes
         self.root = root
         self.errors: list[HcdfTrustError] = []
-        self.plan = Plan(document=documents[root].source)
+        self.plan = Plan(document=documents[root].source, robot=(documents[root].root.get("name") or "").strip())
         self._defined: dict[str, frozenset[str]] = {}
         self._comps: dict[str, dict[str, etree._Element]] = {}
         self._query_set: dict[str, _Queries] = {}
@@ -887,6 +890,16 @@ class _Planner:
         policy = ca.policy
         if policy is None or policy.policy == "disabled":
             return
+        if port_ref.bad_speed is not None:
+            # The packet-number rules need the speed: one we cannot read is never "unknown, no check".
+            self.errors.append(
+                MacsecPlanError(
+                    f"{ca.id}: the speed of port {label} cannot be read ({port_ref.bad_speed[1]}); "
+                    'write it as e.g. <speed unit="Gb/s">10</speed> or <rate nominal="10000000000" unit="bit/s"/>',
+                    file=port_ref.file,
+                    line=port_ref.bad_speed[0],
+                )
+            )
         ciphers = port_ref.ciphers
         if policy.cipher not in ciphers:
             what = f"declares only {', '.join(ciphers)}" if ciphers else "declares no MACsec capability"
@@ -920,19 +933,24 @@ class _PortInfo(NamedTuple):
     iface: str
     speed_mbps: float | None
     ciphers: tuple[str, ...]
+    bad_speed: tuple[int | None, str] | None = None  # (line, why) of a speed that could not be read
 
 
 _PortRef = _PortInfo | None
 
 
 _SPEEDS = frozenset(("speed", "speed-tx", "speed-rx"))
+_RATE_ATTRIBUTES = ("nominal", "max")  # upstream's <rate min max nominal unit>: the fastest it may run
 
 
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
     """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass:
     the first definition of a name wins; ``<capabilities>`` children of the port give its speed
-    (the highest of ``speed``, ``speed-tx``, ``speed-rx``) and the ``<cipher>``s of its ``<macsec>``.
-    Tags match in no namespace or any, tested inline (20,000 ports make ~100,000 tests)."""
+    (the highest of 1.0's ``speed``, ``speed-tx``, ``speed-rx`` and of upstream's ``<rate nominal
+    max unit>``, all read by :func:`hcdf_trust.units.bit_rate`) and the ``<cipher>``s of its
+    ``<macsec>``. A speed that cannot be read is kept as ``bad_speed``: an error once the port
+    is a member of a keyed association. Tags match in no namespace or any, tested inline
+    (20,000 ports make ~100,000 tests)."""
     out: dict[str, _PortInfo] = {}
     for el in comp.iter("{*}port"):
         name = el.get("name")
@@ -940,6 +958,7 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
             continue
         ciphers: list[str] = []
         speed: float | None = None
+        bad: tuple[int | None, str] | None = None
         for caps in el:  # plain iteration and tag tests: faster in lxml than filtered iterators
             tag = caps.tag
             if tag != "capabilities" and not (type(tag) is str and tag.endswith("}capabilities")):
@@ -954,10 +973,24 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
                         tag = c.tag
                         if tag == "cipher" or (type(tag) is str and tag.endswith("}cipher")):
                             ciphers.append((c.text or "").strip())
-                elif local in _SPEEDS:
-                    mbps = _mbps(item.text, item.get("unit"))
-                    if mbps is not None:
-                        speed = mbps if speed is None or mbps > speed else speed
+                    continue
+                if local in _SPEEDS:
+                    values = [(item.text, item.get("unit"), "Mb/s", f"<{local}>")]
+                elif local == "rate":
+                    values = [
+                        (v, item.get("unit"), "bit/s", f"<rate {a}>")
+                        for a in _RATE_ATTRIBUTES
+                        if (v := item.get(a)) is not None
+                    ]
+                else:
+                    continue
+                for text, unit, default, what in values:
+                    try:
+                        mbps = bit_rate(text, unit, default_unit=default) / 1e6
+                    except UnitError as exc:
+                        bad = bad or (item.sourceline, f"{what}: {exc}")  # type: ignore[assignment]
+                        continue
+                    speed = mbps if speed is None or mbps > speed else speed
         out[name] = _PortInfo(
             file,
             el.sourceline,  # type: ignore[arg-type]  # lxml-stubs: `sourceline = ...`
@@ -965,21 +998,6 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
             (el.get("iface") or "").strip() or name,
             speed,
             tuple(ciphers),
+            bad,
         )
     return out
-
-
-_UNITS = {"bps": 1e-6, "kbps": 1e-3, "mbps": 1.0, "gbps": 1e3, "tbps": 1e6}
-
-
-@functools.lru_cache(maxsize=1024)  # a description writes a handful of distinct speeds, many times
-def _mbps(text: str | None, unit: str | None) -> float | None:
-    """A ``<speed unit>`` value (element text, ``unit`` attribute) in Mb/s (default unit Mbps); None when unreadable."""
-    try:
-        value = float((text or "").strip())
-    except ValueError:
-        return None
-    factor = _UNITS.get((unit or "Mbps").strip().lower())
-    if factor is None or value != value or value <= 0 or value == float("inf"):
-        return None
-    return value * factor
