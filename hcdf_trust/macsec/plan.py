@@ -360,6 +360,20 @@ def _children(el: etree._Element, tag: str) -> list[etree._Element]:
     return list(el.iterchildren("{*}" + tag))
 
 
+def _is_capability(el: etree._Element, top: etree._Element) -> bool:
+    """Whether a ``<macsec>`` declares what hardware can do rather than a policy: inside a
+    port's ``<capabilities>``, or 1.0's switch-level form (no attributes, only ``<cipher>``s)."""
+    kids = [etree.QName(c).localname for c in el.iterchildren(etree.Element)]
+    if not el.attrib and kids and all(k == "cipher" for k in kids):
+        return True
+    parent = el.getparent()
+    while parent is not None and parent is not top:
+        if etree.QName(parent).localname == "capabilities":
+            return True
+        parent = parent.getparent()
+    return False
+
+
 def _by_tag(el: etree._Element) -> dict[str, list[etree._Element]]:
     """Child elements grouped by local name, in one pass."""
     out: dict[str, list[etree._Element]] = {}
@@ -412,6 +426,7 @@ class _Planner:
         self._key_scope: dict[str, tuple[str, str, etree._Element]] = {}
         self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
         self._override_cache: dict[tuple[tuple[Any, ...], ...], Policy] = {}  # this network's overrides
+        self._consumed: set[etree._Element] = set()  # <macsec> elements outside <network> a reader understood
 
     def run(self) -> Plan:
         instances = self._instances()
@@ -422,11 +437,37 @@ class _Planner:
             doc = self.docs[inst.url]
             for net in nets:
                 self._network(inst, doc, net)
+        self._unread_macsec(instances)
         if self.errors:
             raise ErrorGroup(self.errors)
         for ca in self.plan.keyed():
             self._pn_warning(ca)
         return self.plan
+
+    def _unread_macsec(self, instances: list[_Instance]) -> None:
+        """Fail closed: every ``<macsec>`` outside a 1.0 ``<network>`` (whose rules are
+        :meth:`_network`'s) that is not a capability declaration (:func:`_is_capability`)
+        must have been read by a planner; one that was not is an error naming it, so
+        a description whose MACsec policy this code does not understand is never "0
+        associations to key"."""
+        for url in dict.fromkeys(inst.url for inst in instances):
+            doc = self.docs[url]
+            for child in doc.root.iterchildren(etree.Element):
+                if etree.QName(child).localname == "network":
+                    continue
+                for el in child.iter("{*}macsec"):
+                    if el in self._consumed or _is_capability(el, child):
+                        continue
+                    where = etree.QName(el.getparent()).localname if el.getparent() is not None else "?"
+                    self.errors.append(
+                        MacsecPlanError(
+                            f"<macsec> in <{where}> (under <{etree.QName(child).localname} "
+                            f"name={child.get('name', '')!r}>) is not read by this planner: refusing to "
+                            f"plan a description whose MACsec policy would be ignored",
+                            file=doc.source,
+                            line=sourceline(el),
+                        )
+                    )
 
     def _pn_warning(self, ca: Association) -> None:
         speeds = ca.port_speeds_mbps
