@@ -32,14 +32,14 @@ def _plan_lines(p: Any) -> None:
             if d["rekey_interval_sec"] is not None:
                 head += f" rekey {d['rekey_interval_sec']} s"
             store = d["key_store"]
-            if store["type"]:
-                head += f" key-store {store['type']}" + (f":{store['ref']}" if store["ref"] else "")
+            if store["type"] or store["ref"]:
+                head += f" key-store {store['type'] or 'ref'}" + (f":{store['ref']}" if store["ref"] else "")
             if not ca.keyed:
                 head += " (no key)"
         click.echo(head)
         for el in ca.elements:
             scope = f" scope {el.scope}" if el.scope else ""
-            click.echo(f"  {el.kind} {el.network}/{el.name} ({el.file}:{el.line}{scope})")
+            click.echo(f"  {el.kind} {el.label.partition(':')[2]} ({el.file}:{el.line}{scope})")
         if ca.shared:
             click.echo(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s")
         members = ", ".join(f"{m.device}[{' '.join(m.ports)}]" for m in ca.members.values())

@@ -137,7 +137,8 @@ class Element:
 
     @property
     def label(self) -> str:
-        return f"{self.kind}:{self.network}/{self.name}"
+        """``kind:network/name``; ``kind:network`` for a whole network (the new model's link, bus, mesh)."""
+        return f"{self.kind}:{self.network}/{self.name}" if self.name else f"{self.kind}:{self.network}"
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -437,12 +438,24 @@ class _Planner:
             doc = self.docs[inst.url]
             for net in nets:
                 self._network(inst, doc, net)
+        self._connectivity(instances)
         self._unread_macsec(instances)
         if self.errors:
             raise ErrorGroup(self.errors)
         for ca in self.plan.keyed():
             self._pn_warning(ca)
         return self.plan
+
+    def _connectivity(self, instances: list[_Instance]) -> None:
+        """The top-level networks of upstream's newer connectivity model, in every instance
+        that has one (:mod:`hcdf_trust.macsec.connectivity`, imported only then)."""
+        kinds = ("link", "bus", "chain", "star", "ring", "mesh", "tree")
+        for inst in instances:
+            root = self.docs[inst.url].root
+            if any(etree.QName(c).localname in kinds for c in root.iterchildren(etree.Element)):
+                from .connectivity import plan_networks
+
+                plan_networks(self, inst, self.docs[inst.url])
 
     def _unread_macsec(self, instances: list[_Instance]) -> None:
         """Fail closed: every ``<macsec>`` outside a 1.0 ``<network>`` (whose rules are
@@ -908,7 +921,19 @@ class _Planner:
         ca.elements.append(element)
         return ca
 
-    def _endpoint(self, ca: Association, element: Element, device: str, port: str, port_ref: _PortRef) -> None:
+    def _endpoint(
+        self,
+        ca: Association,
+        element: Element,
+        device: str,
+        port: str,
+        port_ref: _PortRef,
+        *,
+        capabilities: bool = True,
+    ) -> None:
+        """Add a member port to ``ca`` and give the port's warnings and speed errors; without
+        ``capabilities`` (the new connectivity model, whose ports declare no ciphers) the
+        port's MACsec capability is not compared with the cipher."""
         ca.add_member(device, port or None)
         if not port:
             return
@@ -942,7 +967,7 @@ class _Planner:
                 )
             )
         ciphers = port_ref.ciphers
-        if policy.cipher not in ciphers:
+        if capabilities and policy.cipher not in ciphers:
             what = f"declares only {', '.join(ciphers)}" if ciphers else "declares no MACsec capability"
             self.plan.warnings.append(
                 Notice(
@@ -981,7 +1006,7 @@ _PortRef = _PortInfo | None
 
 
 _SPEEDS = frozenset(("speed", "speed-tx", "speed-rx"))
-_RATE_ATTRIBUTES = ("nominal", "max")  # upstream's <rate min max nominal unit>: the fastest it may run
+_RATE_ATTRIBUTES = ("nominal", "max")  # upstream's <rate min max nominal unit>: nominal, else max
 
 
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
@@ -1018,11 +1043,10 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
                 if local in _SPEEDS:
                     values = [(item.text, item.get("unit"), "Mb/s", f"<{local}>")]
                 elif local == "rate":
-                    values = [
-                        (v, item.get("unit"), "bit/s", f"<rate {a}>")
-                        for a in _RATE_ATTRIBUTES
-                        if (v := item.get(a)) is not None
-                    ]
+                    attr = next((a for a in _RATE_ATTRIBUTES if item.get(a) is not None), None)
+                    if attr is None:
+                        continue
+                    values = [(item.get(attr), item.get("unit"), "bit/s", f"<rate {attr}>")]
                 else:
                     continue
                 for text, unit, default, what in values:
