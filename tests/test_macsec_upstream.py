@@ -6,9 +6,13 @@ The documents are in tests/macsec_upstream/, each saying which upstream file it 
 
 from __future__ import annotations
 
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
+
+from hcdf_trust.macsec.connectivity import store_kind
+from hcdf_trust.macsec.plan import plan
 
 from ._macsec import lock
 
@@ -16,13 +20,13 @@ DOCS = Path(__file__).parent / "macsec_upstream"
 PASS = b"upstream dialect passphrase"
 
 
-def _doc(tmp: Path, name: str, edit: tuple[str, str] | None = None) -> Path:
-    """A copy of test document ``name`` (with one text replacement), locked."""
+def _doc(tmp: Path, name: str, *edits: tuple[str, str]) -> Path:
+    """A copy of test document ``name`` (with text replacements), locked."""
     doc = tmp / name
     text = (DOCS / name).read_text()
-    if edit is not None:
-        assert edit[0] in text, edit
-        text = text.replace(edit[0], edit[1])
+    for old, new in edits:
+        assert old in text, old
+        text = text.replace(old, new)
     doc.write_text(text)
     return lock(doc)
 
@@ -56,3 +60,191 @@ def test_macsec_this_planner_cannot_read_is_an_error_not_nothing_to_key(tmp_path
             for e in r.json["errors"]
         ), r.json
     assert not (tmp_path / "o").exists() and not (tmp_path / "keys").exists()
+
+
+# --- the associations a MACsec engineer would draw ----------------------------------------------
+
+
+def _cas(p) -> dict[str, tuple]:
+    out = {}
+    for ca in p.associations.values():
+        pol = ca.policy
+        members = tuple(sorted((m.device, tuple(m.ports)) for m in ca.members.values()))
+        out[ca.id] = (members, pol.policy, pol.cipher, pol.key_agreement, pol.rekey_interval_sec,
+                      pol.key_store_type, pol.key_store_ref)  # fmt: skip
+    return out
+
+
+def test_the_humanoid_backbone(tmp_path):
+    p = plan(_doc(tmp_path, "humanoid-backbone.hcdf"))
+    se = ("must-secure", "gcm-aes-128", "psk", 3600, "secure-element", "se051")
+    assert _cas(p) == {
+        "link:s32n79_to_thor_p0": (
+            (("agx-thor", ("mgbe0",)), ("s32n79", ("e810_p0",))),
+            "must-secure", "gcm-aes-256", "psk", 3600, "tpm", "tpm0",
+        ),
+        "link:n79_to_j100_p0": ((("s32j100", ("eth_up0",)), ("s32n79", ("qxgmii_p0",))), *se),
+        "leg:left-arm-chain/s32n79-to-mcn1-l": ((("mcn1-l", ("eth0",)), ("s32n79", ("xfi_left",))), *se),
+        "leg:left-arm-chain/mcn1-l-to-mcn2-l": ((("mcn1-l", ("eth1",)), ("mcn2-l", ("eth0",))), *se),
+    }  # fmt: skip
+    assert [e.label for e in p.unprotected] == ["bus:base_can"]
+    assert [(e.label, why) for e, why in p.skipped] == [("bus:power_bus", "not a communication network")]
+    # the 25 Gb/s link's packet numbers: the selected rate, read by the one rate reader
+    assert p.associations["link:s32n79_to_thor_p0"].max_speed_mbps == 25000
+    assert [w.code for w in p.warnings] == ["macsec-pn-exhaustion"]
+
+
+def test_a_chain_default_policy_and_a_leg_override(tmp_path):
+    p = plan(_doc(tmp_path, "chain-must-secure.hcdf"))
+    assert _cas(p) == {
+        "leg:test-chain/parent-to-board": (
+            (("parent-body", ("eth0",)), ("test-board", ("eth0",))),
+            "must-secure", "gcm-aes-128", "psk", None, "secure-element", "se051",
+        ),
+        "leg:test-chain/board-to-tail": (
+            (("tail-board", ("eth0",)), ("test-board", ("eth1",))),
+            "should-secure", "gcm-aes-256", "psk", 3600, "tpm", "tpm0",
+        ),
+    }  # fmt: skip
+    assert {e.label for e in p.unprotected} == {"link:test_link", "bus:test_can"}
+    # the chain runs at its selected 100 Mb/s, whatever the ports could do
+    assert p.associations["leg:test-chain/parent-to-board"].max_speed_mbps == 100
+
+
+def test_a_bus_a_star_mka_and_a_network_override(tmp_path):
+    p = plan(_doc(tmp_path, "bus-star.hcdf"))
+    three = (("compute", ("t1s0",)), ("zone-a", ("t1s0",)), ("zone-b", ("t1s0",)))
+    assert _cas(p) == {
+        "bus:body-t1s": (three, "must-secure", "gcm-aes-128", "psk", None, "file", "keys/main"),
+        "star:zone-switch": (
+            (("compute", ("sw0",)), ("zone-a", ("eth0",)), ("zone-b", ("eth0",))),
+            "must-secure", "gcm-aes-xpn-128", "psk", None, None, "keystore:control-bus",
+        ),
+        # the <override> of the whole network wins over its default ("off")
+        "link:teleop-link": (
+            (("compute", ("mgmt",)), ("teleop", ("eth0",))),
+            "integrity-only", "gcm-aes-128", "psk", None, "runtime", "runtime:teleop-agent",
+        ),
+    }  # fmt: skip
+    assert p.associations["link:teleop-link"].policy.confidentiality_offset == 30
+    assert p.associations["bus:body-t1s"].max_speed_mbps == 10
+
+
+@pytest.mark.parametrize(
+    ("ref", "kind"),
+    [("tpm0", "tpm"), ("tpm:owner", "tpm"), ("se051", "secure-element"), ("secure-element:a71ch", "secure-element"),
+     ("pkcs11:token=hcdf", "hsm"), ("hsm1", "hsm"), ("keys/main", "file"), ("file:/etc/keys", "file"),
+     ("runtime:agent", "runtime"), ("keystore:control-bus", None)],
+)  # fmt: skip
+def test_credential_store_kinds(ref, kind):
+    assert store_kind(ref) == kind
+
+
+def test_one_robot_in_both_dialects_plans_the_same(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    old, new = plan(_doc(tmp_path / "a", "robot-1.0.hcdf")), plan(_doc(tmp_path / "b", "robot-upstream.hcdf"))
+
+    def by_members(p):
+        return {
+            members: (rest, ca.keyed, ca.max_speed_mbps, ca.policy.confidentiality_offset)
+            for ca in p.associations.values()
+            for members, *rest in [_cas(p)[ca.id]]
+        }
+
+    assert by_members(old) == by_members(new)
+    assert len(old.associations) == len(new.associations) == 3 and len(old.keyed()) == 2
+    assert {ca.id for ca in new.associations.values()} == {"link:a-b", "link:a-c", "link:b-c"}
+    assert old.robot == new.robot == "twin"
+
+
+def test_generate_status_rotate_and_export_in_the_new_dialect(tmp_path, cli, keys):
+    doc = _doc(tmp_path, "humanoid-backbone.hcdf")
+    t0 = datetime(2026, 1, 1, tzinfo=UTC)
+    at = lambda dt: dt.strftime("%Y-%m-%dT%H:%M:%SZ")  # noqa: E731
+    r = cli("macsec", "generate", doc, *keys, "--now", at(t0), "--json")
+    assert r.exit_code == 0 and len(r.json["created"]) == 4
+    # rekey-interval-ns="3600000000000" is one hour: due after it
+    r = cli("macsec", "status", doc, *keys, "--now", at(t0 + timedelta(seconds=3599)), "--json")
+    assert r.exit_code == 0 and not any(row["due"] for row in r.json["associations"])
+    r = cli("macsec", "status", doc, *keys, "--now", at(t0 + timedelta(seconds=3600)), "--json")
+    assert all(row["due"] for row in r.json["associations"])
+    r = cli(
+        "macsec", "rotate", doc, *keys, "--now", at(t0 + timedelta(hours=2)), "--network", "left-arm-chain", "--json"
+    )
+    assert r.exit_code == 0 and {x["id"] for x in r.json["rotated"]} == {
+        "leg:left-arm-chain/s32n79-to-mcn1-l",
+        "leg:left-arm-chain/mcn1-l-to-mcn2-l",
+    }
+    # least privilege: the middle arm node holds its two legs, nothing else
+    out = tmp_path / "mcn1"
+    r = cli("macsec", "export", doc, *keys, "--device", "mcn1-l", "--format", "json", "--out", out, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["associations"] == ["leg:left-arm-chain/mcn1-l-to-mcn2-l", "leg:left-arm-chain/s32n79-to-mcn1-l"]
+    r = cli(
+        "macsec", "export", doc, *keys, "--device", "agx-thor", "--format", "json", "--out", tmp_path / "t", "--json"
+    )
+    assert r.exit_code == 0 and r.json["associations"] == ["link:s32n79_to_thor_p0"]
+    # static non-XPN keys on the 25 Gb/s backbone are refused, as in 1.0
+    r = cli("macsec", "export", doc, *keys, "--device", "agx-thor", "--format", "iproute2", "--out", tmp_path / "i")
+    assert r.exit_code == 3 and "XPN" in r.stderr and not (tmp_path / "i").exists()
+    r = cli(
+        "macsec", "export", doc, *keys, "--device", "s32j100", "--format", "wpa_supplicant", "--out", tmp_path / "w"
+    )
+    assert r.exit_code == 0 and "mka_cak=" in (tmp_path / "w" / "wpa_supplicant-wired-eth_up0.conf").read_text()
+
+
+# --- fail closed, for plan and for export ------------------------------------------------------
+
+_POLICY = '<default-policy><macsec-policy-ref network="test-chain" policy="secure"/></default-policy>'
+_OVERRIDE = (
+    '<override><target><leg-ref network="test-chain" leg="board-to-tail"/></target>'
+    '<macsec-policy-ref network="test-chain" policy="tail"/></override>'
+)
+_CAN = '<participant name="parent-body" role="hcdf:controller">'
+_CAN_MACSEC = (
+    '<configuration><macsec><policy name="p" enforcement="must-secure"/><default-policy>'
+    '<macsec-policy-ref network="test_can" policy="p"/></default-policy></macsec></configuration>'
+)
+_RATE = '<nominal value="100000000" unit="bit/s"/></rate></selected>\n    <configuration>'
+_TAIL_PORT = 'port-ref component="tail-board" port="eth0"'
+# case: (edits of chain-must-secure.hcdf, a text on the line the error must name)
+FAIL_CLOSED = {
+    "unknown cipher": ([('cipher="ieee:gcm-aes-128"', 'cipher="ieee:chacha20-poly1305"')], 'name="secure"'),
+    "cipher of an unknown authority": ([("ieee8021ae:gcm-aes-256", "acme:gcm-aes-256")], 'name="tail"'),
+    "unknown key agreement": ([('key-agreement="vendor:psk"', 'key-agreement="vendor:quantum"')], 'name="secure"'),
+    "no enforcement": ([('enforcement="must-secure" ', "")], 'name="secure"'),
+    "unknown policy attribute": ([('"se051"/>', '"se051" sak="0"/>')], 'name="secure"'),
+    "rekey interval not in ns": ([('rekey-interval-ns="3600000000000"', 'rekey-interval-ns="1h"')], 'name="tail"'),
+    "unknown <macsec> child": ([(_POLICY, "<group-key/>" + _POLICY)], "<group-key/>"),
+    "default policy names nothing": ([('policy="secure"/></default', 'policy="sec"/></default')], "<default-policy>"),
+    "override names no policy": ([('policy="tail"/></override>', 'policy="tale"/></override>')], "<override><target>"),
+    "override targets no leg": ([('leg="board-to-tail"', 'leg="board-to-nowhere"')], "<override><target>"),
+    "participant's port does not exist": ([(_TAIL_PORT, _TAIL_PORT.replace("eth0", "eth9"))], 'port="eth9"'),
+    "participant's component does not exist": ([(_TAIL_PORT, _TAIL_PORT.replace("tail-", "ghost-"))], "ghost-board"),
+    "a secured leg with one member": ([('participant="tail-board"/></to>', 'participant="nobody"/></to>')], "nobody"),
+    "a policy that keys nothing": ([(_POLICY, ""), (_OVERRIDE, "")], "<macsec>"),
+    "a chain without legs": ([("<leg name=", "<legg name="), ("</leg>", "</legg>")], '<chain name="test-chain">'),
+    "MACsec on a CAN bus": ([(_CAN, _CAN_MACSEC + _CAN)], '<policy name="p"'),
+    "a selected rate that cannot be read": ([(_RATE, _RATE.replace("bit/s", "furlong/s"))], "furlong/s"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(FAIL_CLOSED))
+def test_what_the_planner_does_not_understand_is_refused(tmp_path, cli, keys, case):
+    edits, marker = FAIL_CLOSED[case]
+    (tmp_path / "good").mkdir()
+    good = _doc(tmp_path / "good", "chain-must-secure.hcdf")
+    assert cli("macsec", "generate", good, *keys).exit_code == 0
+    doc = _doc(tmp_path, "chain-must-secure.hcdf", *edits)
+    line = _line(doc, marker)
+    r = cli("macsec", "plan", doc, "--json")
+    assert r.exit_code == 3, (case, r.stdout)
+    assert any(e["line"] == line and e["file"].endswith("chain-must-secure.hcdf") for e in r.json["errors"]), (
+        line,
+        r.json["errors"],
+    )
+    out = tmp_path / "out"
+    r = cli("macsec", "export", doc, *keys, "--device", "test-board", "--format", "json", "--out", out, "--json")
+    assert r.exit_code == 3 and any(e["line"] == line for e in r.json["errors"]), r.json
+    assert not out.exists()
