@@ -248,3 +248,46 @@ def test_what_the_planner_does_not_understand_is_refused(tmp_path, cli, keys, ca
     r = cli("macsec", "export", doc, *keys, "--device", "test-board", "--format", "json", "--out", out, "--json")
     assert r.exit_code == 3 and any(e["line"] == line for e in r.json["errors"]), r.json
     assert not out.exists()
+
+
+ARM = """<?xml version="1.0"?>
+<!-- An arm in upstream's model (its chain written as humanoid-mobile-base's left-arm-chain), included twice. -->
+<hcdf version="1.0" name="arm">
+  <comp name="mcn1"><port name="eth0"/><port name="eth1"/></comp>
+  <comp name="mcn2"><port name="eth0"/></comp>
+  <chain name="arm-chain">
+    <selected purpose="communication" carrier="electrical"><rate><nominal value="1000000000" unit="bit/s"/></rate>
+    </selected>
+    <configuration><macsec>
+      <policy name="arm" enforcement="must-secure" cipher="ieee8021ae:gcm-aes-128" key-agreement="local:psk"/>
+      <default-policy><macsec-policy-ref network="arm-chain" policy="arm"/></default-policy>
+    </macsec></configuration>
+    <participant name="mcn1-out"><endpoint><port-ref component="mcn1" port="eth1"/></endpoint></participant>
+    <participant name="mcn2"><endpoint><port-ref component="mcn2" port="eth0"/></endpoint></participant>
+    <hop name="mcn1"><owner><component-ref component="mcn1"/></owner></hop>
+    <hop name="mcn2"><owner><component-ref component="mcn2"/></owner></hop>
+    <leg name="mcn1-to-mcn2"><from><hop-ref network="arm-chain" hop="mcn1"/><participant-ref network="arm-chain"
+      participant="mcn1-out"/></from><to><hop-ref network="arm-chain" hop="mcn2"/><participant-ref network="arm-chain"
+      participant="mcn2"/></to></leg>
+  </chain>
+</hcdf>
+"""
+
+
+def test_an_arm_included_twice_gets_two_sets_of_keys(tmp_path, cli, keys):
+    from ._macsec import tree
+
+    root = (
+        '<?xml version="1.0"?>\n<hcdf version="1.0" name="two-arms">\n'
+        '<include uri="arm.hcdf" name="left_arm"/>\n<include uri="arm.hcdf" name="right_arm"/>\n</hcdf>\n'
+    )
+    doc = tree(tmp_path, {"robot.hcdf": root, "arm.hcdf": ARM})
+    p = plan(doc)
+    assert {ca.id: sorted(ca.members) for ca in p.keyed()} == {
+        "leg:left_arm_arm-chain/mcn1-to-mcn2": ["left_arm_mcn1", "left_arm_mcn2"],
+        "leg:right_arm_arm-chain/mcn1-to-mcn2": ["right_arm_mcn1", "right_arm_mcn2"],
+    }
+    assert cli("macsec", "generate", doc, *keys).exit_code == 0
+    r = cli("macsec", "export", doc, *keys, "--device", "left_arm_mcn2", "--format", "json", "--out", tmp_path / "o",
+            "--json")  # fmt: skip
+    assert r.exit_code == 0 and r.json["associations"] == ["leg:left_arm_arm-chain/mcn1-to-mcn2"]
