@@ -291,3 +291,27 @@ def test_an_arm_included_twice_gets_two_sets_of_keys(tmp_path, cli, keys):
     r = cli("macsec", "export", doc, *keys, "--device", "left_arm_mcn2", "--format", "json", "--out", tmp_path / "o",
             "--json")  # fmt: skip
     assert r.exit_code == 0 and r.json["associations"] == ["leg:left_arm_arm-chain/mcn1-to-mcn2"]
+
+
+def test_the_readme_shows_one_robot_in_both_dialects(tmp_path):
+    import re
+    import textwrap
+
+    from .conftest import PROJECT
+
+    readme = (PROJECT / "README.md").read_text()
+    after = readme[readme.index("<!-- macsec-dialects:") :]
+    blocks = [textwrap.dedent(b) for b in re.findall(r"```xml\n(.*?)\s*```", after, re.S)[:2]]
+    plans = []
+    for name, text in zip(("old", "new"), blocks, strict=True):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "robot.hcdf").write_text(text)
+        plans.append(plan(lock(tmp_path / name / "robot.hcdf")))
+    old, new = plans
+    assert sorted(ca.id for ca in old.keyed()) == ["link:body/a-b", "link:body/a-c"]
+    assert sorted(ca.id for ca in new.keyed()) == ["leg:body/a-b", "leg:body/a-c"]
+
+    def by_members(p):
+        return {m: (rest, ca.max_speed_mbps) for ca in p.associations.values() for m, *rest in [_cas(p)[ca.id]]}
+
+    assert by_members(old) == by_members(new)
