@@ -315,3 +315,18 @@ def test_the_readme_shows_one_robot_in_both_dialects(tmp_path):
         return {m: (rest, ca.max_speed_mbps) for ca in p.associations.values() for m, *rest in [_cas(p)[ca.id]]}
 
     assert by_members(old) == by_members(new)
+
+
+@pytest.mark.parametrize("ns", ["", ' xmlns:x="urn:x"'])
+def test_policy_macsec_outside_any_network_is_refused_in_any_namespace(tmp_path, cli, ns):
+    # plain name tests for a document without namespaces, local-name() tests otherwise: both find it
+    tag = "x:macsec" if ns else "macsec"
+    text = (
+        f'<?xml version="1.0"?>\n<hcdf version="1.0" name="t"{ns}>\n<comp name="c">\n'
+        '<port name="p"><capabilities><macsec><cipher>gcm-aes-128</cipher></macsec></capabilities></port>\n'
+        f'<{tag} policy="must-secure"/>\n</comp>\n</hcdf>\n'
+    )
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(text)
+    r = cli("macsec", "plan", lock(doc), "--json")
+    assert r.exit_code == 3 and [e["line"] for e in r.json["errors"]] == [5], r.json

@@ -60,13 +60,12 @@ from lxml import etree
 
 from ..units import UnitError, bit_rate
 from ..xml import sourceline
-from .plan import CIPHERS, OFFSETS, POLICIES, Association, Element, MacsecPlanError, Policy
+from .plan import CIPHERS, NETWORK_KINDS, OFFSETS, POLICIES, Association, Element, MacsecPlanError, Policy
 
 if TYPE_CHECKING:
     from ..document import Document
     from .plan import _Instance, _Planner
 
-NETWORK_KINDS = ("link", "bus", "chain", "star", "ring", "mesh", "tree")
 CIPHER_AUTHORITIES = ("ieee8021ae", "ieee")
 KEY_AGREEMENT_IDS = {
     "psk": "psk",
