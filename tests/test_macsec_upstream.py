@@ -207,6 +207,7 @@ _CAN_MACSEC = (
     '<macsec-policy-ref network="test_can" policy="p"/></default-policy></macsec></configuration>'
 )
 _RATE = '<nominal value="100000000" unit="bit/s"/></rate></selected>\n    <configuration>'
+_EEE = '<eee default-mode="disabled"/>'
 _TAIL_PORT = 'port-ref component="tail-board" port="eth0"'
 # case: (edits of chain-must-secure.hcdf, a text on the line the error must name)
 FAIL_CLOSED = {
@@ -226,6 +227,7 @@ FAIL_CLOSED = {
     "a policy that keys nothing": ([(_POLICY, ""), (_OVERRIDE, "")], "<macsec>"),
     "a chain without legs": ([("<leg name=", "<legg name="), ("</leg>", "</legg>")], '<chain name="test-chain">'),
     "MACsec on a CAN bus": ([(_CAN, _CAN_MACSEC + _CAN)], '<policy name="p"'),
+    "two <macsec> in one configuration": ([(_EEE, "<macsec/>" + _EEE)], "<macsec/><eee"),
     "a selected rate that cannot be read": ([(_RATE, _RATE.replace("bit/s", "furlong/s"))], "furlong/s"),
 }  # fmt: skip
 

@@ -13,7 +13,7 @@ from typing import Any
 import click
 
 from ..outputs import OutputPlan
-from . import emit_json, handle_errors
+from . import JSON_OPTION, emit_json, handle_errors
 
 _DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
 _UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
@@ -85,8 +85,9 @@ def registry() -> None:
     help="Folder for the private keys (kept outside DIR).",
 )
 @passphrase_option
+@JSON_OPTION
 @handle_errors
-def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
+def init(source_dir: str, keydir: str, passphrase_file: str | None, as_json: bool) -> None:
     """Start a registry source in DIR: fresh root, targets, snapshot and timestamp keys."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
@@ -94,6 +95,10 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
     plan = OutputPlan()
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
     _commit(plan, Path(keydir))
+    if as_json:
+        roles = {role: t.keyids[0] for role, t in root.roles.items()}
+        emit_json({"ok": True, "source": source_dir, "keys": keydir, "roles": roles, "errors": []})
+        return
     for role, t in root.roles.items():
         click.echo(f"{role}: key {t.keyids[0]}", err=True)
     click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
@@ -103,8 +108,9 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
 @click.option("--keys", "keydir", required=True, type=click.Path(file_okay=False), help="Folder for the private key.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Public key file to write.")
 @passphrase_option
+@JSON_OPTION
 @handle_errors
-def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
+def keygen(keydir: str, out: str, passphrase_file: str | None, as_json: bool) -> None:
     """Make an owner key: the private half in --keys, the public half in --out."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
@@ -112,7 +118,11 @@ def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
     plan = OutputPlan()
     key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
     _commit(plan, Path(keydir))
-    click.echo(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key", err=True)
+    private = f"{keydir}/{key.keyid}.key"
+    if as_json:
+        emit_json({"ok": True, "keyid": key.keyid, "public": out, "private": private, "errors": []})
+        return
+    click.echo(f"key {key.keyid}: public {out}, private {private}", err=True)
 
 
 @registry.command()
@@ -162,6 +172,7 @@ def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
 )
 @sigstore_root_option
 @passphrase_option
+@JSON_OPTION
 @handle_errors
 def add(
     source_dir: str,
@@ -181,6 +192,7 @@ def add(
     sigstore_bundle: str | None,
     sigstore_root: str | None,
     passphrase_file: str | None,
+    as_json: bool,
 ) -> None:
     """Record a domain version (signed by its owner), a stream profile or a core schema."""
     from ..registry import edit
@@ -226,11 +238,15 @@ def add(
                 sigstore_root=sigstore_root,
             )
             what = f"{domain} {version}" if version else f"domain {domain}"
-    if done is None:
+    if done is not None:
+        plan.commit()
+    if as_json:
+        recorded = str(plan.paths[0]) if done is not None else None
+        emit_json({"ok": True, "entry": what, "recorded": recorded, "unchanged": done is None, "errors": []})
+    elif done is None:
         click.echo(f"{what}: already registered with the same content", err=True)
-        return
-    plan.commit()
-    click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+    else:
+        click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
 
 
 @registry.command()
@@ -246,15 +262,19 @@ def add(
     help="Content folder the schema lies in.",
 )
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@JSON_OPTION
 @handle_errors
-def statement(domain: str, version: str, schema: str, content_dir: str, out: str) -> None:
+def statement(domain: str, version: str, schema: str, content_dir: str, out: str, as_json: bool) -> None:
     """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
     from ..registry import edit
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
-    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out")
     plan.commit()
+    if as_json:
+        emit_json({"ok": True, "domain": domain, "version": version, "wrote": [out], "errors": []})
+        return
     click.echo(f"statement for {domain} {version} written to {out}", err=True)
 
 
@@ -273,9 +293,15 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
     help="Keys folder; the new private key goes into the first (repeatable).",
 )
 @passphrase_option
+@JSON_OPTION
 @handle_errors
 def rotate(
-    source_dir: str, role: str | None, domain: str | None, keydirs: tuple[str, ...], passphrase_file: str | None
+    source_dir: str,
+    role: str | None,
+    domain: str | None,
+    keydirs: tuple[str, ...],
+    passphrase_file: str | None,
+    as_json: bool,
 ) -> None:
     """Replace a top-level role's key or a domain owner's key; `publish` then signs the change."""
     from ..registry import edit
@@ -294,6 +320,9 @@ def rotate(
         assert domain is not None
         key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
     _commit(plan, keydir)
+    if as_json:
+        emit_json({"ok": True, "role": role, "domain": domain, "keyid": key.keyid, "errors": []})
+        return
     click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
 
 
@@ -315,6 +344,7 @@ def rotate(
     help="Folder holding the files the entries name.",
 )
 @click.option(
+    "-o",
     "--out",
     "site",
     required=True,
@@ -331,7 +361,7 @@ def rotate(
 )
 @sigstore_root_option
 @passphrase_option
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
+@JSON_OPTION
 @handle_errors
 def publish(
     source_dir: str,
@@ -370,6 +400,7 @@ def publish(
                 "versions": result.versions,
                 "signed": result.signed,
                 "written": [str(p) for p in result.written],
+                "errors": [],
             }
         )
     else:
@@ -421,7 +452,7 @@ def _with_client_options(func: Any) -> Any:
 @registry.command()
 @click.argument("site", metavar="SITE_URL|DIR")
 @_with_client_options
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
+@JSON_OPTION
 @handle_errors
 def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, as_json: bool) -> None:
     """Refresh from SITE and check every role and every file it publishes."""
@@ -457,8 +488,11 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 @click.option("--from", "site", required=True, help="Registry site: an http(s) URL or a folder.")
 @_with_client_options
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
+@JSON_OPTION
 @handle_errors
-def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str) -> None:
+def fetch(
+    what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str, as_json: bool
+) -> None:
     """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
     from ..errors import NotFoundError
     from ..registry.client import latest
@@ -488,13 +522,24 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
     plan.protect_tree(client.cache_dir, what="the registry cache")
     if "://" not in site:
         plan.protect_tree(site, what="the registry site")
-    plan.add(out, data, flag="-o")
+    plan.add(out, data, flag="--out")
     plan.commit()
+    if as_json:
+        result = {"kind": kind, "name": name, "version": version, "size": len(data), "wrote": [out]}
+        emit_json({"ok": True, **result, "errors": []})
+        return
     click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
 
 
 def validate_with_registry(
-    doc: str, *, schema: str | None, site: str, trusted_root: str | None, strict: bool, cache_dir: str | None = None
+    doc: str,
+    *,
+    schema: str | None,
+    site: str,
+    trusted_root: str | None,
+    strict: bool,
+    cache_dir: str | None = None,
+    tree: Any = None,
 ) -> Any:
     """``validate --registry``: the registry supplies the schema (unless ``--schema``) and
     checks extension domains, versions, content and registered stream-profile digests."""
@@ -509,7 +554,7 @@ def validate_with_registry(
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
-    report = validate_document(doc, schema=schema or schemas)
+    report = validate_document(doc, schema=schema or schemas, tree_options=tree)
     path = Path(os.path.abspath(doc))
     source = display_path(path)
     tree = parse_bytes(read_local(path, path.parent, source=source), source=source)

@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING
 
 from lxml import etree
 
+from ..document import single
 from ..units import UnitError, bit_rate
 from ..xml import sourceline
 from .plan import CIPHERS, NETWORK_KINDS, OFFSETS, POLICIES, Association, Element, MacsecPlanError, Policy
@@ -95,6 +96,12 @@ _STORE_KINDS = (
 
 def local(el: etree._Element) -> str:
     return etree.QName(el).localname
+
+
+def one(el: etree._Element | None, tag: str, source: str) -> etree._Element | None:
+    """The one ``<tag>`` child (any namespace) of ``el`` through the shared accessor
+    (:func:`hcdf_trust.document.single`): two are refused (exit 3, both lines)."""
+    return None if el is None else single(el, "{*}" + tag, source=source)
 
 
 def kids(el: etree._Element, tag: str) -> list[etree._Element]:
@@ -149,18 +156,15 @@ class _Reader:
             if kind not in NETWORK_KINDS:
                 continue
             name = (el.get("name") or "").strip()
-            configs = [m for c in kids(el, "configuration") for m in kids(c, "macsec")]
-            if len(configs) > 1:
-                self.error(
-                    f"<{kind} name={name!r}> has {len(configs)} <macsec> configurations: one is allowed", configs[1]
-                )
-            net = _Network(el, kind, name, self.p._scoped(self.inst, name), configs[0] if configs else None)
+            src = self.doc.source
+            config = one(one(el, "configuration", src), "macsec", src)
+            net = _Network(el, kind, name, self.p._scoped(self.inst, name), config)
             if name in self.networks:
                 self.error(f"two networks are named {name!r}", el)
                 continue
             self.networks[name] = net
             if net.macsec is not None:
-                self.p._consumed.update(configs)
+                self.p._consumed.add(net.macsec)
                 self.read_policies(net)
         for net in self.networks.values():
             self.plan(net)
@@ -276,18 +280,16 @@ class _Reader:
         if not self.secured_medium(net):
             return
         default, ok = None, True
-        defaults = kids(net.macsec, "default-policy")
-        if len(defaults) > 1:
-            self.error(f"<macsec> of {net.kind} {net.name!r} has two <default-policy>", defaults[1])
-            ok = False
-        if defaults:
-            default, good = self.resolve(next(iter(kids(defaults[0], "macsec-policy-ref")), None), "<default-policy>")
-            ok = ok and good
+        src = self.doc.source
+        defaults = one(net.macsec, "default-policy", src)
+        if defaults is not None:
+            default, ok = self.resolve(one(defaults, "macsec-policy-ref", src), "<default-policy>")
         by_target: dict[str, tuple[Policy | None, etree._Element]] = {}
         legs = {(leg.get("name") or "").strip() for leg in kids(net.el, "leg")}
         for override in kids(net.macsec, "override"):
-            targets = [t for tg in kids(override, "target") for t in tg.iterchildren(etree.Element)]
-            policy, good = self.resolve(next(iter(kids(override, "macsec-policy-ref")), None), "<override>")
+            target_el = one(override, "target", src)
+            targets = list(target_el.iterchildren(etree.Element)) if target_el is not None else []
+            policy, good = self.resolve(one(override, "macsec-policy-ref", src), "<override>")
             ok = ok and good
             if len(targets) != 1:
                 self.error("<override> needs exactly one <target> with one <network-ref> or <leg-ref>", override)
@@ -341,13 +343,13 @@ class _Reader:
             )
 
     def communication(self, net: _Network) -> bool:
-        selected = next(iter(kids(net.el, "selected")), None)
+        selected = one(net.el, "selected", self.doc.source)
         return selected is None or (selected.get("purpose") or "communication").strip() == "communication"
 
     def secured_medium(self, net: _Network) -> bool:
         """Whether MACsec can run on the network (wired Ethernet); an error naming why not."""
         assert net.macsec is not None
-        selected = next(iter(kids(net.el, "selected")), None)
+        selected = one(net.el, "selected", self.doc.source)
         purpose = (selected.get("purpose") or "").strip() if selected is not None else ""
         carrier = (selected.get("carrier") or "").strip() if selected is not None else ""
         profiles = [(p.get("id") or "").strip() for p in kids(selected, "profile")] if selected is not None else []
@@ -396,14 +398,14 @@ class _Reader:
             for leg in legs:
                 ends = []
                 for side in ("from", "to"):
-                    end = next(iter(kids(leg, side)), None)
-                    hop = next(iter(kids(end, "hop-ref")), None) if end is not None else None
+                    end = one(leg, side, self.doc.source)
+                    hop = one(end, "hop-ref", self.doc.source)
                     if net.macsec is not None and (hop is None or (hop.get("hop") or "").strip() not in hops):
                         self.error(
                             f"leg {leg.get('name')!r}: its <{side}> names no <hop> of {net.name!r}",
                             end if end is not None else leg,
                         )
-                    ref = next(iter(kids(end, "participant-ref")), None) if end is not None else None
+                    ref = one(end, "participant-ref", self.doc.source)
                     ends.append(participant(ref, leg))
                 out.append((element("leg", (leg.get("name") or "").strip(), leg), ends))
             return out
@@ -412,7 +414,7 @@ class _Reader:
                 self.error(f"{net.kind} {net.name!r} has a MACsec policy and no <leg>: no segment to key", net.el)
             return []
         if net.kind == "star":  # a coordinator port and its peers: one shared segment, like a bus
-            ref = next((r for c in kids(net.el, "coordinator") for r in kids(c, "participant-ref")), None)
+            ref = one(one(net.el, "coordinator", self.doc.source), "participant-ref", self.doc.source)
             participant(ref, net.el)  # must resolve when secured
         return [(element(net.kind, "", net.el), list(participants.values()))]  # the whole network
 
@@ -431,8 +433,9 @@ class _Reader:
         for part in members:
             if local(part) != "participant":
                 continue  # an unresolved reference, already an error
-            endpoint = next(iter(kids(part, "endpoint")), None)
-            ref = next((r for r in endpoint.iterchildren(etree.Element)), None) if endpoint is not None else None
+            endpoint = one(part, "endpoint", self.doc.source)
+            refs = list(endpoint.iterchildren(etree.Element)) if endpoint is not None else []
+            ref = refs[0] if len(refs) == 1 else None
             if ref is None or local(ref) not in ("port-ref", "channel-ref"):
                 self.error(f"participant {part.get('name')!r} has no <endpoint><port-ref>", part)
                 continue
@@ -460,7 +463,8 @@ class _Reader:
 
     def selected_rate(self, net: _Network, *, keyed: bool) -> float | None:
         """The network's ``<selected><rate><nominal value unit>`` in Mb/s (the rate it runs at), if given."""
-        nominal = next((n for s in kids(net.el, "selected") for r in kids(s, "rate") for n in kids(r, "nominal")), None)
+        src = self.doc.source
+        nominal = one(one(one(net.el, "selected", src), "rate", src), "nominal", src)
         if nominal is None:
             return None
         try:
