@@ -333,3 +333,23 @@ def test_policy_macsec_outside_any_network_is_refused_in_any_namespace(tmp_path,
     doc.write_text(text)
     r = cli("macsec", "plan", lock(doc), "--json")
     assert r.exit_code == 3 and [e["line"] for e in r.json["errors"]] == [5], r.json
+
+
+# --- audit reads the new model too -----------------------------------------------------------------
+
+
+def test_audit_finds_control_traffic_and_file_stores_in_the_new_model(tmp_path, cli):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    chain = _doc(tmp_path / "a", "chain-must-secure.hcdf")
+    r = cli("audit", chain, "--json")
+    # the chain's traffic classes include pcp 7 (ptp): its should-secure leg is an error, as a 1.0 VLAN pcp >= 5 is
+    assert r.exit_code == 1
+    assert [(f["code"], f["line"]) for f in r.json["findings"]] == [
+        ("macsec-control-traffic", _line(chain, 'leg name="board-to-tail"'))
+    ]
+    stars = _doc(tmp_path / "b", "bus-star.hcdf")
+    r = cli("audit", stars, "--json")
+    assert [(f["code"], f["line"]) for f in r.json["findings"]] == [
+        ("macsec-file-key-store", _line(stars, 'credential-store-ref="keys/main"'))
+    ]
