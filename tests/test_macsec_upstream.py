@@ -353,3 +353,22 @@ def test_audit_finds_control_traffic_and_file_stores_in_the_new_model(tmp_path, 
     assert [(f["code"], f["line"]) for f in r.json["findings"]] == [
         ("macsec-file-key-store", _line(stars, 'credential-store-ref="keys/main"'))
     ]
+
+
+@pytest.mark.parametrize(
+    ("case", "code"),
+    [
+        ("participant's port does not exist", "unresolved-port"),
+        ("participant's component does not exist", "unresolved-comp"),
+        ("a secured leg with one member", "unresolved-participant"),
+        ("override names no policy", "unresolved-participant"),
+    ],
+)
+def test_validate_checks_the_new_models_references(tmp_path, cli, case, code):
+    edits, marker = FAIL_CLOSED[case]
+    assert cli("validate", _doc(tmp_path, "chain-must-secure.hcdf"), "--json").exit_code == 0
+    doc = _doc(tmp_path, "chain-must-secure.hcdf", *edits)
+    r = cli("validate", doc, "--json")
+    assert r.exit_code == 1
+    found = [(f["code"], f["line"]) for f in r.json["findings"] if f["severity"] == "error"]
+    assert (code, _line(doc, marker)) in found, found
