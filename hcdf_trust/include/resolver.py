@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
-from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
+from ..digest import Hashed, Pin, hash_bytes, hash_chunks, include_mismatch_hint, parse_pin
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -862,9 +862,10 @@ def check_artifact(
                 warnings.append(where("unpinned", f"{use.ref.uri} is unpinned (sha256 {sha})"))
             continue
         if not pin.matches(sha):
+            hint = f" ({include_mismatch_hint(use.ref.uri or '')})" if art.kind is Kind.INCLUDE else ""
             errors.append(
                 DigestMismatchError(
-                    f"{use.ref.uri}: digest mismatch",
+                    f"{use.ref.uri}: digest mismatch{hint}",
                     file=use.doc,
                     line=use.ref.line,
                     url=art.url,
