@@ -523,7 +523,7 @@ def fetch(
 def validate_with_registry(
     doc: str,
     *,
-    schema: str | None,
+    schema: tuple[str, ...] | str | None,
     site: str,
     trusted_root: str | None,
     strict: bool,

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import Hashed, Pin, hash_bytes, hash_chunks, include_mismatch_hint, parse_pin
-from ..document import Document, Kind, Reference
+from ..document import Document, Kind, Reference, foreign_major_notice
 from ..errors import (
     DigestMismatchError,
     FetchError,
@@ -392,6 +392,8 @@ class _Run:
         )
         self._find_cycles()
         self._check_all()
+        if (notice := foreign_major_notice(res.documents.values())) is not None:
+            res.warnings.append(notice)
         if lock_error is not None:
             # Without its lock, the run's drift findings say nothing: the lock error alone.
             others = [e for e in res.errors if not isinstance(e, LockDriftError | UnpinnedError)]
