@@ -1,0 +1,147 @@
+"""A real CNCF distribution server (Debian ``docker-registry``) on 127.0.0.1 for the OCI tests.
+
+Started with its own configuration file (never the package's, which listens on every
+interface), on a port the kernel picks (read back from its log), storing into a temporary
+folder the tests can edit to play a compromised registry; with ``htpasswd`` it asks for
+Basic credentials (a bcrypt line, as distribution requires).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+
+BINARY = shutil.which("docker-registry") or "/usr/bin/docker-registry"
+
+
+@dataclass
+class Registry:
+    root: Path  # storage root
+    port: int
+    process: subprocess.Popen[bytes]
+    user: str | None = None
+    password: str | None = None
+
+    @property
+    def netloc(self) -> str:
+        return f"127.0.0.1:{self.port}"
+
+    def ref(self, repo: str = "robots/scout", tag: str = "r1") -> str:
+        return f"oci://{self.netloc}/{repo}:{tag}"
+
+    def http(self) -> httpx.Client:
+        auth = (self.user, self.password) if self.user and self.password else None
+        return httpx.Client(base_url=f"http://{self.netloc}", auth=auth, timeout=10)
+
+    def blob_path(self, digest: str) -> Path:
+        hex_ = digest.split(":", 1)[1]
+        return self.root / "docker/registry/v2/blobs/sha256" / hex_[:2] / hex_ / "data"
+
+    def tag_link(self, repo: str, tag: str) -> Path:
+        return self.root / f"docker/registry/v2/repositories/{repo}/_manifests/tags/{tag}/current/link"
+
+    def manifest(self, repo: str, reference: str) -> tuple[bytes, str]:
+        with self.http() as c:
+            r = c.get(
+                f"/v2/{repo}/manifests/{reference}",
+                headers={
+                    "Accept": "application/vnd.oci.image.manifest.v1+json,application/vnd.oci.image.index.v1+json"
+                },
+            )
+            r.raise_for_status()
+            return r.content, "sha256:" + hashlib.sha256(r.content).hexdigest()
+
+    def put_manifest(
+        self, repo: str, reference: str, body: bytes, media_type: str = "application/vnd.oci.image.manifest.v1+json"
+    ) -> str:
+        with self.http() as c:
+            r = c.put(f"/v2/{repo}/manifests/{reference}", content=body, headers={"Content-Type": media_type})
+            assert r.status_code == 201, r.text
+        return "sha256:" + hashlib.sha256(body).hexdigest()
+
+    def put_blob(self, repo: str, data: bytes) -> str:
+        digest = "sha256:" + hashlib.sha256(data).hexdigest()
+        with self.http() as c:
+            r = c.post(f"/v2/{repo}/blobs/uploads/")
+            assert r.status_code == 202, r.text
+            loc = r.headers["location"]
+            r = c.put(
+                loc, params={"digest": digest}, content=data, headers={"Content-Type": "application/octet-stream"}
+            )
+            assert r.status_code == 201, r.text
+        return digest
+
+
+def start_registry(folder: Path, *, user: str | None = None, password: str | None = None) -> Registry:
+    folder.mkdir(parents=True, exist_ok=True)
+    storage = folder / "storage"
+    config = {
+        "version": 0.1,
+        "log": {"level": "info"},
+        "storage": {"filesystem": {"rootdirectory": str(storage)}, "delete": {"enabled": True}},
+        "http": {"addr": "127.0.0.1:0", "secret": "test-secret-not-a-credential"},
+    }
+    if user is not None:
+        import bcrypt
+
+        assert password is not None
+        line = f"{user}:{bcrypt.hashpw(password.encode(), bcrypt.gensalt(rounds=4)).decode()}\n"
+        (folder / "htpasswd").write_text(line)
+        config["auth"] = {"htpasswd": {"realm": "hcdf-test", "path": str(folder / "htpasswd")}}
+    # JSON is YAML: no YAML writer needed
+    (folder / "config.yml").write_text(json.dumps(config))
+    log = open(folder / "registry.log", "wb")  # noqa: SIM115 -- the process writes it until stopped
+    env = {k: v for k, v in os.environ.items() if not k.startswith("REGISTRY_")}
+    proc = subprocess.Popen([BINARY, "serve", str(folder / "config.yml")], stdout=log, stderr=log, env=env)
+    log.close()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        m = re.search(rb"listening on 127\.0\.0\.1:(\d+)", (folder / "registry.log").read_bytes())
+        if m:
+            return Registry(storage, int(m.group(1)), proc, user, password)
+        if proc.poll() is not None:
+            break
+        time.sleep(0.02)
+    proc.kill()
+    raise RuntimeError("docker-registry did not start: " + (folder / "registry.log").read_text()[-2000:])
+
+
+def stop_registry(reg: Registry) -> None:
+    reg.process.terminate()
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        reg.process.wait(5)
+    if reg.process.poll() is None:
+        reg.process.kill()
+        reg.process.wait()
+
+
+@pytest.fixture(scope="module")
+def registry(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Registry]:
+    if not os.path.exists(BINARY):
+        pytest.fail("docker-registry is not installed (.ci/apt-packages lists it)")
+    reg = start_registry(tmp_path_factory.mktemp("registry"))
+    yield reg
+    stop_registry(reg)
+
+
+USER = "robot-ci"
+PASSWORD = "s3cret-Registry-Passw0rd"
+
+
+@pytest.fixture(scope="module")
+def auth_registry(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Registry]:
+    reg = start_registry(tmp_path_factory.mktemp("registry-auth"), user=USER, password=PASSWORD)
+    yield reg
+    stop_registry(reg)
