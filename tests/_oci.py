@@ -145,3 +145,29 @@ def auth_registry(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Registry
     reg = start_registry(tmp_path_factory.mktemp("registry-auth"), user=USER, password=PASSWORD)
     yield reg
     stop_registry(reg)
+
+
+MANIFEST_TYPE = "application/vnd.oci.image.manifest.v1+json"
+INDEX_TYPE = "application/vnd.oci.image.index.v1+json"
+
+
+def mirror(srv, registry: Registry, repo: str, tag: str, *, referrers_api: bool = False) -> tuple[str, dict]:
+    """Serve what ``registry`` holds under ``repo:tag`` from the loopback test server ``srv``
+    (a registry the test can make misbehave path by path); returns the manifest digest and doc.
+    ``referrers_api``: answer ``/referrers/<digest>`` (OCI 1.1) instead of the fallback tag."""
+    srv.add("/v2/", b"{}", headers={"Content-Type": "application/json"})
+    body, digest = registry.manifest(repo, tag)
+    doc = json.loads(body)
+    for ref in (tag, digest):
+        srv.add(f"/v2/{repo}/manifests/{ref}", body, headers={"Content-Type": MANIFEST_TYPE})
+    for layer in [doc["config"], *doc["layers"]]:
+        srv.add(f"/v2/{repo}/blobs/{layer['digest']}", registry.blob_path(layer["digest"]).read_bytes())
+    index, _ = registry.manifest(repo, digest.replace(":", "-"))
+    for entry in json.loads(index)["manifests"]:
+        sig, _ = registry.manifest(repo, entry["digest"])
+        srv.add(f"/v2/{repo}/manifests/{entry['digest']}", sig, headers={"Content-Type": MANIFEST_TYPE})
+    if referrers_api:
+        srv.add(f"/v2/{repo}/referrers/{digest}", index, headers={"Content-Type": INDEX_TYPE})
+    else:
+        srv.add(f"/v2/{repo}/manifests/{digest.replace(':', '-')}", index, headers={"Content-Type": INDEX_TYPE})
+    return digest, doc

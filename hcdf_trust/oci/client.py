@@ -190,7 +190,7 @@ class RegistryClient:
             raise RegistryError(f"{what}: redirect to a URL with credentials is refused", url=current)
         if src.scheme == "https" and dst.scheme != "https":
             raise RegistryError(
-                f"{what}: redirect from https down to {dst.scheme or 'a relative'} URL is refused ({target})",
+                f"{what}: redirect from https down to {dst.scheme or 'a relative URL'} is refused ({target})",
                 url=current,
                 expected="an https URL",
                 actual=target,
