@@ -84,7 +84,9 @@ class Registry:
         return digest
 
 
-def start_registry(folder: Path, *, user: str | None = None, password: str | None = None) -> Registry:
+def start_registry(
+    folder: Path, *, user: str | None = None, password: str | None = None, tls: tuple[Path, Path] | None = None
+) -> Registry:
     folder.mkdir(parents=True, exist_ok=True)
     storage = folder / "storage"
     config = {
@@ -100,6 +102,8 @@ def start_registry(folder: Path, *, user: str | None = None, password: str | Non
         line = f"{user}:{bcrypt.hashpw(password.encode(), bcrypt.gensalt(rounds=4)).decode()}\n"
         (folder / "htpasswd").write_text(line)
         config["auth"] = {"htpasswd": {"realm": "hcdf-test", "path": str(folder / "htpasswd")}}
+    if tls is not None:
+        config["http"]["tls"] = {"certificate": str(tls[0]), "key": str(tls[1])}  # type: ignore[index]
     # JSON is YAML: no YAML writer needed
     (folder / "config.yml").write_text(json.dumps(config))
     log = open(folder / "registry.log", "wb")  # noqa: SIM115 -- the process writes it until stopped
@@ -171,3 +175,70 @@ def mirror(srv, registry: Registry, repo: str, tag: str, *, referrers_api: bool 
     else:
         srv.add(f"/v2/{repo}/manifests/{digest.replace(':', '-')}", index, headers={"Content-Type": INDEX_TYPE})
     return digest, doc
+
+
+class TokenFront:
+    """A bearer-token registry on 127.0.0.1: ``/token`` hands a token for the right Basic
+    credentials (the Docker token protocol); every ``/v2/`` request without that token gets
+    401 with ``WWW-Authenticate: Bearer realm=…``; the rest is passed to a real registry."""
+
+    def __init__(self, backend: Registry, user: str, password: str) -> None:
+        import base64
+        import http.server
+        import secrets
+        import threading
+
+        self.token = "tok-" + secrets.token_hex(16)
+        self.seen_auth: list[str] = []
+        front = self
+        good = "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode()
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def log_message(self, *a):  # noqa: ANN002
+                pass
+
+            def _reply(self, status, body=b"", headers=()):
+                self.send_response(status)
+                for k, v in headers:
+                    self.send_header(k, v)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                if self.command != "HEAD":
+                    self.wfile.write(body)
+
+            def _any(self):
+                auth = self.headers.get("Authorization", "")
+                front.seen_auth.append(auth)
+                if self.path.startswith("/token"):
+                    if auth != good:
+                        return self._reply(401)
+                    return self._reply(200, json.dumps({"token": front.token}).encode())
+                if auth != f"Bearer {front.token}":
+                    realm = f'Bearer realm="http://127.0.0.1:{front.port}/token",service="test"'
+                    return self._reply(401, b"{}", [("WWW-Authenticate", realm)])
+                length = int(self.headers.get("Content-Length") or 0)
+                body = self.rfile.read(length) if length else None
+                keep = {k: v for k, v in self.headers.items() if k.lower() in ("accept", "content-type")}
+                with httpx.Client(base_url=f"http://{backend.netloc}", timeout=30) as c:
+                    r = c.request(self.command, self.path, content=body, headers=keep)
+                hdrs = [
+                    (k, v.replace(backend.netloc, f"127.0.0.1:{front.port}"))
+                    for k, v in r.headers.items()
+                    if k.lower() in ("content-type", "location", "docker-content-digest", "oci-subject")
+                ]
+                self._reply(r.status_code, r.content, hdrs)
+
+            do_GET = do_HEAD = do_PUT = do_POST = do_PATCH = _any  # noqa: N815
+
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.httpd.server_address[1]
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def ref(self, repo: str = "robots/scout", tag: str = "r1") -> str:
+        return f"oci://127.0.0.1:{self.port}/{repo}:{tag}"
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()

@@ -214,7 +214,9 @@ class RegistryClient:
         creds = self.credentials
         if scheme == "basic":
             if creds is None or creds.identity_token:
-                raise RegistryAuthError(f"{url}: HTTP 401: the registry asks for a user name and password, none found")
+                raise RegistryAuthError(
+                    f"{url}: HTTP 401: it needs a user name and password (none were found)", url=url
+                )
             self._auth = creds.basic_header()
             return
         if scheme != "bearer" or "realm" not in params:
@@ -242,7 +244,14 @@ class RegistryClient:
         except (self._httpx.HTTPError, self._httpx.InvalidURL, OSError) as exc:
             raise RegistryAuthError(f"token realm {realm}: {_describe(exc)}", url=realm) from None
         if response.status_code != 200:
-            raise RegistryAuthError(f"token realm {realm}: HTTP {response.status_code}", url=realm)
+            why = (
+                ""
+                if response.status_code != 401
+                else ": the credentials were refused"
+                if creds is not None
+                else ": it needs credentials (none were found)"
+            )
+            raise RegistryAuthError(f"token realm {realm}: HTTP {response.status_code}{why}", url=realm)
         from ..scrub import remember
         from .json import parse_json
 
