@@ -79,3 +79,32 @@ def test_push_then_pull_into_an_empty_folder_verifies(cli, registry, release, tm
     assert r.exit_code == 0, r.stderr
     assert r.json["from_cache"] == len(titles)
     assert tree(tmp_path / "again") == tree(out)
+
+
+def test_demo_release_through_the_registry_with_only_the_public_key(cli, registry, tmp_path):  # noqa: F811
+    """Issue 22's "done when": the release `make demo` builds, pushed to the loopback registry,
+    pulled into an empty folder with only the public key, verifies."""
+    import shutil
+
+    from tests.conftest import PROJECT
+
+    robot = tmp_path / "robot"
+    shutil.copytree(PROJECT / "examples" / "robot", robot)
+    key = tmp_path / "demo.pem"
+    assert cli("ota", "keygen", "-o", key).exit_code == 0
+    out = tmp_path / "release"
+    r = cli(
+        "ota", "build", robot / "robot.hcdf", "--firmware-dir", robot / "firmware", "--key", key,
+        "--out", out, "--base-url", "https://firmware.example.com/scout2",
+    )  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    pub_only = tmp_path / "device"
+    pub_only.mkdir()
+    shutil.copy(tmp_path / "demo.pub.pem", pub_only / "demo.pub.pem")
+    r = cli("ota", "push", out, registry.ref("demo/scout2", "1"), "--key", pub_only / "demo.pub.pem", "--json")
+    assert r.exit_code == 0, r.stderr
+    dest = pub_only / "release"
+    r = cli("ota", "pull", registry.ref("demo/scout2", "1"), "--key", pub_only / "demo.pub.pem", "--out", dest)
+    assert r.exit_code == 0, r.stderr
+    assert tree(dest) == tree(out)
+    assert cli("ota", "verify", dest, "--key", pub_only / "demo.pub.pem").exit_code == 0
