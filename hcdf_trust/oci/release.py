@@ -31,6 +31,7 @@ import re
 import shutil
 import tempfile
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,7 @@ EMPTY_DESCRIPTOR = {"mediaType": EMPTY_TYPE, "digest": sha256_digest(EMPTY), "si
 TITLE = "org.opencontainers.image.title"
 A = "dev.hcdf."  # our annotation prefix
 MAX_LAYERS = 1024
+FETCH_THREADS = 4
 MAX_TOTAL_BYTES = 8 << 30
 _SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
@@ -308,22 +310,35 @@ def pull_release(
     store = ContentStore(cache_dir)
     cached = 0
     paths: dict[str, Path] = {}
+    todo: list[tuple[int, dict[str, Any]]] = []
     for i, layer in enumerate(layers):
-        title = layer["annotations"][TITLE]
-        want = layer["digest"].split(":", 1)[1]
-        hit = store.verified_path(want)
+        hit = store.verified_path(layer["digest"].split(":", 1)[1])
         if hit is not None and hit.stat().st_size == layer["size"]:
-            paths[title] = hit
+            paths[layer["annotations"][TITLE]] = hit
             cached += 1
-            continue
-        paths[title] = _fetch_blob(client, store, layer, title=title, where=f"{source}#/layers/{i}")
-    # 4. ota verify in a staging folder
-    stage = tempfile.mkdtemp(prefix="hcdf-oci-pull-")
+        else:
+            todo.append((i, layer))
+    # a few blobs at a time: each request waits on the registry, not on us (1 connection each)
+    with ThreadPoolExecutor(max_workers=FETCH_THREADS) as pool:
+        fetched = pool.map(
+            lambda item: _fetch_blob(
+                client, store, item[1], title=item[1]["annotations"][TITLE], where=f"{source}#/layers/{item[0]}"
+            ),
+            todo,
+        )
+        for (_, layer), path in zip(todo, list(fetched), strict=True):
+            paths[layer["annotations"][TITLE]] = path
+    # 4. ota verify in a staging folder beside the store (hard links to the verified blobs)
+    os.makedirs(cache_dir, exist_ok=True)
+    stage = tempfile.mkdtemp(prefix=".oci-pull-", dir=cache_dir)
     try:
         for title, path in paths.items():
             dest = os.path.join(stage, *title.split("/"))
             os.makedirs(os.path.dirname(dest), exist_ok=True)
-            shutil.copyfile(path, dest, follow_symlinks=False)
+            try:
+                os.link(path, dest, follow_symlinks=False)
+            except OSError:  # another filesystem, or links not allowed
+                shutil.copyfile(path, dest, follow_symlinks=False)
         release, errors = _verify_staged(stage, public_key, previous, set(paths), layers)
         if errors:
             raise _group(errors)
