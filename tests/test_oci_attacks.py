@@ -355,3 +355,24 @@ def test_nothing_written_keeps_an_existing_out_folder(cli, registry, releases, e
     r = _pull(cli, registry.ref(REPO, "r1"), robot, dest)
     assert r.exit_code == 1, r.stderr
     assert tree(dest) == before
+
+
+def test_layer_titled_below_another_file(cli, registry, releases, tmp_path):  # noqa: F811
+    robot, _, _ = releases
+    doc = _doc(registry)
+    _layer(doc, "release.suit.json")["annotations"]["org.opencontainers.image.title"] = "release.suit/x"
+    dest = tmp_path / "out"
+    r = _pull(cli, _crafted(registry, doc, "below"), robot, dest)
+    _refused(r, dest, 3, "lies below the file of /layers/0")
+
+
+@pytest.mark.parametrize("value", [["a"], {"a": 1}, 7, None])
+def test_layer_media_type_of_another_json_type(cli, registry, releases, http_server, tmp_path, value):  # noqa: F811
+    """distribution refuses such a manifest itself: the loopback server replays it."""
+    robot, _, _ = releases
+    _, doc = mirror(http_server, registry, REPO, "r1")
+    _layer(doc, "flex-io/0.2.0.bin")["mediaType"] = value
+    http_server.add(f"/v2/{REPO}/manifests/r1", json.dumps(doc).encode(), headers={"Content-Type": MANIFEST_TYPE})
+    dest = tmp_path / "out"
+    r = _pull(cli, f"oci://127.0.0.1:{http_server.port}/{REPO}:r1", robot, dest)
+    _refused(r, dest, 3, "unknown media type")

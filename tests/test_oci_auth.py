@@ -217,3 +217,30 @@ def test_a_registry_echoing_the_password_is_not_shown(cli, release, http_server,
         assert r.exit_code == 3, r.stderr
         assert "redirect" in r.stderr + r.stdout
         _secret_free(r)
+
+
+def test_no_credentials_over_plain_http_to_another_machine(monkeypatch):
+    """--insecure-registry allows plain http, but never a password in clear over the network."""
+    import pytest as _pytest
+
+    from hcdf_trust.oci.auth import Credentials
+    from hcdf_trust.oci.client import RegistryAuthError
+
+    client = RegistryClient(
+        parse_reference("oci://10.0.0.1:5000/a:b"),
+        credentials=Credentials(USER, PASSWORD),
+        insecure_registries=["10.0.0.1:5000"],
+    )
+    with _pytest.raises(RegistryAuthError, match="refusing to send credentials over plain http"):
+        client._answer('Basic realm="x"', "http://10.0.0.1:5000/v2/")
+    with _pytest.raises(RegistryAuthError, match="refusing to send credentials over plain http"):
+        client._answer('Bearer realm="https://auth.example/token"', "http://10.0.0.1:5000/v2/")
+    loop = RegistryClient(parse_reference("oci://127.0.0.1:5000/a:b"), credentials=Credentials(USER, PASSWORD))
+
+    def no_network(*a, **k):
+        raise AssertionError("the credentials were about to be sent")
+
+    monkeypatch.setattr(loop._client, "get", no_network)
+    monkeypatch.setattr(loop._client, "post", no_network)
+    with _pytest.raises(RegistryAuthError, match="token realm http://10.0.0.2/token is not https"):
+        loop._answer('Bearer realm="http://10.0.0.2/token"', "http://127.0.0.1:5000/v2/")

@@ -63,6 +63,12 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def _private_channel(url: str) -> bool:
+    """Credentials go over https, or plain http to this machine only."""
+    parts = urlsplit(url)
+    return parts.scheme == "https" or (parts.scheme == "http" and is_loopback(parts.hostname or ""))
+
+
 def sha256_digest(data: bytes) -> str:
     return "sha256:" + hashlib.sha256(data).hexdigest()
 
@@ -212,6 +218,10 @@ class RegistryClient:
         """Set the Authorization header that answers a ``WWW-Authenticate`` challenge."""
         scheme, params = _parse_challenge(challenge)
         creds = self.credentials
+        if creds is not None and not _private_channel(url):
+            raise RegistryAuthError(
+                f"{url}: refusing to send credentials over plain http to a host that is not loopback", url=url
+            )
         if scheme == "basic":
             if creds is None or creds.identity_token:
                 raise RegistryAuthError(
@@ -222,7 +232,7 @@ class RegistryClient:
         if scheme != "bearer" or "realm" not in params:
             raise RegistryAuthError(f"{url}: HTTP 401 with an authentication scheme we do not speak ({scheme!r})")
         realm = params["realm"]
-        if not self._allowed_scheme(realm) or urlsplit(realm).scheme not in ("https", "http"):
+        if not _private_channel(realm):
             raise RegistryAuthError(f"{url}: token realm {realm} is not https (nor loopback http)", url=url)
         query = {"service": params.get("service", ""), "scope": params.get("scope") or self.scope}
         headers: dict[str, str] = {}

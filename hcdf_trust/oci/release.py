@@ -57,6 +57,7 @@ TITLE = "org.opencontainers.image.title"
 A = "dev.hcdf."  # our annotation prefix
 MAX_LAYERS = 1024
 FETCH_THREADS = 4
+MAX_REFERRERS = 16
 MAX_TOTAL_BYTES = 8 << 30
 _SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
@@ -254,7 +255,7 @@ def check_manifest(body: bytes, *, source: str) -> tuple[dict[str, Any], list[di
         where = f"/layers/{i}"
         if not isinstance(layer, dict):
             raise ArtifactError(f"{where}: not a descriptor", file=source)
-        if layer.get("mediaType") not in LAYER_TYPES:
+        if not isinstance(layer.get("mediaType"), str) or layer["mediaType"] not in LAYER_TYPES:
             raise ArtifactError(f"{where}: unknown media type {str(layer.get('mediaType'))[:100]!r}", file=source)
         if not isinstance(layer.get("digest"), str) or not _DIGEST.fullmatch(layer["digest"]):
             raise ArtifactError(f"{where}: digest is not sha256: and 64 lower-case hex digits", file=source)
@@ -275,6 +276,12 @@ def check_manifest(body: bytes, *, source: str) -> tuple[dict[str, Any], list[di
         if title.lower() in seen:
             raise ArtifactError(f"{where}: title {title!r} is also the title of {seen[title.lower()]}", file=source)
         seen[title.lower()] = where
+    for title, where in seen.items():  # "a" and "a/b": a file where a folder must be
+        parts = title.split("/")
+        for n in range(1, len(parts)):
+            prefix = "/".join(parts[:n])
+            if prefix in seen:
+                raise ArtifactError(f"{where}: title {title!r} lies below the file of {seen[prefix]}", file=source)
     if total > MAX_TOTAL_BYTES:
         raise ArtifactError(f"the layers add up to more than {MAX_TOTAL_BYTES} bytes", file=source)
     return doc, layers
@@ -448,6 +455,9 @@ def check_referrers(client: RegistryClient, digest: str, envelope_digest: str) -
     from .json import parse_json
 
     listed, _api = client.referrers(digest, artifact_type=SIGNATURE_TYPE)
+    ours = [x for x in listed if isinstance(x, dict) and x.get("artifactType") == SIGNATURE_TYPE]
+    if len(ours) > MAX_REFERRERS:
+        raise ReferrerError(f"referrers of {digest}: more than {MAX_REFERRERS} signature referrers listed")
     found: list[str] = []
     for item in listed:
         if not isinstance(item, dict) or item.get("artifactType") != SIGNATURE_TYPE:
