@@ -19,6 +19,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -242,3 +243,13 @@ class TokenFront:
     def close(self) -> None:
         self.httpd.shutdown()
         self.httpd.server_close()
+
+
+@contextlib.contextmanager
+def running_registry(folder: Path, **kw: Any) -> Iterator[Registry]:
+    """:func:`start_registry` for one ``with`` block (stopped whatever happens)."""
+    reg = start_registry(folder, **kw)
+    try:
+        yield reg
+    finally:
+        stop_registry(reg)

@@ -59,7 +59,7 @@ MAX_LAYERS = 1024
 FETCH_THREADS = 4
 MAX_REFERRERS = 16
 MAX_TOTAL_BYTES = 8 << 30
-_SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
+_SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,254}")
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
 
 
@@ -153,20 +153,25 @@ def manifest_for(release: Any, layers: list[_Layer]) -> bytes:
 def push_release(folder: str, ref: Reference, client: RegistryClient, release: Any) -> dict[str, Any]:
     """Upload every blob (streamed), the manifest under the tag, and the SUIT referrer."""
     layers = release_layers(folder, release)
-    client.check()
-    client.push_blob(EMPTY_DESCRIPTOR["digest"], 2, [EMPTY])  # type: ignore[arg-type]
-    for layer in layers:
-        fd, _ = open_checked(os.path.join(folder, layer.rel), folder, file=layer.rel)
-        try:
-            client.push_blob(f"sha256:{layer.sha256}", layer.size, _checked(read_chunks(fd), layer))
-        finally:
-            os.close(fd)
+    push_blobs(client, folder, layers)
     body = manifest_for(release, layers)
     digest = sha256_digest(body)
     client.put_manifest(ref.tag or digest, body, MANIFEST_TYPE)
     envelope = next(layer for layer in layers if layer.media_type == SUIT_TYPE)
     referrer = attach_signature(client, subject=(digest, len(body)), envelope=envelope)
     return {"digest": digest, "layers": [x.descriptor() for x in layers], "referrers": [referrer]}
+
+
+def push_blobs(client: RegistryClient, folder: str, layers: list[_Layer]) -> None:
+    """The empty config and every layer's file, streamed from ``folder``."""
+    client.check()
+    client.push_blob(str(EMPTY_DESCRIPTOR["digest"]), 2, [EMPTY])
+    for layer in layers:
+        fd, _ = open_checked(os.path.join(folder, layer.rel), folder, file=layer.rel)
+        try:
+            client.push_blob(f"sha256:{layer.sha256}", layer.size, _checked(read_chunks(fd), layer))
+        finally:
+            os.close(fd)
 
 
 def _checked(chunks: Iterator[bytes], layer: _Layer) -> Iterator[bytes]:
@@ -229,20 +234,28 @@ def _update_fallback(client: RegistryClient, subject: str, descriptor: dict[str,
 # -- pull ------------------------------------------------------------------------------
 
 
-def check_manifest(body: bytes, *, source: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+def check_manifest(
+    body: bytes,
+    *,
+    source: str,
+    artifact_type: str = RELEASE_TYPE,
+    layer_types: frozenset[str] = LAYER_TYPES,
+    max_segments: int = 3,
+    what: str = "an hcdf-trust release",
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Step 2: the manifest document and its layers, each checked. Pure.
 
     Raises:
-        ArtifactError: not a release artifact, or a layer we would not write.
+        ArtifactError: not an artifact of ``artifact_type``, or a layer we would not write.
     """
     from .json import parse_json
 
     doc = parse_json(body, source=source, what="OCI manifest")
     if not isinstance(doc, dict) or doc.get("schemaVersion") != 2 or doc.get("mediaType") != MANIFEST_TYPE:
         raise ArtifactError("not an OCI image manifest (schemaVersion 2, mediaType)", file=source)
-    if doc.get("artifactType") != RELEASE_TYPE:
+    if doc.get("artifactType") != artifact_type:
         raise ArtifactError(
-            "not an hcdf-trust release", file=source, expected=RELEASE_TYPE, actual=str(doc.get("artifactType"))[:100]
+            f"not {what}", file=source, expected=artifact_type, actual=str(doc.get("artifactType"))[:100]
         )
     if doc.get("config") != EMPTY_DESCRIPTOR:
         raise ArtifactError("the config is not the OCI empty descriptor", file=source)
@@ -255,7 +268,7 @@ def check_manifest(body: bytes, *, source: str) -> tuple[dict[str, Any], list[di
         where = f"/layers/{i}"
         if not isinstance(layer, dict):
             raise ArtifactError(f"{where}: not a descriptor", file=source)
-        if not isinstance(layer.get("mediaType"), str) or layer["mediaType"] not in LAYER_TYPES:
+        if not isinstance(layer.get("mediaType"), str) or layer["mediaType"] not in layer_types:
             raise ArtifactError(f"{where}: unknown media type {str(layer.get('mediaType'))[:100]!r}", file=source)
         if not isinstance(layer.get("digest"), str) or not _DIGEST.fullmatch(layer["digest"]):
             raise ArtifactError(f"{where}: digest is not sha256: and 64 lower-case hex digits", file=source)
@@ -268,9 +281,10 @@ def check_manifest(body: bytes, *, source: str) -> tuple[dict[str, Any], list[di
         if not isinstance(title, str):
             raise ArtifactError(f"{where}: no {TITLE} annotation", file=source)
         parts = title.split("/")
-        if len(parts) > 3 or not all(_SEGMENT.fullmatch(p) and p not in (".", "..") for p in parts):
+        if len(parts) > max_segments or not all(_SEGMENT.fullmatch(p) and p not in (".", "..") for p in parts):
             raise ArtifactError(
-                f"{where}: title {title[:200]!r} is not a plain relative path (1-3 segments of A-Z a-z 0-9 . _ + -)",
+                f"{where}: title {title[:200]!r} is not a plain relative path "
+                f"(1-{max_segments} segments of A-Z a-z 0-9 . _ + -)",
                 file=source,
             )
         if title.lower() in seen:
