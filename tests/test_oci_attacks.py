@@ -376,3 +376,25 @@ def test_layer_media_type_of_another_json_type(cli, registry, releases, http_ser
     dest = tmp_path / "out"
     r = _pull(cli, f"oci://127.0.0.1:{http_server.port}/{REPO}:r1", robot, dest)
     _refused(r, dest, 3, "unknown media type")
+
+
+def test_a_failed_pull_resumes_from_the_verified_blobs(cli, registry, releases, tmp_path):  # noqa: F811
+    """The blobs verified before a failure stay in the content store; the next pull fetches
+    only the one that failed (and still verifies everything)."""
+    robot, r1, _ = releases
+    layer = _layer(_doc(registry), "flex-io/0.2.0.bin")
+    path = registry.blob_path(layer["digest"])
+    good = path.read_bytes()
+    path.chmod(0o644)
+    path.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    cache = tmp_path / "cache"
+    dest = tmp_path / "out"
+    try:
+        r = _pull(cli, registry.ref(REPO, "r1"), robot, dest, "--cache-dir", cache)
+        _refused(r, dest, 1, "the blob's SHA-256 is not its digest")
+    finally:
+        path.write_bytes(good)
+    r = _pull(cli, registry.ref(REPO, "r1"), robot, dest, "--cache-dir", cache, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["from_cache"] == len(r.json["files"]) - 1
+    assert tree(dest) == tree(r1)

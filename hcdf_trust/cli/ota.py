@@ -306,9 +306,27 @@ def push(
             data = read_input(path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
             release = suit.parse_manifest(suit.parse_envelope(data, source=path).manifest, source=path)
         result = push_release(release_dir, ref, client, release)
+    warnings = []
+    if key is None:
+        from ..errors import Notice
+
+        warnings.append(
+            Notice("unverified-push", "pushed without --key: the release was not verified first (every pull verifies)")
+        )
     if as_json:
-        emit_json({"ok": True, "reference": str(ref), "verified": key is not None, **result, "errors": []})
+        emit_json(
+            {
+                "ok": True,
+                "reference": str(ref),
+                "verified": key is not None,
+                **result,
+                "warnings": [n.to_dict() for n in warnings],
+                "errors": [],
+            }
+        )
     else:
+        for n in warnings:
+            say(f"warning: {n}")
         say(f"pushed {len(result['layers'])} file(s) to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
