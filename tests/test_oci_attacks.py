@@ -398,3 +398,19 @@ def test_a_failed_pull_resumes_from_the_verified_blobs(cli, registry, releases, 
     assert r.exit_code == 0, r.stderr
     assert r.json["from_cache"] == len(r.json["files"]) - 1
     assert tree(dest) == tree(r1)
+
+
+def test_a_manifest_dripped_byte_by_byte_stops_at_the_deadline(http_server):
+    """Each byte comes within the read timeout; the whole answer is still bounded in time."""
+    import time
+
+    from hcdf_trust.oci.client import RegistryClient, RegistryError
+    from hcdf_trust.oci.reference import parse_reference
+
+    http_server.drip(f"/v2/{REPO}/manifests/r1", b"{" + b" " * 200 + b"}", every=0.05)
+    client = RegistryClient(parse_reference(f"oci://127.0.0.1:{http_server.port}/{REPO}:r1"), deadline=0.5)
+    started = time.monotonic()
+    with pytest.raises(RegistryError, match="took longer than 0.5 s"):
+        client.get_manifest("r1")
+    assert time.monotonic() - started < 5
+    client.close()

@@ -41,7 +41,6 @@ if TYPE_CHECKING:
 MAX_MANIFEST_BYTES = 4 << 20  # the distribution spec's recommended limit
 MANIFEST_TYPE = "application/vnd.oci.image.manifest.v1+json"
 INDEX_TYPE = "application/vnd.oci.image.index.v1+json"
-CHUNK = 1 << 20
 
 
 class RegistryError(FetchError):
@@ -289,7 +288,7 @@ class RegistryClient:
                 return None
             if r.status_code != 200:
                 raise RegistryError(f"{url}: HTTP {r.status_code}", url=url)
-            body = _read_bounded(r, MAX_MANIFEST_BYTES, url)
+            body = self._read_bounded(r, MAX_MANIFEST_BYTES, url)
             return body, sha256_digest(body), r.headers.get("content-type", "")
 
     def put_manifest(self, reference: str, body: bytes, media_type: str) -> dict[str, str]:
@@ -349,14 +348,19 @@ class RegistryClient:
                 )
             yield self._chunks(r, size, url)
 
-    def _chunks(self, r: httpx.Response, size: int, url: str) -> Iterator[bytes]:
+    def _read_bounded(self, r: httpx.Response, limit: int, url: str) -> bytes:
+        """A small body (a manifest, an index), whole: at most ``limit`` bytes and the deadline."""
+        return b"".join(self._chunks(r, limit, url, what="body"))
+
+    def _chunks(self, r: httpx.Response, size: int, url: str, *, what: str = "blob") -> Iterator[bytes]:
         got = 0
         started = time.monotonic()
         try:
-            for chunk in r.iter_raw(CHUNK):
+            for chunk in r.iter_raw():  # each network read as it comes (a chunk size would buffer)
                 got += len(chunk)
                 if got > size:
-                    raise RegistryError(f"{url}: blob is longer than the manifest's {size} bytes", url=url)
+                    limit = f"the manifest's {size} bytes" if what == "blob" else f"the {size}-byte limit"
+                    raise RegistryError(f"{url}: {what} is longer than {limit}", url=url)
                 if time.monotonic() - started > self.deadline:
                     raise RegistryError(f"{url}: took longer than {self.deadline:g} s", url=url)
                 yield chunk
@@ -373,7 +377,7 @@ class RegistryClient:
             url += "?" + urlencode({"artifactType": artifact_type})
         with self.request("GET", url, headers={"Accept": INDEX_TYPE}, what="GET referrers") as r:
             if r.status_code == 200 and r.headers.get("content-type", "").startswith(INDEX_TYPE):
-                doc = parse_json(_read_bounded(r, MAX_MANIFEST_BYTES, url), source=url, what="referrers index")
+                doc = parse_json(self._read_bounded(r, MAX_MANIFEST_BYTES, url), source=url, what="referrers index")
                 return _manifests(doc, url), True
             if r.status_code not in (200, 404):
                 raise RegistryError(f"{url}: HTTP {r.status_code}", url=url)
@@ -394,17 +398,6 @@ def _manifests(doc: Any, source: str) -> list[Any]:
     if not isinstance(doc, dict) or doc.get("schemaVersion") != 2 or not isinstance(doc.get("manifests"), list):
         raise RegistryError(f"{source}: not an OCI image index", url=source)
     return list(doc["manifests"])
-
-
-def _read_bounded(r: httpx.Response, limit: int, url: str) -> bytes:
-    parts: list[bytes] = []
-    size = 0
-    for chunk in r.iter_raw(CHUNK):
-        size += len(chunk)
-        if size > limit:
-            raise RegistryError(f"{url}: body is over the {limit}-byte limit", url=url)
-        parts.append(chunk)
-    return b"".join(parts)
 
 
 def _error_text(r: httpx.Response) -> str:
