@@ -108,3 +108,28 @@ def test_demo_release_through_the_registry_with_only_the_public_key(cli, registr
     assert r.exit_code == 0, r.stderr
     assert tree(dest) == tree(out)
     assert cli("ota", "verify", dest, "--key", pub_only / "demo.pub.pem").exit_code == 0
+
+
+def test_a_killed_pulls_staging_folder_is_swept_a_live_ones_kept(cli, registry, release, tmp_path):  # noqa: F811
+    import fcntl
+    import os
+
+    robot, out = release
+    assert cli("ota", "push", out, registry.ref(tag="sweep")).exit_code == 0
+    cache = tmp_path / "cache"
+    dead, live = cache / ".oci-pull-dead", cache / ".oci-pull-live"
+    for folder in (dead, live):
+        (folder / "mr_mcxn_t1").mkdir(parents=True)
+        (folder / ".lock").write_bytes(b"")
+        (folder / "mr_mcxn_t1" / "x.bin").write_bytes(b"partial")
+    fd = os.open(live / ".lock", os.O_RDWR)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # a pull still running there
+    try:
+        r = cli(
+            "ota", "pull", registry.ref(tag="sweep"), "--key", robot.pub, "--out", tmp_path / "o", "--cache-dir", cache
+        )
+        assert r.exit_code == 0, r.stderr
+        assert not dead.exists() and live.exists()
+        assert sorted(p.name for p in cache.glob(".oci-pull-*")) == [".oci-pull-live"]  # ours removed too
+    finally:
+        os.close(fd)

@@ -351,7 +351,9 @@ def pull_release(
             paths[layer["annotations"][TITLE]] = path
     # 4. ota verify in a staging folder beside the store (hard links to the verified blobs)
     os.makedirs(cache_dir, exist_ok=True)
-    stage = tempfile.mkdtemp(prefix=".oci-pull-", dir=cache_dir)
+    sweep_stages(cache_dir)
+    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
+    lock = _hold(stage)
     try:
         for title, path in paths.items():
             dest = os.path.join(stage, *title.split("/"))
@@ -380,11 +382,57 @@ def pull_release(
         wrote = [str(p) for p in plan.commit()]
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        os.close(lock)
     files = [
         {"title": x["annotations"][TITLE], "mediaType": x["mediaType"], "digest": x["digest"], "size": x["size"]}
         for x in layers
     ]
     return PullReport(str(ref), digest, release, files, cached, referrers, notices, wrote)
+
+
+STAGE_PREFIX = ".oci-pull-"
+_STAGE_LOCK = ".lock"
+_STALE_UNLOCKED = 600.0  # a staging folder with no lock file yet, older than this: its pull died
+
+
+def _hold(stage: str) -> int:
+    """Lock the staging folder for the life of this pull (a killed pull's lock goes with it)."""
+    import fcntl
+
+    fd = os.open(os.path.join(stage, _STAGE_LOCK), os.O_CREAT | os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return fd
+
+
+def sweep_stages(cache_dir: str) -> int:
+    """Remove the staging folders killed pulls left in ``cache_dir`` (those whose lock no
+    live pull holds); returns how many."""
+    import fcntl
+    import time
+
+    removed = 0
+    with os.scandir(cache_dir) as entries:
+        for entry in entries:
+            if not entry.name.startswith(STAGE_PREFIX) or not entry.is_dir(follow_symlinks=False):
+                continue
+            try:
+                fd = os.open(os.path.join(entry.path, _STAGE_LOCK), os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+            except FileNotFoundError:
+                if time.time() - entry.stat(follow_symlinks=False).st_mtime > _STALE_UNLOCKED:
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                    removed += 1
+                continue
+            except OSError:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:  # a pull is running there
+                continue
+            finally:
+                os.close(fd)  # (releases the lock we may have taken; the folder goes next)
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed += 1
+    return removed
 
 
 def _fetch_blob(client: RegistryClient, store: Any, layer: dict[str, Any], *, title: str, where: str) -> Path:
