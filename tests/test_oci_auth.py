@@ -244,3 +244,17 @@ def test_no_credentials_over_plain_http_to_another_machine(monkeypatch):
     monkeypatch.setattr(loop._client, "post", no_network)
     with _pytest.raises(RegistryAuthError, match="token realm http://10.0.0.2/token is not https"):
         loop._answer('Bearer realm="http://10.0.0.2/token"', "http://127.0.0.1:5000/v2/")
+
+
+def test_an_endless_token_answer_is_refused(http_server, monkeypatch):
+    """A token realm that answers without end: refused at 1 MiB, not read into memory."""
+    from hcdf_trust.oci.auth import Credentials
+    from hcdf_trust.oci.client import RegistryError
+
+    http_server.stream("/token", 1 << 40, chunked=True)
+    client = RegistryClient(
+        parse_reference(f"oci://127.0.0.1:{http_server.port}/a:b"), credentials=Credentials(USER, PASSWORD)
+    )
+    with pytest.raises(RegistryError, match="longer than the 1048576-byte limit"):
+        client._answer(f'Bearer realm="{http_server.url("/token")}"', client.origin + "/v2/")
+    client.close()

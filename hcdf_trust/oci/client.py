@@ -39,6 +39,7 @@ if TYPE_CHECKING:
     import httpx
 
 MAX_MANIFEST_BYTES = 4 << 20  # the distribution spec's recommended limit
+MAX_TOKEN_BYTES = 1 << 20
 MANIFEST_TYPE = "application/vnd.oci.image.manifest.v1+json"
 INDEX_TYPE = "application/vnd.oci.image.index.v1+json"
 
@@ -239,32 +240,30 @@ class RegistryClient:
             headers["Authorization"] = creds.basic_header()
         try:
             if creds is not None and creds.identity_token:
-                response = self._client.post(
-                    realm,
-                    data={
-                        "grant_type": "refresh_token",
-                        "refresh_token": creds.password,
-                        "client_id": "hcdf-trust",
-                        **query,
-                    },
-                )
+                form = {"grant_type": "refresh_token", "refresh_token": creds.password, "client_id": "hcdf-trust"}
+                request = self._client.build_request("POST", realm, data={**form, **query})
             else:
-                response = self._client.get(f"{realm}?{urlencode(query)}", headers=headers)
+                request = self._client.build_request("GET", f"{realm}?{urlencode(query)}", headers=headers)
+            response = self._client.send(request, stream=True)
         except (self._httpx.HTTPError, self._httpx.InvalidURL, OSError) as exc:
             raise RegistryAuthError(f"token realm {realm}: {_describe(exc)}", url=realm) from None
-        if response.status_code != 200:
-            why = (
-                ""
-                if response.status_code != 401
-                else ": the credentials were refused"
-                if creds is not None
-                else ": it needs credentials (none were found)"
-            )
-            raise RegistryAuthError(f"token realm {realm}: HTTP {response.status_code}{why}", url=realm)
+        try:
+            if response.status_code != 200:
+                why = (
+                    ""
+                    if response.status_code != 401
+                    else ": the credentials were refused"
+                    if creds is not None
+                    else ": it needs credentials (none were found)"
+                )
+                raise RegistryAuthError(f"token realm {realm}: HTTP {response.status_code}{why}", url=realm)
+            body = self._read_bounded(response, MAX_TOKEN_BYTES, realm)
+        finally:
+            response.close()
         from ..scrub import remember
         from .json import parse_json
 
-        doc = parse_json(response.content[: 1 << 20], source=realm, what="token response")
+        doc = parse_json(body, source=realm, what="token response")
         token = doc.get("token") or doc.get("access_token") if isinstance(doc, dict) else None
         if not isinstance(token, str) or not token:
             raise RegistryAuthError(f"token realm {realm}: no token in the answer", url=realm)
@@ -402,8 +401,12 @@ def _manifests(doc: Any, source: str) -> list[Any]:
 
 def _error_text(r: httpx.Response) -> str:
     """The first error code of a distribution-spec error body (short, no echo of our input)."""
+    body = b""
     try:
-        body = r.read()[:4096]
+        for chunk in r.iter_raw():
+            body += chunk
+            if len(body) >= 4096:
+                break
     except Exception:  # noqa: BLE001 -- only a message
         return "no body"
     m = re.search(rb'"code"\s*:\s*"([A-Z_]{1,40})"', body)
