@@ -133,3 +133,22 @@ def test_a_killed_pulls_staging_folder_is_swept_a_live_ones_kept(cli, registry, 
         assert sorted(p.name for p in cache.glob(".oci-pull-*")) == [".oci-pull-live"]  # ours removed too
     finally:
         os.close(fd)
+
+
+def test_a_release_with_history_pulls_and_verifies(cli, registry, tmp_path):  # noqa: F811
+    """release.history travels as a layer: without it the pulled latest.json's previous[]
+    would be vouched for by nothing, and pull's verify would refuse it."""
+    robot = make_robot(tmp_path, cli)
+    out = tmp_path / "rel"
+    assert robot.build(cli, out).exit_code == 0
+    robot.rewrite(cli, flex_version="0.3.0")
+    assert robot.build(cli, out).exit_code == 0
+    ref = registry.ref(tag="history")
+    r = cli("ota", "push", out, ref, "--key", robot.pub, "--json")
+    assert r.exit_code == 0, r.stderr
+    titles = {x["annotations"]["org.opencontainers.image.title"]: x["mediaType"] for x in r.json["layers"]}
+    assert titles["release.history"] == "application/vnd.hcdf.release.history.v1+cbor"
+    pulled = tmp_path / "pulled"
+    r = cli("ota", "pull", ref, "--key", robot.pub, "--out", pulled)
+    assert r.exit_code == 0, r.stderr
+    assert cli("ota", "verify", pulled, "--key", robot.pub).exit_code == 0

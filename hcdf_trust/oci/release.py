@@ -49,7 +49,8 @@ RAW_TYPE = "application/vnd.hcdf.raw.image.v1"
 LATEST_TYPE = "application/vnd.hcdf.dendrite.latest.v1+json"
 SUIT_TYPE = "application/suit-envelope+cose"
 RENDERING_TYPE = "application/vnd.hcdf.release.suit.v1+json"
-LAYER_TYPES = frozenset({MCUBOOT_TYPE, RAW_TYPE, LATEST_TYPE, SUIT_TYPE, RENDERING_TYPE})
+HISTORY_TYPE = "application/vnd.hcdf.release.history.v1+cbor"  # the earlier signed envelopes
+LAYER_TYPES = frozenset({MCUBOOT_TYPE, RAW_TYPE, LATEST_TYPE, SUIT_TYPE, RENDERING_TYPE, HISTORY_TYPE})
 EMPTY_TYPE = "application/vnd.oci.empty.v1+json"
 EMPTY = b"{}"
 EMPTY_DESCRIPTOR = {"mediaType": EMPTY_TYPE, "digest": sha256_digest(EMPTY), "size": 2}
@@ -107,12 +108,14 @@ class _Layer:
 
 def release_layers(folder: str, release: Any) -> list[_Layer]:
     """The files ``ota verify`` reads in ``folder``, with their media types and annotations."""
-    from ..ota.release import MANIFEST_JSON_NAME, MANIFEST_NAME
+    from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME
     from ..ota.verify import image_path
 
     wanted: list[tuple[str, str, dict[str, str]]] = [(MANIFEST_NAME, SUIT_TYPE, {})]
     if os.path.lexists(os.path.join(folder, MANIFEST_JSON_NAME)):
         wanted.append((MANIFEST_JSON_NAME, RENDERING_TYPE, {}))
+    if os.path.lexists(os.path.join(folder, HISTORY_NAME)):  # what vouches for latest.json's previous[]
+        wanted.append((HISTORY_NAME, HISTORY_TYPE, {}))
     for c in release.components:
         about = {A + "board": c.board, A + "app": c.app, A + "version": c.version}
         if c.mcuboot_hash:
@@ -462,14 +465,20 @@ def _fetch_blob(client: RegistryClient, store: Any, layer: dict[str, Any], *, ti
 def _verify_staged(
     stage: str, public_key: Any, previous: Any, titles: set[str], layers: list[dict[str, Any]]
 ) -> tuple[Any, list[HcdfTrustError]]:
-    from ..ota.release import MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
+    import dataclasses
+
+    from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
     from ..ota.verify import check_release, image_path
 
     release, files = read_release(stage, public_key)
+    # the staging folder's own lock is this pull's, not a file of the release
+    files = dataclasses.replace(files, unaccounted=tuple(u for u in files.unaccounted if u != _STAGE_LOCK))
     errors = check_release(release, files, public_key, previous=previous)
     accounted = {MANIFEST_NAME, *files.latest}
     if files.rendering is not None:
         accounted.add(MANIFEST_JSON_NAME)
+    if files.history:
+        accounted.add(HISTORY_NAME)
     by_title: dict[str, Any] = {}
     for c in release.components:
         accounted.add(image_path(c))

@@ -591,6 +591,14 @@ def carried(previous: PreviousRelease, notices: list[Notice]) -> PreviousRelease
     return dataclasses.replace(previous, latest=kept)
 
 
+def previous_manifest(source: str, public_key: Any, *, ca_bundle: str | None = None) -> suit.Release:
+    """The verified manifest of a previous release (folder or https URL): ``ota pull``'s
+    rollback check. A folder without one is refused (see :func:`load_previous`)."""
+    given = load_previous(source, public_key, [], ca_bundle=ca_bundle)
+    assert given.release is not None  # load_previous refuses a folder without one
+    return given.release
+
+
 class PreviousReader:
     """Files of a previous release by relative path: a local folder, or https (absent = HTTP 404)."""
 
