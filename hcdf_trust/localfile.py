@@ -449,6 +449,8 @@ def absolute(path: str | os.PathLike[str]) -> str:
 
 #: Deepest nesting of objects and lists any JSON we read may have (ours are 5 deep at most).
 MAX_JSON_DEPTH = 64
+#: A bound for small JSON answers (registry manifests, tokens, credential helpers).
+MAX_JSON_BYTES = 4 << 20
 _SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")  # the only way a lone surrogate gets into a str
 _SURROGATE = re.compile("[\ud800-\udfff]")
 

@@ -96,13 +96,18 @@ def find_credentials(netloc: str) -> Credentials | None:
 
 
 def _docker_config() -> tuple[str, dict[str, Any]] | None:
-    from .json import parse_json
+    from ..localfile import MAX_JSON_BYTES, parse_json
 
     folder = os.environ.get("DOCKER_CONFIG") or os.path.join(os.path.expanduser("~"), ".docker")
     path = os.path.join(folder, "config.json")
     if not os.path.lexists(path):
         return None
-    doc = parse_json(read_input(path, limit=MAX_CONFIG_BYTES, what="Docker config"), source=path, what="Docker config")
+    doc = parse_json(
+        read_input(path, limit=MAX_CONFIG_BYTES, what="Docker config"),
+        source=path,
+        what="Docker config",
+        limit=MAX_JSON_BYTES,
+    )
     if not isinstance(doc, dict):
         raise RegistryCredentialsError("the Docker config is not a JSON object", file=path)
     return path, doc
@@ -128,7 +133,7 @@ def _auth_entry(entry: dict[str, Any], *, source: str) -> Credentials | None:
 
 
 def _helper(name: str, netloc: str) -> Credentials | None:
-    from .json import parse_json
+    from ..localfile import MAX_JSON_BYTES, parse_json
 
     if not name.replace("-", "").replace("_", "").replace(".", "").isalnum():
         raise RegistryCredentialsError(f"credential helper name {name!r} is not a plain name")
@@ -146,7 +151,7 @@ def _helper(name: str, netloc: str) -> Credentials | None:
         if b"not found" in done.stdout.lower() or b"not found" in done.stderr.lower():
             return None
         raise RegistryCredentialsError(f"credential helper {program} exited with {done.returncode}")
-    doc = parse_json(done.stdout, source=program, what="credential helper output")
+    doc = parse_json(done.stdout, source=program, what="credential helper output", limit=MAX_JSON_BYTES)
     if not isinstance(doc, dict) or not isinstance(doc.get("Secret"), str) or not isinstance(doc.get("Username"), str):
         raise RegistryCredentialsError(f"credential helper {program} did not print Username and Secret")
     user, secret = doc["Username"], doc["Secret"]

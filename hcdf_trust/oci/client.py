@@ -260,10 +260,10 @@ class RegistryClient:
             body = self._read_bounded(response, MAX_TOKEN_BYTES, realm)
         finally:
             response.close()
+        from ..localfile import MAX_JSON_BYTES, parse_json
         from ..scrub import remember
-        from .json import parse_json
 
-        doc = parse_json(body, source=realm, what="token response")
+        doc = parse_json(body, source=realm, what="token response", limit=MAX_JSON_BYTES)
         token = doc.get("token") or doc.get("access_token") if isinstance(doc, dict) else None
         if not isinstance(token, str) or not token:
             raise RegistryAuthError(f"token realm {realm}: no token in the answer", url=realm)
@@ -369,14 +369,19 @@ class RegistryClient:
     def referrers(self, digest: str, *, artifact_type: str | None = None) -> tuple[list[Any], bool]:
         """The descriptors of the manifests whose ``subject`` is ``digest``, and whether the
         registry answered them through the referrers API (else the ``sha256-<hex>`` tag)."""
-        from .json import parse_json
+        from ..localfile import MAX_JSON_BYTES, parse_json
 
         url = self._url(f"referrers/{digest}")
         if artifact_type:
             url += "?" + urlencode({"artifactType": artifact_type})
         with self.request("GET", url, headers={"Accept": INDEX_TYPE}, what="GET referrers") as r:
             if r.status_code == 200 and r.headers.get("content-type", "").startswith(INDEX_TYPE):
-                doc = parse_json(self._read_bounded(r, MAX_MANIFEST_BYTES, url), source=url, what="referrers index")
+                doc = parse_json(
+                    self._read_bounded(r, MAX_MANIFEST_BYTES, url),
+                    source=url,
+                    what="referrers index",
+                    limit=MAX_JSON_BYTES,
+                )
                 return _manifests(doc, url), True
             if r.status_code not in (200, 404):
                 raise RegistryError(f"{url}: HTTP {r.status_code}", url=url)
@@ -385,7 +390,7 @@ class RegistryClient:
             return [], False
         body, _, _ = got
         source = self._url(f"manifests/{fallback_tag(digest)}")
-        return _manifests(parse_json(body, source=source, what="referrers tag"), source), False
+        return _manifests(parse_json(body, source=source, what="referrers tag", limit=MAX_JSON_BYTES), source), False
 
 
 def fallback_tag(digest: str) -> str:

@@ -221,13 +221,13 @@ def attach_signature(client: RegistryClient, *, subject: tuple[str, int], envelo
 
 
 def _update_fallback(client: RegistryClient, subject: str, descriptor: dict[str, Any]) -> None:
-    from .json import parse_json
+    from ..localfile import MAX_JSON_BYTES, parse_json
 
     tag = fallback_tag(subject)
     got = client.get_manifest(tag, accept=INDEX_TYPE)
     manifests: list[Any] = []
     if got is not None:
-        doc = parse_json(got[0], source=tag, what="referrers tag")
+        doc = parse_json(got[0], source=tag, what="referrers tag", limit=MAX_JSON_BYTES)
         if isinstance(doc, dict) and isinstance(doc.get("manifests"), list):
             manifests = [m for m in doc["manifests"] if isinstance(m, dict) and m.get("digest") != descriptor["digest"]]
     index = {"schemaVersion": 2, "mediaType": INDEX_TYPE, "manifests": [*manifests, descriptor]}
@@ -251,9 +251,9 @@ def check_manifest(
     Raises:
         ArtifactError: not an artifact of ``artifact_type``, or a layer we would not write.
     """
-    from .json import parse_json
+    from ..localfile import MAX_JSON_BYTES, parse_json
 
-    doc = parse_json(body, source=source, what="OCI manifest")
+    doc = parse_json(body, source=source, what="OCI manifest", limit=MAX_JSON_BYTES)
     if not isinstance(doc, dict) or doc.get("schemaVersion") != 2 or doc.get("mediaType") != MANIFEST_TYPE:
         raise ArtifactError("not an OCI image manifest (schemaVersion 2, mediaType)", file=source)
     if doc.get("artifactType") != artifact_type:
@@ -523,7 +523,7 @@ def _verify_staged(
 def check_referrers(client: RegistryClient, digest: str, envelope_digest: str) -> tuple[list[str], list[Notice]]:
     """Step 5: every SUIT referrer listed for ``digest`` has it as subject and carries this
     release's envelope; none at all is a notice (the release itself verified)."""
-    from .json import parse_json
+    from ..localfile import MAX_JSON_BYTES, parse_json
 
     listed, _api = client.referrers(digest, artifact_type=SIGNATURE_TYPE)
     ours = [x for x in listed if isinstance(x, dict) and x.get("artifactType") == SIGNATURE_TYPE]
@@ -542,7 +542,7 @@ def check_referrers(client: RegistryClient, digest: str, envelope_digest: str) -
         body, actual, _ = got
         if actual != rd:
             raise ReferrerError(f"referrer {rd}: the manifest received hashes otherwise", expected=rd, actual=actual)
-        doc = parse_json(body, source=rd, what="referrer manifest")
+        doc = parse_json(body, source=rd, what="referrer manifest", limit=MAX_JSON_BYTES)
         subject = doc.get("subject") if isinstance(doc, dict) else None
         if not isinstance(subject, dict) or subject.get("digest") != digest:
             raise ReferrerError(
