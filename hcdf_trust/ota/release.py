@@ -63,6 +63,8 @@ class BuildOptions:
     date: str | None = None
     jobs: int = 0  # 0: one per core
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
+    provenance: bool = False  # also write provenance.intoto.json, signed with the release key
+    builder_id: str | None = None  # its runDetails.builder.id
     # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline (the default) / --online
     tree: TreeOptions = field(default_factory=TreeOptions)
 
@@ -267,12 +269,28 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     env, alg, kid = sign_release(release, options.signer)
     plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
-    plan.add(
-        Path(options.out_dir, MANIFEST_JSON_NAME),
-        (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
-        flag="--out",
-        under=options.out_dir,
-    )
+    rendered = (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode()
+    plan.add(Path(options.out_dir, MANIFEST_JSON_NAME), rendered, flag="--out", under=options.out_dir)
+    if options.provenance:
+        from ..provenance import FILE_NAME
+        from ..provenance.build import release_provenance
+
+        new_files = {os.path.relpath(p, options.out_dir): d for p, d in outputs}
+        new_files |= {MANIFEST_NAME: env, MANIFEST_JSON_NAME: rendered}
+        signed = release_provenance(
+            out_dir=options.out_dir,
+            new_files=new_files,
+            release=release,
+            lock_name=os.path.basename(res.lock_path),
+            lock_entries=res.lock_entries(edited),
+            images=[f"{p.board}/{p.app}" for p in todo],
+            date=date,
+            base_url=base_url,
+            config_path=config_path,
+            signers=[options.signer],
+            builder_id=options.builder_id,
+        )
+        plan.add(Path(options.out_dir, FILE_NAME), signed, flag="--out", under=options.out_dir)
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
 
