@@ -119,7 +119,10 @@ def _check_dependencies(deps: Any, release: Any, where: str) -> list[HcdfTrustEr
         if len(found) != 1:
             errors.append(
                 ProvenanceError(
-                    f"resolvedDependencies names {len(found)} {name!r}", file=where, expected="1", actual=str(len(found))
+                    f"resolvedDependencies names {len(found)} {name!r}",
+                    file=where,
+                    expected="1",
+                    actual=str(len(found)),
                 )
             )
             continue
