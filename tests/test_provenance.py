@@ -16,6 +16,8 @@ from hcdf_trust.ota.signer import FileSigner
 from hcdf_trust.provenance import BUILD_TYPE, FILE_NAME, PAYLOAD_TYPE, dsse
 from hcdf_trust.provenance.statement import serialize
 from tests._ota import make_robot
+from tests.test_ota_hsm import MODULE
+from tests.test_ota_hsm import token as softhsm_token
 
 EPOCH = "1780000000"
 
@@ -25,6 +27,12 @@ def epoch(monkeypatch):
     monkeypatch.setenv("SOURCE_DATE_EPOCH", EPOCH)
     for name in ("GITHUB_SERVER_URL", "GITHUB_REPOSITORY", "GITHUB_RUN_ID"):
         monkeypatch.delenv(name, raising=False)
+
+
+@pytest.fixture
+def token(tmp_path, monkeypatch):
+    """test_ota_hsm's SoftHSM2 token (ECDSA P-256 "fw-signing", Ed25519 "ed-signing")."""
+    return softhsm_token.__wrapped__(tmp_path, monkeypatch)
 
 
 @pytest.fixture
@@ -270,3 +278,23 @@ def test_a_second_signature_with_the_same_keyid_is_malformed(built, cli):
     env["signatures"].append({"keyid": env["signatures"][0]["keyid"], "sig": "AAAA"})
     (out / FILE_NAME).write_text(json.dumps(env))
     refused(verify(cli, robot, out), 3, "two signatures with one keyid")
+
+
+@pytest.mark.parametrize(("kind", "label"), [("ecdsa-p256", "fw-signing"), ("ed25519", "ed-signing")])
+def test_a_release_key_in_a_token_signs_the_provenance(tmp_path, cli, epoch, token, kind, label):
+    # securesystemslib's HSMSigner has ECDSA only: ours signs through the build's token session,
+    # Ed25519 too; the DER ECDSA signature is also checked by sigstore's verifier.
+    from cryptography.hazmat.primitives.serialization import load_pem_public_key
+    from sigstore.dsse import Envelope, _verify
+
+    pubs, pin_file = token
+    robot = make_robot(tmp_path, cli)
+    robot.key = f"pkcs11:token=release;object={label}?module-path={MODULE}"
+    robot.pub = pubs[kind]
+    out = tmp_path / "rel"
+    r = robot.build(cli, out, "--pin-file", pin_file, "--provenance")
+    assert r.exit_code == 0, r.stderr
+    assert verify(cli, robot, out).exit_code == 0
+    if kind == "ecdsa-p256":
+        evp = Envelope._from_json((out / FILE_NAME).read_bytes())
+        assert _verify(load_pem_public_key(robot.pub.read_bytes()), evp) == payload(out)
