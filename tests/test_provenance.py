@@ -147,8 +147,9 @@ def test_an_edited_subject_digest_is_refused(built, cli):
 def test_a_file_added_after_signing_is_refused(built, cli):
     robot, out = built
     (out / "mr_mcxn_t1" / "flex-io" / "9.9.9.bin").write_bytes(b"late")
-    errors = refused(verify(cli, robot, out), 1, "not a subject")
-    assert [e["file"] for e in errors] == ["mr_mcxn_t1/flex-io/9.9.9.bin"]
+    errors = refused(verify(cli, robot, out), 1)
+    mine = [e for e in errors if "not a subject" in e["message"]]
+    assert [e["file"] for e in mine] == ["mr_mcxn_t1/flex-io/9.9.9.bin"]
 
 
 def test_a_subject_file_changed_on_disk_is_refused(built, cli):

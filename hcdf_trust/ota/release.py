@@ -275,11 +275,9 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         from ..provenance import FILE_NAME
         from ..provenance.build import release_provenance
 
-        new_files = {os.path.relpath(p, options.out_dir): d for p, d in outputs}
-        new_files |= {MANIFEST_NAME: env, MANIFEST_JSON_NAME: rendered}
-        signed = release_provenance(
+        signed = release_provenance(  # the last output: its subjects are every other one
             out_dir=options.out_dir,
-            new_files=new_files,
+            new_files=plan.planned(options.out_dir),
             release=release,
             lock_name=os.path.basename(res.lock_path),
             lock_entries=res.lock_entries(edited),
