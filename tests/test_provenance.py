@@ -250,7 +250,10 @@ def test_a_threshold_of_two_keys(built, cli, tmp_path):
     refused(verify(cli, robot, out, *two), 1, "do not verify")  # one signature only
     resign(out, robot, json.loads(payload(out)), load_private(robot.key), second)
     assert verify(cli, robot, out, *two).exit_code == 0
-    refused(verify(cli, robot, out, "--threshold", "2"), 3, "threshold 2")  # one key cannot meet it
+    refused(verify(cli, robot, out, "--threshold", "2"), 2, "--threshold 2")  # one key cannot meet it
+    twice = ("--provenance-key", robot.pub, "--threshold", "2")
+    refused(verify(cli, robot, out, *twice), 2, "distinct keys")  # nor the same key given twice
+    refused(cli("ota", "verify", out, "--key", robot.pub, "--threshold", "2"), 2, "need --provenance")
 
 
 def test_verify_provenance_without_the_file_is_refused(tmp_path, cli, epoch):
@@ -299,3 +302,16 @@ def test_a_release_key_in_a_token_signs_the_provenance(tmp_path, cli, epoch, tok
     if kind == "ecdsa-p256":
         evp = Envelope._from_json((out / FILE_NAME).read_bytes())
         assert _verify(load_pem_public_key(robot.pub.read_bytes()), evp) == payload(out)
+
+
+def test_the_library_refuses_a_threshold_its_keys_cannot_meet(built):
+    # securesystemslib raises ValueError there, not VerificationError (distribution.md §3.4)
+    from hcdf_trust.ota.errors import KeyFileError
+    from hcdf_trust.ota.keys import load_public
+
+    robot, out = built
+    env = dsse.parse((out / FILE_NAME).read_bytes(), source=FILE_NAME)
+    key = dsse.sslib_key(load_public(robot.pub))
+    assert dsse.verify(env, [key], 1, source=FILE_NAME) == [key.keyid]
+    with pytest.raises(KeyFileError):
+        dsse.verify(env, [key, key], 2, source=FILE_NAME)

@@ -223,17 +223,22 @@ def verify_cmd(
     """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
     from ..ota.keys import load_public
     from ..ota.release import previous_manifest, read_release
+    from ..ota.signer import key_id
     from ..ota.verify import check_release
     from . import fail
 
     public = load_public(key)
+    keys = [public, *(load_public(k) for k in provenance_keys)]
+    if not provenance and (provenance_keys or threshold != 1):
+        raise click.UsageError("--provenance-key and --threshold need --provenance")
+    if len({key_id(k) for k in keys}) < threshold:
+        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--key, --provenance-key)")
     release, files = read_release(release_dir, public)
     before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
     errors = check_release(release, files, public, previous=before)
     if provenance:
         from ..provenance.verify import verify_provenance
 
-        keys = [public, *(load_public(k) for k in provenance_keys)]
         errors += verify_provenance(release_dir, release, keys, threshold=threshold)
     payload = {
         "sequence_number": release.sequence_number,
