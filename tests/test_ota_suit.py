@@ -13,7 +13,7 @@ from pycose.keys import CoseKey
 from pycose.messages import CoseMessage
 
 from hcdf_trust.ota import suit
-from hcdf_trust.ota.errors import MalformedReleaseError, SignatureError
+from hcdf_trust.ota.errors import ReleaseIntegrityError, SignatureError
 from tests._ota import make_robot
 from tests._suit import DRAFT, EXAMPLES, zcbor_validate
 
@@ -157,7 +157,7 @@ def test_a_severed_member_must_match_its_digest():
     top.value[23] = cbor2.dumps({"en": {1: "another description"}})
     pub = load_public(DRAFT / "public_key.pem")
     env = open_envelope(cbor2.dumps(top, canonical=True), pub, source="x", require_kid=False)
-    with pytest.raises(MalformedReleaseError, match="envelope member 23 is not the one the manifest's digest names"):
+    with pytest.raises(ReleaseIntegrityError, match="envelope member 23 is not the one the manifest's digest names"):
         suit.parse_suit_manifest(env, source="x")
 
 

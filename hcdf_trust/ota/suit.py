@@ -57,7 +57,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from .errors import MalformedReleaseError
+from .errors import MalformedReleaseError, ReleaseIntegrityError
 
 SUIT_DRAFT = "draft-ietf-suit-manifest-34"
 ENVELOPE_TAG = 107
@@ -89,7 +89,8 @@ MAX_DEPTH = 16
 LEGACY = (
     "this release uses hcdf-trust's layout from before draft-34 conformance (custom parameters "
     "-257…-261 in the shared sequence, manifest keys -257…-259); its facts now sit in an integrated "
-    "release record (README 'Release manifest layout'): rebuild the release with this hcdf-trust"
+    "release record (README 'Release manifest layout'): rebuild the release with this hcdf-trust "
+    "(to carry its history on: move release.suit aside, set [release] sequence_number in ota.toml above its own)"
 )
 
 
@@ -457,8 +458,8 @@ def parse_suit_manifest(env: Envelope, *, source: str) -> Manifest:
     holds for them; a member the manifest does not cover is refused.
 
     Raises:
-        MalformedReleaseError: not a manifest of the draft's CDDL, or a severed member
-            that does not match its digest.
+        MalformedReleaseError: not a manifest of the draft's CDDL.
+        ReleaseIntegrityError: a severable member that does not match its digest.
     """
     m = loads(env.manifest, source=source, what="manifest")
     if not isinstance(m, dict):
@@ -527,7 +528,7 @@ def _severed(digest: list[Any], member: bytes | None, source: str, key: int) -> 
         return None
     actual = hashlib.sha256(cbor2.dumps(member)).digest()
     if actual != digest[1]:
-        raise MalformedReleaseError(
+        raise ReleaseIntegrityError(
             f"envelope member {key} is not the one the manifest's digest names",
             file=source,
             expected=digest[1].hex(),
@@ -559,7 +560,8 @@ def parse_release(env: Envelope, *, source: str) -> Release:
 
     Raises:
         MalformedReleaseError: not that layout (the manifest, re-encoded from what was
-            read, must be the signed bytes), or the record is not the one bound by digest.
+            read, must be the signed bytes). ReleaseIntegrityError: the record is not the
+            one the manifest binds by digest.
     """
     m = parse_suit_manifest(env, source=source)
     ids = m.components
@@ -573,7 +575,7 @@ def parse_release(env: Envelope, *, source: str) -> Release:
         raise MalformedReleaseError(f"envelope has no release record ({RECORD_KEY!r})", file=source)
     want = _digest(shared[n].get(P_DIGEST), source, "release record", "image-digest")
     if hashlib.sha256(record_raw).hexdigest() != want or len(record_raw) != shared[n].get(P_SIZE):
-        raise MalformedReleaseError(
+        raise ReleaseIntegrityError(
             "release record is not the one the signed manifest binds (image-digest/size)",
             file=source,
             expected=want,
