@@ -92,8 +92,9 @@ def test_zcbor_accepts_every_envelope_against_the_drafts_cddl(release, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
-def test_zcbor_accepts_a_one_image_release(tmp_path, cli):
-    robot = make_robot(tmp_path, cli, kind="ed25519")
+@pytest.mark.parametrize("kind", ["ed25519", "rsa-2048"])
+def test_zcbor_accepts_a_one_image_release(tmp_path, cli, kind):
+    robot = make_robot(tmp_path, cli, kind=kind)
     (robot.root / "ota.toml").write_text(
         '[images.scout-os]\ntype = "raw"\nexclude = true\n[images.rtk-gnss]\nexclude = true\n'
     )

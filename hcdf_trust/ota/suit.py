@@ -208,11 +208,6 @@ def encode(release: Release) -> tuple[bytes, dict[str, bytes]]:
     return _enc(manifest), {RECORD_KEY: record}
 
 
-def manifest_bytes(release: Release) -> bytes:
-    """The manifest's deterministic CBOR encoding (canonical map order)."""
-    return encode(release)[0]
-
-
 def manifest_digest(manifest: bytes) -> bytes:
     """The encoded SUIT_Digest over the bstr-wrapped manifest (the COSE detached payload)."""
     import cbor2
@@ -368,7 +363,6 @@ class Manifest:
     sequences: dict[int, list[Any] | None]  # 7, 8, 9, 16, 20: decoded; None: severed
     text: dict[Any, Any] | None
     reference_uri: str | None
-    keys: frozenset[int]
 
 
 def parse_envelope(data: bytes, *, source: str) -> Envelope:
@@ -515,7 +509,7 @@ def parse_suit_manifest(env: Envelope, *, source: str) -> Manifest:
                 raise MalformedReleaseError("manifest text is not a map", file=source)
         else:
             sequences[key] = _sequence(raw, source, f"command sequence {key}")
-    return Manifest(seq, ids, shared, sequences, text, uri, frozenset(k for k in m if isinstance(k, int)))
+    return Manifest(seq, ids, shared, sequences, text, uri)
 
 
 def _severed(digest: list[Any], member: bytes | None, source: str, key: int) -> bytes | None:
