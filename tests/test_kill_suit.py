@@ -5,6 +5,7 @@ functions ``ota verify`` uses."""
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from dataclasses import replace
 from typing import Any
@@ -81,6 +82,7 @@ def malformed(data: bytes, words: str) -> None:
     with pytest.raises(MalformedReleaseError) as info:
         opened(data)
     assert re.search(words, info.value.message), info.value.message
+    assert info.value.file == "r.suit" and info.value.line is None
 
 
 # -- round trip ------------------------------------------------------------------------
@@ -243,6 +245,7 @@ def test_cbor_outside_the_drafts_encoding_is_refused(data, words):
         suit.check_wellformed(data, source="x", what="item")
     prefix = "(truncated or malformed CBOR: it |argument |map keys )?"
     assert re.fullmatch(f"item: {prefix}{words}", info.value.message), info.value.message
+    assert info.value.file == "x"
 
 
 def test_a_duplicate_key_is_found_among_more_than_two():
@@ -579,9 +582,15 @@ def test_a_severable_member_in_the_envelope_is_checked_against_its_digest():
     install = cbor2.dumps([12, 0, 3, 15])
     env = open_envelope(_severed(16, install), KEY, source="x")
     assert suit.parse_suit_manifest(env, source="x").sequences[16] == [12, 0, 3, 15]
-    env = open_envelope(_severed(16, install, in_envelope=cbor2.dumps([12, 1, 3, 15])), KEY, source="x")
-    with pytest.raises(ReleaseIntegrityError, match="envelope member 16 is not the one the manifest's digest names"):
-        suit.parse_suit_manifest(env, source="x")
+    other = cbor2.dumps([12, 1, 3, 15])
+    env = open_envelope(_severed(16, install, in_envelope=other), KEY, source="x")
+    with pytest.raises(
+        ReleaseIntegrityError, match="envelope member 16 is not the one the manifest's digest names"
+    ) as info:
+        suit.parse_suit_manifest(env, source="y")
+    assert info.value.file == "y"
+    assert info.value.expected == hashlib.sha256(cbor2.dumps(install)).hexdigest()
+    assert info.value.actual == hashlib.sha256(cbor2.dumps(other)).hexdigest()
 
 
 def test_a_severed_member_absent_from_the_envelope_is_none():
@@ -631,8 +640,11 @@ def test_the_record_must_be_in_the_envelope():
 
 def test_a_record_that_is_not_the_bound_one_is_an_integrity_error():
     record = suit.record_bytes(replace(RELEASE, date="2030-01-01T00:00:00Z"))
-    with pytest.raises(ReleaseIntegrityError, match="release record is not the one the signed manifest binds"):
+    with pytest.raises(ReleaseIntegrityError, match="release record is not the one the signed manifest binds") as info:
         opened(resign(manifest_of(), payloads={suit.RECORD_KEY: record}))
+    assert info.value.file == "r.suit"
+    assert info.value.expected == hashlib.sha256(suit.record_bytes(RELEASE)).hexdigest()
+    assert info.value.actual == hashlib.sha256(record).hexdigest()
 
 
 def test_a_record_of_the_right_digest_but_another_size_is_refused():
@@ -810,3 +822,91 @@ def test_a_severed_member_is_not_our_layout():
     top = top_of(resign(m))
     top[20] = cbor2.dumps(install)
     malformed(envelope_with(top), "not in the layout ota build writes")
+
+
+def test_refusals_name_what_was_expected():
+    def change(s):
+        s.value[0] = cbor2.dumps({1: -8, 3: 0})
+
+    with pytest.raises(MalformedReleaseError) as info:
+        opened(with_sign1(signed(), change))
+    assert info.value.expected == "alg (1) and kid (4) only"
+    record = record_of()
+    record["extra"] = 1
+    with pytest.raises(MalformedReleaseError) as info:
+        opened(_bound(record))
+    assert info.value.expected == "components, date, hcdf-lock-digest, hcdf-root, hcdf-root-digest, record-version"
+    record = record_of()
+    record["components"] = record["components"][:1]
+    with pytest.raises(MalformedReleaseError) as info:
+        opened(_bound(record))
+    assert info.value.expected == "2"
+
+
+def test_release_component_finds_by_board_and_app():
+    assert RELEASE.component("pc", "os") is RELEASE.components[1]
+    assert RELEASE.component("b1", "app") is RELEASE.components[0]
+    assert RELEASE.component("pc", "app") is None and RELEASE.component("b1", "os") is None
+    assert RELEASE.components[0].name == "b1/app"
+
+
+def test_to_json_literally():
+    """The rendering people read (and ``ota verify`` compares byte for byte), written out here."""
+    assert suit.to_json(RELEASE, alg="EdDSA", kid="ab") == {
+        "format": "SUIT envelope (CBOR), draft-ietf-suit-manifest-34, COSE_Sign1 EdDSA (detached)",
+        "file": "release.suit",
+        "sequence_number": 7,
+        "date": "2026-12-01T00:00:00Z",
+        "hcdf": {"root": "robot.hcdf", "root_sha256": "22" * 32, "lock_sha256": "11" * 32},
+        "signature": {"alg": "EdDSA", "kid": "ab"},
+        "digests": {
+            "file_sha256": "SHA-256 of the file a device downloads (SUIT image-digest; MCUmgr upload 'sha')",
+            "mcuboot_hash": "MCUboot image hash over header + payload + protected TLVs "
+            "(what MCUmgr 'image list' reports from a device)",
+        },
+        "components": [
+            {
+                "component_id": ["b1", "app"],
+                "comps": ["main", "spare"],
+                "type": "mcuboot",
+                "version": "1.2.3+4",
+                "uri": "https://fw/b1/app/1.2.3+4.bin",
+                "size": 1000,
+                "file_sha256": "33" * 32,
+                "mcuboot_hash": "44" * 32,
+                "security_counter": 5,
+                "changelog": "fixes",
+                "class_id": str(suit.class_id("b1")),
+            },
+            {
+                "component_id": ["pc", "os"],
+                "comps": ["compute"],
+                "type": "raw",
+                "version": "2026.11",
+                "uri": "https://fw/pc/os/2026.11.bin",
+                "size": 300,
+                "file_sha256": "55" * 32,
+                "mcuboot_hash": None,
+                "security_counter": None,
+                "changelog": None,
+                "class_id": str(suit.class_id("pc")),
+            },
+        ],
+    }
+    text = suit.render_json(RELEASE, alg="EdDSA", kid="ab")
+    assert (
+        text == (json.dumps(suit.to_json(RELEASE, alg="EdDSA", kid="ab"), indent=2, ensure_ascii=False) + "\n").encode()
+    )
+    assert "é" in suit.render_json(replace(RELEASE, root="é.hcdf"), alg="", kid="").decode()
+
+
+def test_class_ids_are_uuid5_of_the_vendor_and_the_board():
+    import uuid
+
+    assert suit.VENDOR_ID == uuid.uuid5(uuid.NAMESPACE_DNS, "hcdf-trust.invalid")
+    assert suit.class_id("b1") == uuid.uuid5(suit.VENDOR_ID, "b1") != suit.class_id("b2")
+
+
+def test_a_one_byte_simple_value_is_wellformed():
+    suit.check_wellformed(bytes([0xF8, 0x20]), source="x", what="item")
+    suit.check_wellformed(bytes([0xC1, 0x00]), source="x", what="item")  # tag 1 in the head
