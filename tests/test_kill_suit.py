@@ -77,11 +77,17 @@ def manifest_of(release: suit.Release = RELEASE) -> dict[Any, Any]:
     return cbor2.loads(suit.encode(release)[0])
 
 
+NOT_OUR_LAYOUT = (
+    "manifest is not in the layout ota build writes "
+    "\\(draft-ietf-suit-manifest-34, README 'Release manifest layout'\\)$"
+)
+
+
 def malformed(data: bytes, words: str) -> None:
     """Refused as malformed, ``words`` found in the message itself (not its expected/actual lines)."""
     with pytest.raises(MalformedReleaseError) as info:
         opened(data)
-    assert re.search(words, info.value.message), info.value.message
+    assert re.match(words, info.value.message), info.value.message  # the message begins with them
     assert info.value.file == "r.suit" and info.value.line is None
 
 
@@ -325,11 +331,11 @@ def test_the_wrapper_and_the_manifest_are_required(key):
 @pytest.mark.parametrize(
     ("wrapper", "words"),
     [
-        ({}, "is not \\[bstr digest"),
-        ([b"d"], "is not \\[bstr digest"),
-        ([b"d", 5], "is not \\[bstr digest"),
-        ([5, b"s"], "is not \\[bstr digest"),
-        ([b"d", b"s", b"t"], "exactly one signature"),
+        ({}, "authentication wrapper is not \\[bstr digest, bstr signature\\.\\.\\.\\]$"),
+        ([b"d"], "authentication wrapper is not \\[bstr digest, bstr signature\\.\\.\\.\\]$"),
+        ([b"d", 5], "authentication wrapper is not \\[bstr digest, bstr signature\\.\\.\\.\\]$"),
+        ([5, b"s"], "authentication wrapper is not \\[bstr digest, bstr signature\\.\\.\\.\\]$"),
+        ([b"d", b"s", b"t"], "authentication wrapper must hold exactly one signature$"),
     ],
 )
 def test_the_authentication_wrapper_shape(wrapper, words):
@@ -391,16 +397,22 @@ def test_the_unprotected_header_must_be_a_map_and_empty():
     def two(s):
         s.value[1] = {4: b"k", 1: -8}
 
-    malformed(with_sign1(signed(), two), "it holds alg \\(1\\), kid \\(4\\)$|it holds kid \\(4\\), alg \\(1\\)$")
+    malformed(
+        with_sign1(signed(), two),
+        "COSE unprotected header must be empty \\(nothing in it is signed\\): it holds alg \\(1\\), kid \\(4\\)$",
+    )
 
 
 @pytest.mark.parametrize(
     ("protected", "words"),
     [
-        ({1: -8, 3: 0}, "does not implement: content type \\(3\\)"),
-        ({1: -8, 5: b"iv"}, "does not implement: IV \\(5\\)"),
-        ({1: -8, 6: b"iv"}, "does not implement: Partial IV \\(6\\)"),
-        ({1: -8, 2: [1], 99: 0}, "does not implement: crit \\(2\\), 99$"),
+        ({1: -8, 3: 0}, "COSE protected header holds labels this verifier does not implement: content type \\(3\\)"),
+        ({1: -8, 5: b"iv"}, "COSE protected header holds labels this verifier does not implement: IV \\(5\\)"),
+        ({1: -8, 6: b"iv"}, "COSE protected header holds labels this verifier does not implement: Partial IV \\(6\\)"),
+        (
+            {1: -8, 2: [1], 99: 0},
+            "COSE protected header holds labels this verifier does not implement: crit \\(2\\), 99$",
+        ),
     ],
 )
 def test_the_protected_header_holds_alg_and_kid_only(protected, words):
@@ -493,7 +505,7 @@ def test_the_sequence_number_must_be_unsigned(seq):
         del m[2]
     else:
         m[2] = seq
-    malformed(resign(m), "sequence-number is not an unsigned integer")
+    malformed(resign(m), "manifest sequence-number is not an unsigned integer$")
 
 
 def test_sequence_number_zero_is_accepted_by_the_draft_parser():
@@ -506,11 +518,14 @@ def test_sequence_number_zero_is_accepted_by_the_draft_parser():
 def test_the_reference_uri_must_be_text():
     m = manifest_of()
     m[4] = b"uri"
-    malformed(resign(m), "reference-uri is not text")
+    malformed(resign(m), "manifest reference-uri is not text$")
     m[4] = "https://example/r.suit"
     env = open_envelope(resign(m), KEY, source="x")
     assert suit.parse_suit_manifest(env, source="x").reference_uri == "https://example/r.suit"
-    malformed(resign(m), "not in the layout ota build writes")  # but ota build never writes one
+    malformed(
+        resign(m),
+        NOT_OUR_LAYOUT,
+    )  # but ota build never writes one
 
 
 def _common(m: dict[Any, Any], change) -> dict[Any, Any]:
@@ -523,13 +538,13 @@ def _common(m: dict[Any, Any], change) -> dict[Any, Any]:
 @pytest.mark.parametrize(
     ("change", "words"),
     [
-        (lambda c: c.update({1: 0}), "common is not a map of components"),
-        (lambda c: c.pop(2), "components is not a list"),
-        (lambda c: c.update({2: []}), "components is not a list"),
-        (lambda c: c.update({2: [[b"a", "b"]]}), "components is not a list"),
-        (lambda c: c.update({2: [b"a"]}), "components is not a list"),
-        (lambda c: c.update({2: {}}), "components is not a list"),
-        (lambda c: c.pop(4), "shared-sequence is not a bstr"),
+        (lambda c: c.update({1: 0}), "manifest common is not a map of components \\(2\\) and shared-sequence \\(4\\)$"),
+        (lambda c: c.pop(2), "manifest components is not a list of \\[\\* bstr\\] identifiers$"),
+        (lambda c: c.update({2: []}), "manifest components is not a list of \\[\\* bstr\\] identifiers$"),
+        (lambda c: c.update({2: [[b"a", "b"]]}), "manifest components is not a list of \\[\\* bstr\\] identifiers$"),
+        (lambda c: c.update({2: [b"a"]}), "manifest components is not a list of \\[\\* bstr\\] identifiers$"),
+        (lambda c: c.update({2: {}}), "manifest components is not a list of \\[\\* bstr\\] identifiers$"),
+        (lambda c: c.pop(4), "manifest shared-sequence is not a bstr$"),
         (lambda c: c.update({4: cbor2.dumps([])}), "shared-sequence is not a SUIT command sequence"),
         (lambda c: c.update({4: cbor2.dumps([12])}), "shared-sequence is not a SUIT command sequence"),
         (lambda c: c.update({4: cbor2.dumps(["12", 0])}), "shared-sequence is not a SUIT command sequence"),
@@ -557,7 +572,7 @@ def test_every_command_sequence_must_be_one(key):
     if key in (16, 20):
         malformed(resign(m), f"manifest member {key} is not a SHA-256 SUIT_Digest")
     else:
-        malformed(resign(m), f"command sequence {key} is not a bstr")
+        malformed(resign(m), f"manifest command sequence {key} is not a bstr$")
 
 
 def test_the_text_must_be_a_map():
@@ -600,6 +615,7 @@ def test_a_severed_member_absent_from_the_envelope_is_none():
     env = open_envelope(resign(m), KEY, source="x")
     parsed = suit.parse_suit_manifest(env, source="x")
     assert parsed.sequences[16] is None and parsed.text is None and 23 not in parsed.sequences
+    assert parsed.sequences[20] == cbor2.loads(m[20])  # the members after a severed one are read too
 
 
 @pytest.mark.parametrize("digest", [[-44, bytes(64)], [-16], [-16, "x"]])
@@ -626,12 +642,12 @@ def test_the_record_component_must_be_last():
     def swap(c):
         c[2] = [c[2][2], c[2][0], c[2][1]]
 
-    malformed(resign(_common(manifest_of(), swap)), "no hcdf-trust release record component")
+    malformed(resign(_common(manifest_of(), swap)), "manifest has no hcdf-trust release record component$")
 
     def only(c):
         c[2] = [suit.RECORD_ID]
 
-    malformed(resign(_common(manifest_of(), only)), "no hcdf-trust release record component")
+    malformed(resign(_common(manifest_of(), only)), "manifest has no hcdf-trust release record component$")
 
 
 def test_the_record_must_be_in_the_envelope():
@@ -680,29 +696,53 @@ def record_of(release: suit.Release = RELEASE) -> dict[str, Any]:
 @pytest.mark.parametrize(
     ("change", "words"),
     [
-        (lambda r: r.update({"record-version": 2}), "not a version-1 record"),
-        (lambda r: r.pop("date"), "not a version-1 record"),
-        (lambda r: r.update({"extra": 1}), "not a version-1 record"),
+        (lambda r: r.update({"record-version": 2}), "release record is not a version-1 record$"),
+        (lambda r: r.pop("date"), "release record is not a version-1 record$"),
+        (lambda r: r.update({"extra": 1}), "release record is not a version-1 record$"),
         (lambda r: r.update({"date": 5}), "release record date is not text"),
         (lambda r: r.update({"hcdf-root": b"x"}), "release record hcdf-root is not text"),
-        (lambda r: r.update({"components": r["components"][:1]}), "does not describe every image component"),
-        (lambda r: r.update({"components": {}}), "does not describe every image component"),
-        (lambda r: r["components"].__setitem__(0, []), "component 0 has other keys"),
-        (lambda r: r["components"][1].pop("changelog"), "component 1 has other keys"),
-        (lambda r: r["components"][1].update({"x": 1}), "component 1 has other keys"),
-        (lambda r: r["components"][0].update({"type": 1}), "component 0: type is not str"),
-        (lambda r: r["components"][0].update({"version": None}), "component 0: version is not str"),
-        (lambda r: r["components"][0].update({"comps": "main"}), "component 0: comps is not list"),
-        (lambda r: r["components"][0].update({"security-counter": "5"}), "security-counter is not int"),
-        (lambda r: r["components"][0].update({"security-counter": True}), "security-counter is not int"),
-        (lambda r: r["components"][0].update({"changelog": 5}), "component 0: changelog is not str"),
-        (lambda r: r["components"][0].update({"mcuboot-digest": b"x"}), "mcuboot-digest is not list"),
-        (lambda r: r["components"][0].update({"type": "zephyr"}), "component 0: bad type or comps"),
-        (lambda r: r["components"][0].update({"comps": ["a", 1]}), "component 0: bad type or comps"),
-        (lambda r: r["components"][0].update({"security-counter": -1}), "component 0: negative security-counter"),
-        (lambda r: r["components"][0].update({"mcuboot-digest": [-16, b"x"]}), "mcuboot-digest is not a SHA-256"),
-        (lambda r: r.update({"hcdf-lock-digest": [-44, bytes(32)]}), "hcdf-lock-digest is not a SHA-256"),
-        (lambda r: r.update({"hcdf-root-digest": [-16, bytes(31)]}), "hcdf-root-digest is not a SHA-256"),
+        (
+            lambda r: r.update({"components": r["components"][:1]}),
+            "release record does not describe every image component$",
+        ),
+        (lambda r: r.update({"components": {}}), "release record does not describe every image component$"),
+        (lambda r: r["components"].__setitem__(0, []), "release record component 0 has other keys$"),
+        (lambda r: r["components"][1].pop("changelog"), "release record component 1 has other keys$"),
+        (lambda r: r["components"][1].update({"x": 1}), "release record component 1 has other keys$"),
+        (lambda r: r["components"][0].update({"type": 1}), "release record component 0: type is not str"),
+        (lambda r: r["components"][0].update({"version": None}), "release record component 0: version is not str"),
+        (lambda r: r["components"][0].update({"comps": "main"}), "release record component 0: comps is not list"),
+        (
+            lambda r: r["components"][0].update({"security-counter": "5"}),
+            "release record component 0: security-counter is not int$",
+        ),
+        (
+            lambda r: r["components"][0].update({"security-counter": True}),
+            "release record component 0: security-counter is not int$",
+        ),
+        (lambda r: r["components"][0].update({"changelog": 5}), "release record component 0: changelog is not str"),
+        (
+            lambda r: r["components"][0].update({"mcuboot-digest": b"x"}),
+            "release record component 0: mcuboot-digest is not list$",
+        ),
+        (lambda r: r["components"][0].update({"type": "zephyr"}), "release record component 0: bad type or comps"),
+        (lambda r: r["components"][0].update({"comps": ["a", 1]}), "release record component 0: bad type or comps"),
+        (
+            lambda r: r["components"][0].update({"security-counter": -1}),
+            "release record component 0: negative security-counter",
+        ),
+        (
+            lambda r: r["components"][0].update({"mcuboot-digest": [-16, b"x"]}),
+            "component b1/app: mcuboot-digest is not a SHA-256 SUIT_Digest$",
+        ),
+        (
+            lambda r: r.update({"hcdf-lock-digest": [-44, bytes(32)]}),
+            "release record: hcdf-lock-digest is not a SHA-256 SUIT_Digest$",
+        ),
+        (
+            lambda r: r.update({"hcdf-root-digest": [-16, bytes(31)]}),
+            "release record: hcdf-root-digest is not a SHA-256 SUIT_Digest$",
+        ),
     ],
 )
 def test_the_record_is_read_strictly(change, words):
@@ -712,7 +752,7 @@ def test_the_record_is_read_strictly(change, words):
 
 
 def test_a_record_that_is_not_a_map_is_refused():
-    malformed(_bound([1]), "not a version-1 record")
+    malformed(_bound([1]), "release record is not a version-1 record$")
 
 
 def test_a_component_id_must_be_board_and_app_in_utf8():
@@ -744,10 +784,10 @@ def test_vendor_and_class_must_be_the_boards(key, value):
     ("key", "value", "words"),
     [
         (14, "1000", "component b1/app: image-size is missing or not int"),
-        (14, True, "image-size is missing or not int"),
+        (14, True, "component b1/app: image-size is missing or not int$"),
         (3, cbor2.dumps([-16, bytes(31)]), "component b1/app: image-digest is not a SHA-256 SUIT_Digest"),
-        (3, cbor2.dumps([-43, bytes(32)]), "image-digest is not a SHA-256"),
-        (3, None, "image-digest is not a SHA-256"),
+        (3, cbor2.dumps([-43, bytes(32)]), "component b1/app: image-digest is not a SHA-256 SUIT_Digest$"),
+        (3, None, "component b1/app: image-digest is not a SHA-256 SUIT_Digest$"),
     ],
 )
 def test_the_image_parameters(key, value, words):
@@ -798,7 +838,10 @@ def test_a_later_override_wins_and_the_index_sticks():
     install = cbor2.loads(m[20])
     install[3:4] = [{21: "https://fw/first"}, 20, {21: RELEASE.components[0].uri}]
     m[20] = cbor2.dumps(install, canonical=True)
-    malformed(resign(m), "not in the layout ota build writes")
+    malformed(
+        resign(m),
+        NOT_OUR_LAYOUT,
+    )
 
 
 @pytest.mark.parametrize(
@@ -821,7 +864,10 @@ def test_a_severed_member_is_not_our_layout():
     m[20] = [-16, hashlib.sha256(cbor2.dumps(cbor2.dumps(install))).digest()]
     top = top_of(resign(m))
     top[20] = cbor2.dumps(install)
-    malformed(envelope_with(top), "not in the layout ota build writes")
+    malformed(
+        envelope_with(top),
+        NOT_OUR_LAYOUT,
+    )
 
 
 def test_refusals_name_what_was_expected():
@@ -910,3 +956,52 @@ def test_class_ids_are_uuid5_of_the_vendor_and_the_board():
 def test_a_one_byte_simple_value_is_wellformed():
     suit.check_wellformed(bytes([0xF8, 0x20]), source="x", what="item")
     suit.check_wellformed(bytes([0xC1, 0x00]), source="x", what="item")  # tag 1 in the head
+
+
+def test_a_one_image_release_round_trips():
+    one = replace(RELEASE, components=RELEASE.components[:1])
+    assert opened(signed(one)) == one
+
+
+@pytest.mark.parametrize(
+    ("where", "what"),
+    [
+        ("common", "common"),
+        ("shared", "shared-sequence"),
+        ("install", "command sequence 20"),
+        ("text", "text"),
+        ("digest", "component b1/app image-digest"),
+        ("record", "release record"),
+    ],
+)
+def test_malformed_cbor_inside_a_bstr_is_named_by_its_place(where, what):
+    bad = b"\x01\x01"  # one item and a trailing byte
+    m = manifest_of()
+    payloads = None
+    if where == "common":
+        m[3] = bad
+    elif where == "shared":
+        _common(m, lambda c: c.update({4: bad}))
+    elif where == "install":
+        m[20] = bad
+    elif where == "text":
+        m[23] = bad
+    elif where == "digest":
+
+        def digest(c):
+            shared = cbor2.loads(c[4])
+            shared[3][3] = bad
+            c[4] = cbor2.dumps(shared, canonical=True)
+
+        _common(m, digest)
+    else:
+
+        def bind(c):
+            shared = cbor2.loads(c[4])
+            shared[19][3] = cbor2.dumps([-16, hashlib.sha256(bad).digest()])
+            shared[19][14] = len(bad)
+            c[4] = cbor2.dumps(shared, canonical=True)
+
+        _common(m, bind)
+        payloads = {suit.RECORD_KEY: bad}
+    malformed(resign(m, payloads), f"{what}: 1 trailing bytes after the CBOR item \\(byte 1\\)$")

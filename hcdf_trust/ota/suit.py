@@ -608,7 +608,7 @@ def parse_release(env: Envelope, *, source: str) -> Release:
         date=record["date"],
     )
     manifest, payloads = encode(release)
-    if manifest != env.manifest or payloads != env.payloads or env.severable:
+    if manifest != env.manifest or payloads != env.payloads:  # (a severed member changes the manifest)
         raise MalformedReleaseError(
             f"manifest is not in the layout ota build writes ({SUIT_DRAFT}, README 'Release manifest layout')",
             file=source,
