@@ -1005,3 +1005,106 @@ def test_malformed_cbor_inside_a_bstr_is_named_by_its_place(where, what):
         _common(m, bind)
         payloads = {suit.RECORD_KEY: bad}
     malformed(resign(m, payloads), f"{what}: 1 trailing bytes after the CBOR item \\(byte 1\\)$")
+
+
+@pytest.mark.parametrize(
+    ("where", "what"),
+    [
+        ("envelope", "envelope"),
+        ("wrapper", "authentication wrapper"),
+        ("digest", "authentication wrapper digest"),
+        ("sign1", "COSE_Sign1"),
+        ("protected", "COSE protected header"),
+        ("manifest", "manifest"),
+    ],
+)
+def test_malformed_cbor_in_each_part_of_the_envelope_is_named_by_its_part(where, what):
+    bad = b"\x01\x01"
+    data = signed()
+    top = top_of(data)
+    auth = cbor2.loads(top[2])
+    if where == "envelope":
+        data = data + b"\x01"
+        words = f"{what}: 1 trailing bytes after the CBOR item \\(byte {len(data) - 1}\\)$"
+    else:
+        if where == "wrapper":
+            top[2] = bad
+        elif where == "digest":
+            top[2] = cbor2.dumps([bad, auth[1]])
+        elif where == "sign1":
+            top[2] = cbor2.dumps([auth[0], bad])
+        elif where == "protected":
+            sign1 = cbor2.loads(auth[1])
+            sign1.value[0] = bad
+            top[2] = cbor2.dumps([auth[0], cbor2.dumps(sign1)])
+        else:
+            data = resign({})  # a well-formed start, then the manifest bstr replaced
+            top = top_of(data)
+            top[3] = bad
+        data = envelope_with(top)
+        words = f"{what}: 1 trailing bytes after the CBOR item \\(byte 1\\)$"
+    if where == "manifest":  # the manifest is read after the signature check: through the parser
+        env = suit.parse_envelope(data, source="r.suit")
+        with pytest.raises(MalformedReleaseError) as info:
+            suit.parse_suit_manifest(env, source="r.suit")
+        assert re.match(words, info.value.message) and info.value.file == "r.suit"
+    else:
+        malformed(data, words)
+
+
+def test_a_text_that_is_not_a_bstr_is_named():
+    m = manifest_of()
+    m[23] = 5
+    malformed(resign(m), "manifest text is not a bstr$")
+
+
+def test_an_index_out_of_range_in_the_shared_sequence_is_named():
+    malformed(
+        resign(_common(manifest_of(), lambda c: c.update({4: cbor2.dumps([12, 9, 1, 15])}))),
+        "shared-sequence: component index 9 out of range$",
+    )
+
+
+def test_the_records_own_image_digest_must_be_a_suit_digest():
+    def bad(c):
+        shared = cbor2.loads(c[4])
+        shared[19][3] = cbor2.dumps([-16, bytes(3)])
+        c[4] = cbor2.dumps(shared, canonical=True)
+
+    malformed(resign(_common(manifest_of(), bad)), "release record: image-digest is not a SHA-256 SUIT_Digest$")
+
+
+def test_an_unbound_record_message_begins_with_what_happened():
+    record = suit.record_bytes(replace(RELEASE, date="2030-01-01T00:00:00Z"))
+    with pytest.raises(ReleaseIntegrityError) as info:
+        opened(resign(manifest_of(), payloads={suit.RECORD_KEY: record}))
+    assert info.value.message == "release record is not the one the signed manifest binds (image-digest/size)"
+
+
+def test_manifest_digest_is_over_the_bstr_wrapped_manifest():
+    m = cbor2.dumps({1: 1})
+    assert suit.manifest_digest(m) == cbor2.dumps([-16, hashlib.sha256(cbor2.dumps(m)).digest()])
+
+
+def test_a_decoding_error_names_the_file():
+    with pytest.raises(MalformedReleaseError) as info:
+        suit.loads(bytes([0x62, 0xFF, 0xFE]), source="r.suit", what="item")
+    assert info.value.file == "r.suit" and info.value.message.startswith("item: malformed CBOR (")
+
+
+@pytest.mark.parametrize("one", [bytes([0xA1, 0x00]), bytes([0xC1])], ids=["map value", "tag"])
+def test_maps_and_tags_count_toward_the_depth(one):
+    leaf = bytes([0x00])
+    ok = one * suit.MAX_DEPTH + leaf
+    suit.check_wellformed(ok, source="x", what="item")
+    with pytest.raises(MalformedReleaseError, match="nested deeper than"):
+        suit.check_wellformed(one + ok, source="x", what="item")
+
+
+def test_a_map_key_counts_toward_the_depth():
+    leaf = bytes([0x00])
+    ok = bytes([0x81]) * (suit.MAX_DEPTH - 1) + bytes([0xA1]) + leaf + leaf  # a map at the last level
+    suit.check_wellformed(ok, source="x", what="item")
+    deep_key = bytes([0x81]) * (suit.MAX_DEPTH - 1) + bytes([0xA1, 0x81]) + leaf + leaf  # its key one deeper
+    with pytest.raises(MalformedReleaseError, match="nested deeper than"):
+        suit.check_wellformed(deep_key, source="x", what="item")
