@@ -1,0 +1,279 @@
+"""``fleet status`` against in-process SMP devices (tests/_smp_responder.py): every verdict,
+the exit codes, the HCDF group, and hostile devices. The real QEMU devices: test_fleet_qemu.py."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import pytest
+from click.testing import CliRunner
+
+from hcdf_trust.cli import main
+
+from ._fleet import make_fleet_robot
+from ._smp_responder import HOSTILE_MODES, FakeDevice, Responder, SlotState
+from .conftest import CliResult
+
+COMPS = [("left", "board_l", "motor"), ("right", "board_r", "motor-r"), ("imu", "board_i", "imu-fw")]
+
+
+def run(*args) -> CliResult:
+    r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return CliResult(r.exit_code, r.stdout, r.stderr)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """One robot, an old and a new signed release, three fake devices (one per comp)."""
+    tmp = tmp_path_factory.mktemp("fleet")
+    robot = make_fleet_robot(tmp, COMPS)
+    robot.write(run, "1.0.0")
+    old = robot.build(run, tmp / "old")
+    robot.write(run, "1.2.0")
+    new = robot.build(run, tmp / "new", "--previous", tmp / "old")
+    responder = Responder()
+    devices = {name: FakeDevice(slots=[]) for name, _, _ in COMPS}
+    uris = {name: responder.add(d) for name, d in devices.items()}
+    yield {
+        "robot": robot,
+        "old": old,
+        "new": new,
+        "old_dir": tmp / "old",
+        "new_dir": tmp / "new",
+        "devices": devices,
+        "uris": uris,
+        "doc_sha": hashlib.sha256(robot.doc.read_bytes()).hexdigest(),
+    }
+    responder.close()
+
+
+def set_running(world, name, which="new", *, confirmed=True, description=True, pending=None):
+    """Device ``name`` runs release ``which``'s image (or raw bytes); ``pending``: slot 1's."""
+    d = world["devices"][name]
+    h = world[which][name][1] if which in ("old", "new") else which
+    version = world[which][name][0] if which in ("old", "new") else "9.9.9"
+    d.slots = [SlotState(0, version, bytes.fromhex(h), active=True, confirmed=confirmed, bootable=True)]
+    if pending is not None:
+        d.slots.append(SlotState(1, world[pending][name][0], bytes.fromhex(world[pending][name][1]), pending=True))
+    d.description = ("https://example.invalid/robot.hcdf", world["doc_sha"]) if description else None
+    d.mode = None
+    d.latency = 0.0
+
+
+def status(world, *extra, devices=None, timeout="5"):
+    args = [
+        "fleet",
+        "status",
+        world["robot"].doc,
+        "--release",
+        world["new_dir"],
+        "--key",
+        world["robot"].pub,
+        "--timeout",
+        timeout,
+    ]
+    for name, uri in (devices or world["uris"]).items():
+        args += ["--device", f"{name}={uri}"]
+    return run(*args, *extra)
+
+
+def verdicts(r) -> dict[str, str]:
+    return {d["comp"]: d["verdict"] for d in r.json["devices"]}
+
+
+@pytest.fixture
+def fleet(world):
+    for name, _, _ in COMPS:
+        set_running(world, name)
+    return world
+
+
+def test_all_current(fleet):
+    r = status(fleet, "--json")
+    assert r.exit_code == 0, r.stdout
+    assert verdicts(r) == {"left": "current", "right": "current", "imu": "current"}
+    doc = r.json
+    assert doc["ok"] is True and doc["errors"] == []
+    left = next(d for d in doc["devices"] if d["comp"] == "left")
+    assert left["slots"][0]["hash"] == fleet["new"]["left"][1]
+    assert left["expected"] == {"version": "1.2.0", "mcuboot_hash": fleet["new"]["left"][1]}
+    assert left["description"]["sha256"] == fleet["doc_sha"] == left["description_expected"]
+    # the devices were asked the image state and the HCDF group, nothing else
+    assert set(fleet["devices"]["left"].requests) == {(0, 1, 0), (0, 100, 0)}
+
+
+def test_table_says_what_each_device_runs(fleet):
+    set_running(fleet, "right", "old")
+    r = status(fleet, "--previous", fleet["old_dir"])
+    assert r.exit_code == 1
+    lines = r.stderr.splitlines()
+    right = next(line for line in lines if line.startswith("right "))
+    assert "outdated" in right and "1.0.0" in right and fleet["old"]["right"][1][:12] in right
+    assert "unauthenticated" in lines[-1]
+
+
+def test_outdated_needs_the_earlier_signed_release(fleet):
+    set_running(fleet, "left", "old")
+    r = status(fleet, "--json", "--previous", fleet["old_dir"])
+    assert r.exit_code == 1
+    assert verdicts(r)["left"] == "outdated" and verdicts(r)["right"] == "current"
+    # without it, the old image is in no release this key signed that we know of
+    r = status(fleet, "--json")
+    assert r.exit_code == 1 and verdicts(r)["left"] == "unknown-image"
+    err = next(e for e in r.json["errors"] if e["code"] == "unknown-image")
+    assert err["expected"] == fleet["new"]["left"][1] and err["actual"] == fleet["old"]["left"][1]
+
+
+def test_pending_and_unconfirmed(fleet):
+    set_running(fleet, "left", "old", pending="new")
+    set_running(fleet, "right", "new", confirmed=False)
+    r = status(fleet, "--json", "--previous", fleet["old_dir"])
+    assert r.exit_code == 1
+    assert verdicts(r) == {"left": "pending", "right": "unconfirmed", "imu": "current"}
+    right = next(d for d in r.json["devices"] if d["comp"] == "right")
+    assert "revert" in right["reason"]
+
+
+def test_unknown_image_is_an_integrity_failure(fleet):
+    set_running(fleet, "imu", os.urandom(32).hex())
+    r = status(fleet, "--json")
+    assert r.exit_code == 1 and verdicts(r)["imu"] == "unknown-image"
+
+
+def test_an_unknown_image_marked_to_run_next_is_named(fleet):
+    d = fleet["devices"]["imu"]
+    d.slots.append(SlotState(1, "6.6.6", os.urandom(32), pending=True))
+    r = status(fleet, "--json")
+    assert r.exit_code == 1 and verdicts(r)["imu"] == "unknown-image"
+    assert "next reset" in next(x for x in r.json["devices"] if x["comp"] == "imu")["reason"]
+
+
+def test_release_hash_with_another_version_is_not_current(fleet):
+    fleet["devices"]["imu"].slots[0].version = "1.2.1"
+    r = status(fleet, "--json")
+    assert r.exit_code == 1 and verdicts(r)["imu"] == "unknown-image"
+
+
+def test_no_hcdf_group_and_skip_description(fleet):
+    set_running(fleet, "left", description=False)
+    r = status(fleet, "--json")
+    assert r.exit_code == 1 and verdicts(r)["left"] == "no-hcdf-group"
+    r = status(fleet, "--json", "--skip-description")
+    assert r.exit_code == 0 and verdicts(r)["left"] == "current"
+    assert (0, 100, 0) not in fleet["devices"]["right"].requests[-1:]
+
+
+def test_wrong_description(fleet):
+    fleet["devices"]["right"].description = ("https://example.invalid/other.hcdf", "ab" * 32)
+    r = status(fleet, "--json")
+    assert r.exit_code == 1 and verdicts(r)["right"] == "wrong-description"
+    err = next(e for e in r.json["errors"] if e["code"] == "wrong-description")
+    assert err["expected"] == fleet["doc_sha"] and err["actual"] == "ab" * 32
+
+
+@pytest.mark.parametrize("sha", ["ab" * 4, "zz" * 32, "ab" * 33])
+def test_description_sha_of_the_wrong_form_is_malformed(fleet, sha):
+    fleet["devices"]["right"].description = ("https://example.invalid/robot.hcdf", sha)
+    r = status(fleet, "--json")
+    assert r.exit_code == 3 and verdicts(r)["right"] == "malformed-answer"
+
+
+def test_unreachable_exits_3(fleet):
+    fleet["devices"]["imu"].mode = "silent"
+    r = status(fleet, "--json", timeout="0.5")
+    assert r.exit_code == 3
+    assert verdicts(r) == {"left": "current", "right": "current", "imu": "unreachable"}
+    assert next(e for e in r.json["errors"])["code"] == "unreachable"
+
+
+def test_unknown_image_outranks_unreachable(fleet):
+    fleet["devices"]["imu"].mode = "silent"
+    set_running(fleet, "left", os.urandom(32).hex())
+    r = status(fleet, "--json", timeout="0.5")
+    assert r.exit_code == 1
+
+
+def test_comp_without_address_is_unreachable(fleet):
+    r = status(fleet, "--json", devices={k: v for k, v in fleet["uris"].items() if k != "imu"})
+    assert r.exit_code == 3 and verdicts(r)["imu"] == "unreachable"
+    assert "no address" in next(d for d in r.json["devices"] if d["comp"] == "imu")["reason"]
+
+
+@pytest.mark.parametrize("mode", HOSTILE_MODES)
+def test_hostile_devices(fleet, mode):
+    fleet["devices"]["right"].mode = mode
+    r = status(fleet, "--json", timeout="1")
+    assert r.exit_code == 3, r.stdout
+    v = verdicts(r)
+    assert v["left"] == "current" and v["imu"] == "current"
+    expected = "unreachable" if mode in ("silent", "oversized") else "malformed-answer"
+    assert v["right"] == expected, r.json["devices"]
+
+
+def test_release_that_does_not_verify_asks_no_device(fleet, tmp_path):
+    import shutil
+
+    bad = tmp_path / "rel"
+    shutil.copytree(fleet["new_dir"], bad)
+    image = next(bad.glob("board_l/motor/*.bin"))
+    data = bytearray(image.read_bytes())
+    data[-1] ^= 1
+    image.write_bytes(bytes(data))
+    before = len(fleet["devices"]["left"].requests)
+    r = run(
+        "fleet",
+        "status",
+        fleet["robot"].doc,
+        "--release",
+        bad,
+        "--key",
+        fleet["robot"].pub,
+        "--device",
+        f"left={fleet['uris']['left']}",
+        "--json",
+    )
+    assert r.exit_code == 1
+    assert len(fleet["devices"]["left"].requests) == before
+
+
+@pytest.mark.parametrize(
+    "device, code",
+    [("left=ftp://127.0.0.1", 3), ("left=udp://127.0.0.1:99999", 3), ("nosuch=udp://127.0.0.1", 3), ("left", 2)],
+)
+def test_bad_device_arguments(fleet, device, code):
+    r = run(
+        "fleet",
+        "status",
+        fleet["robot"].doc,
+        "--release",
+        fleet["new_dir"],
+        "--key",
+        fleet["robot"].pub,
+        "--device",
+        device,
+    )
+    assert r.exit_code == code, r.stderr
+
+
+def test_address_from_discovered(world, tmp_path):
+    """<discovered><ip>/<port> is the UDP address when --device does not say."""
+    for name, _, _ in COMPS:
+        set_running(world, name)
+    port = world["uris"]["imu"].rsplit(":", 1)[1]
+    doc = world["robot"].doc
+    text = doc.read_text()
+    patched = text.replace(
+        '<software name="imu-fw"><version>1.2.0</version></software>',
+        '<software name="imu-fw"><version>1.2.0</version></software>'
+        f"<discovered><ip>127.0.0.1</ip><port>{port}</port></discovered>",
+    )
+    assert patched != text
+    doc.write_text(patched)
+    try:
+        world["devices"]["imu"].description = ("x", hashlib.sha256(patched.encode()).hexdigest())
+        r = status(world, "--json", devices={k: v for k, v in world["uris"].items() if k != "imu"})
+        assert verdicts(r)["imu"] == "current", json.dumps(r.json["devices"])
+    finally:
+        doc.write_text(text)
