@@ -36,11 +36,36 @@ def _free_port() -> int:
 def _command(kind: str, port: int) -> list[str]:
     chardev = ["-chardev", f"socket,id=con,host=127.0.0.1,port={port},server=on,wait=off", "-serial", "chardev:con"]
     if kind == "microbit":
-        return ["qemu-system-arm", "-cpu", "cortex-m0", "-machine", "microbit", "-nographic", *chardev,
-                "-monitor", "none", "-device", f"loader,file={MICROBIT_HEX}"]
-    return ["qemu-system-arm", "-cpu", "cortex-m3", "-machine", "mps2-an385", "-nographic", *chardev,
-            "-serial", "null", "-monitor", "none", "-device", f"loader,file={MPS2_HEX}",
-            "-device", f"loader,file={MPS2_APP},addr=0x20050000"]
+        return [
+            "qemu-system-arm",
+            "-cpu",
+            "cortex-m0",
+            "-machine",
+            "microbit",
+            "-nographic",
+            *chardev,
+            "-monitor",
+            "none",
+            "-device",
+            f"loader,file={MICROBIT_HEX}",
+        ]
+    return [
+        "qemu-system-arm",
+        "-cpu",
+        "cortex-m3",
+        "-machine",
+        "mps2-an385",
+        "-nographic",
+        *chardev,
+        "-serial",
+        "null",
+        "-monitor",
+        "none",
+        "-device",
+        f"loader,file={MPS2_HEX}",
+        "-device",
+        f"loader,file={MPS2_APP},addr=0x20050000",
+    ]
 
 
 def require_qemu() -> None:

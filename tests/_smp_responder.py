@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import struct
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,6 +28,10 @@ HOSTILE_MODES = (
     "short-hash",  # an image hash of 20 bytes
     "silent",  # never answers
     "wrong-group",  # answers as another group
+)
+UPLOAD_MODES = (
+    "lying-upload",  # after an upload, slot 1 reports another hash
+    "stuck-upload",  # answers every chunk with offset 0
 )
 
 
@@ -52,6 +57,7 @@ class FakeDevice:
     latency: float = 0.0
     upload: bytearray = field(default_factory=bytearray)
     upload_len: int = 0
+    upload_sha: bytes = b""
     requests: list[tuple[int, int, int]] = field(default_factory=list)  # (op, group, command) seen
 
     def answer(self, data: bytes) -> bytes | None:
@@ -135,27 +141,45 @@ class FakeDevice:
         else:
             target.pending = True
             target.permanent = confirm
-        return img.ImageStatesWriteResponse(sequence=seq, images=self._images()).BYTES
+        # smp's ImageStatesWriteResponse inherits the read response's op (READ_RSP); Zephyr
+        # answers a write with WRITE_RSP, as fleet checks: the frame is built with that op
+        images = img.ImageStatesWriteResponse(sequence=seq, images=self._images()).BYTES[8:]
+        return raw_frame(smphdr.OP.WRITE_RSP, 1, 0, seq, images)
 
     def _upload(self, seq: int, body: dict[str, Any]) -> bytes:
         off = body["off"]
+        if self.mode == "stuck-upload":
+            return img.ImageUploadWriteResponse(sequence=seq, off=0).BYTES
         if off == 0:
+            if body.get("sha") == self.upload_sha and 0 < len(self.upload) < self.upload_len:
+                # Zephyr's resume: the same image again, continue where it stopped
+                return img.ImageUploadWriteResponse(sequence=seq, off=len(self.upload)).BYTES
             self.upload = bytearray()
             self.upload_len = body["len"]
+            self.upload_sha = body.get("sha", b"")
         if off != len(self.upload):
             return img.ImageUploadWriteResponse(sequence=seq, off=len(self.upload)).BYTES
         self.upload += body["data"]
         if len(self.upload) == self.upload_len:
-            from hcdf_trust.ota.images import read_info
-
-            info = read_info(bytes(self.upload), source="upload")
-            self.slots = [s for s in self.slots if s.slot != 1] + [
-                SlotState(1, str(info.version), bytes.fromhex(info.image_hash))
-            ]
+            version, image_hash = mcuboot_identity(bytes(self.upload))
+            if self.mode == "lying-upload":
+                image_hash = hashlib.sha256(image_hash).digest()
+            self.slots = [s for s in self.slots if s.slot != 1] + [SlotState(1, version, image_hash)]
             return img.ImageUploadWriteResponse(
-                sequence=seq, off=len(self.upload), match=hashlib.sha256(self.upload).digest() == body.get("sha", b"")
+                sequence=seq, off=len(self.upload), match=hashlib.sha256(self.upload).digest() == self.upload_sha
             ).BYTES
         return img.ImageUploadWriteResponse(sequence=seq, off=len(self.upload)).BYTES
+
+
+def mcuboot_identity(data: bytes) -> tuple[str, bytes]:
+    """What MCUboot (and so the img group) reports for an image: the header's version and
+    SHA-256 over header + payload + protected TLVs; read with struct from MCUboot's
+    ``struct image_header``, independently of imgtool and of hcdf_trust."""
+    magic, _load, hdr_size, prot_tlv_size, img_size, _flags = struct.unpack_from("<IIHHII", data)
+    assert magic == 0x96F3B83D
+    major, minor, revision, build = struct.unpack_from("<BBHI", data, 20)
+    version = f"{major}.{minor}.{revision}" + (f".{build}" if build else "")
+    return version, hashlib.sha256(data[: hdr_size + img_size + prot_tlv_size]).digest()
 
 
 def raw_frame(op: smphdr.OP, group: int, command: int, seq: int, body: bytes) -> bytes:

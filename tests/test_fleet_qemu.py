@@ -43,15 +43,30 @@ def qemu(tmp_path_factory):
         robot = make_fleet_robot(tmp, COMPS)
         robot.write(run, "1.2.3", size=20000)
         hashes = robot.build(run, tmp / "release")
-        yield {"robot": robot, "release": tmp / "release", "hashes": hashes,
-               "uris": {"mb": devices[0].uri, "mps": devices[1].uri}, "devices": devices}
+        yield {
+            "robot": robot,
+            "release": tmp / "release",
+            "hashes": hashes,
+            "uris": {"mb": devices[0].uri, "mps": devices[1].uri},
+            "devices": devices,
+        }
     finally:
         _qemu.stop(devices)
 
 
 def status(q, *extra):
-    args = ["fleet", "status", q["robot"].doc, "--release", q["release"], "--key", q["robot"].pub,
-            "--timeout", TIMEOUT, "--json"]
+    args = [
+        "fleet",
+        "status",
+        q["robot"].doc,
+        "--release",
+        q["release"],
+        "--key",
+        q["robot"].pub,
+        "--timeout",
+        TIMEOUT,
+        "--json",
+    ]
     for name, uri in q["uris"].items():
         args += ["--device", f"{name}={uri}"]
     return run(*args, *extra)
@@ -64,10 +79,59 @@ def test_status_reads_the_real_devices(qemu):
     # they run the fixture's smp_server, which no release of this key lists
     assert by["mb"]["verdict"] == by["mps"]["verdict"] == "unknown-image"
     assert by["mb"]["slots"][0] | {"hash": None} == {
-        "image": 0, "slot": 0, "version": "0.0.0", "hash": None, "active": True, "confirmed": True,
-        "pending": False, "permanent": False, "bootable": True,
+        "image": 0,
+        "slot": 0,
+        "version": "0.0.0",
+        "hash": None,
+        "active": True,
+        "confirmed": True,
+        "pending": False,
+        "permanent": False,
+        "bootable": True,
     }
     assert by["mb"]["slots"][0]["hash"] == mcuboot_hash(MICROBIT_APP)
     assert by["mps"]["slots"][0]["hash"] == mcuboot_hash(MPS2_APP)
     # neither implements the HCDF group: the answer is rc 8 (ENOTSUP), not a description
     assert by["mb"]["description"] is None
+
+
+def test_update_uploads_to_slot_1_and_marks_it_pending(qemu):
+    from ._smp_responder import mcuboot_identity
+
+    image = (qemu["release"] / "qemu_microbit" / "smp-mb" / "1.2.3.bin").read_bytes()
+    version, image_hash = mcuboot_identity(image)
+    assert image_hash.hex() == qemu["hashes"]["mb"][1]
+    base = [
+        "fleet",
+        "update",
+        qemu["robot"].doc,
+        "--release",
+        qemu["release"],
+        "--key",
+        qemu["robot"].pub,
+        "--device",
+        f"mb={qemu['uris']['mb']}",
+        "--device",
+        f"mps={qemu['uris']['mps']}",
+        "--only",
+        "mb",
+        "--timeout",
+        "60",
+        "--json",
+    ]
+    r = run(*base, "--dry-run")
+    assert r.exit_code == 0 and r.json["devices"][0]["result"] == "would-update", r.stdout
+    r = run(*base)
+    assert r.exit_code == 0, r.stdout
+    assert [d["result"] for d in r.json["devices"]] == ["updated"]
+    assert r.json["devices"][0]["bytes_sent"] >= len(image)
+    # what the real device now reports
+    r = status(qemu)
+    mb = next(d for d in r.json["devices"] if d["comp"] == "mb")
+    slot1 = next(s for s in mb["slots"] if s["slot"] == 1)
+    assert (slot1["version"], slot1["hash"]) == (version, image_hash.hex()) == ("1.2.3", qemu["hashes"]["mb"][1])
+    assert slot1["pending"] and not slot1["permanent"] and not slot1["active"]
+    assert mb["slots"][0]["hash"] == mcuboot_hash(MICROBIT_APP) and mb["verdict"] == "unknown-image"
+    # a second run finds it there and sends nothing
+    r = run(*base)
+    assert r.exit_code == 0 and r.json["devices"][0]["bytes_sent"] == 0, r.stdout

@@ -23,7 +23,7 @@ def fleet() -> None:
     """Device-reported image state (MCUmgr/SMP) against the signed release: status, update, confirm."""
 
 
-def device_options(func: Any) -> Any:
+def device_options(func: Any, *, jobs: int = DEFAULT_JOBS, timeout: float = DEFAULT_TIMEOUT) -> Any:
     """The options every fleet verb shares: the release, the devices, the bounds."""
     options: list[Any] = [
         click.option(
@@ -47,16 +47,16 @@ def device_options(func: Any) -> Any:
         click.option(
             "--jobs",
             type=click.IntRange(1, 256),
-            default=DEFAULT_JOBS,
+            default=jobs,
             show_default=True,
-            help="Devices asked at once.",
+            help="Devices talked to at once.",
         ),
         click.option(
             "--timeout",
             type=click.FloatRange(0.1, 600),
-            default=DEFAULT_TIMEOUT,
+            default=timeout,
             show_default=True,
-            help="Seconds to wait for each answer of a device.",
+            help="Seconds to wait for each answer of a device (each upload chunk's, for update).",
         ),
         tree_options,
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout."),
@@ -78,9 +78,10 @@ def _devices(pairs: tuple[str, ...]) -> dict[str, str]:
     return out
 
 
-def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> tuple[Any, list[Any]]:
-    """The release, verified exactly as ``ota verify`` does (exit 1 on any error), and the
-    manifests of the ``--previous`` releases, each verified with the same key."""
+def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> tuple[Any, list[Any], Any]:
+    """The release, verified exactly as ``ota verify`` does (exit 1 on any error), the
+    manifests of the ``--previous`` releases, each verified with the same key, and the
+    release's files (the images ``update`` sends are these verified bytes)."""
     from ..errors import ErrorGroup
     from ..ota.keys import load_public
     from ..ota.release import previous_manifest, read_release
@@ -91,7 +92,7 @@ def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> 
     errors = check_release(release, files, public)
     if errors:
         raise ErrorGroup(errors)
-    return release, [previous_manifest(p, public) for p in previous]
+    return release, [previous_manifest(p, public) for p in previous], files
 
 
 @fleet.command(name="status")
@@ -131,7 +132,7 @@ def status_cmd(
     """
     from ..fleet.status import run_status
 
-    release, before = _verified_release(release_dir, key, previous)
+    release, before, _files = _verified_release(release_dir, key, previous)
     report = run_status(
         doc,
         tree,
@@ -185,3 +186,160 @@ def _shown(text: str) -> str:
     """A device-supplied or description text as one printable cell (control characters
     escaped: a device must not be able to rewrite the terminal)."""
     return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+
+
+UPLOAD_JOBS = 4  # == fleet.update.DEFAULT_UPLOAD_JOBS
+UPLOAD_TIMEOUT = 30.0  # emulated and busy devices can take many seconds for one chunk
+
+
+def _targets(doc: str, tree: Any, release: Any, devices: tuple[str, ...], only: tuple[str, ...]) -> list[Any]:
+    from ..fleet.status import targets
+
+    todo, notices = targets(doc, tree, release, _devices(devices), check_description=False)
+    for n in notices:
+        click.echo(f"note: {n}", err=True)
+    unknown = sorted(set(only) - {t.comp for t in todo})
+    if unknown:
+        raise click.UsageError(f"--only names comps with no released MCUboot image: {', '.join(unknown)}")
+    return [t for t in todo if not only or t.comp in only]
+
+
+def _render(outcomes: list[Any], verb: str, as_json: bool, release: Any) -> None:
+    from ..fleet.update import exit_code
+
+    code = exit_code(outcomes)
+    errors = [o.error for o in outcomes if o.error is not None]
+    if as_json:
+        emit_json(
+            {
+                "ok": code == 0,
+                "release": {"sequence_number": release.sequence_number, "lock_sha256": release.lock_sha256},
+                "devices": [o.to_json() for o in outcomes],
+                "errors": [e.to_dict() for e in errors],
+            }
+        )
+    else:
+        for o in outcomes:
+            uri = o.target.endpoint.uri if o.target.endpoint else "-"
+            click.echo(f"{_shown(o.target.comp)} ({_shown(uri)}): {o.result}: {_shown(o.detail)}", err=True)
+        for e in errors:
+            click.echo(f"error: {e}", err=True)
+        counts: dict[str, int] = {}
+        for o in outcomes:
+            counts[o.result] = counts.get(o.result, 0) + 1
+        click.echo(
+            f"fleet {verb}: " + (", ".join(f"{n} {r}" for r, n in sorted(counts.items())) or "no devices"), err=True
+        )
+    sys.exit(code)
+
+
+@fleet.command(name="update")
+@click.argument("doc", type=click.Path(dir_okay=False))
+@functools.partial(device_options, jobs=UPLOAD_JOBS, timeout=UPLOAD_TIMEOUT)
+@click.option("--only", multiple=True, metavar="COMP", help="Update only this comp (repeatable).")
+@click.option("--confirm", is_flag=True, help="Mark the new image permanent instead of for test (no revert).")
+@click.option("--dry-run", is_flag=True, help="Read each device's state and say what would happen; send nothing.")
+@handle_errors
+def update_cmd(
+    doc: str,
+    release_dir: str,
+    key: str,
+    devices: tuple[str, ...],
+    jobs: int,
+    timeout: float,
+    tree: Any,
+    as_json: bool,
+    only: tuple[str, ...],
+    confirm: bool,
+    dry_run: bool,
+) -> None:
+    """Upload each comp's image of the verified release to its device's slot 1, check the
+    device reports the release's hash, and mark it for test (--confirm: permanent).
+
+    Resumes an interrupted upload where the device says it stopped. After the devices are
+    reset, `fleet status` shows them unconfirmed until the application confirms (or
+    `fleet confirm`). Exit 0 when every device got the image (or runs it), 1 when a device
+    reports another image after the upload, 3 when one is unreachable or malformed.
+    """
+    import asyncio
+
+    from ..fleet.update import update_one
+    from ..ota.verify import image_path
+
+    release, _, files = _verified_release(release_dir, key, ())
+    todo = _targets(doc, tree, release, devices, only)
+    with _progress(as_json or dry_run) as progress:
+        work = [
+            functools.partial(
+                update_one,
+                t,
+                files.images[image_path(t.component)],
+                confirm=confirm,
+                dry_run=dry_run,
+                timeout=timeout,
+                progress=progress,
+            )
+            for t in todo
+        ]
+        from ..fleet.update import run_all
+
+        outcomes = asyncio.run(run_all(jobs, work))
+    _render(outcomes, "update", as_json, release)
+
+
+@fleet.command(name="confirm")
+@click.argument("doc", type=click.Path(dir_okay=False))
+@device_options
+@click.option("--only", multiple=True, metavar="COMP", help="Confirm only this comp (repeatable).")
+@handle_errors
+def confirm_cmd(
+    doc: str,
+    release_dir: str,
+    key: str,
+    devices: tuple[str, ...],
+    jobs: int,
+    timeout: float,
+    tree: Any,
+    as_json: bool,
+    only: tuple[str, ...],
+) -> None:
+    """Confirm the running image on each device that runs the release's image (so it does
+    not revert on the next reset); a device running anything else is left alone (exit 1)."""
+    import asyncio
+
+    from ..fleet.update import confirm_one, run_all
+
+    release, _, _files = _verified_release(release_dir, key, ())
+    todo = _targets(doc, tree, release, devices, only)
+    work = [functools.partial(confirm_one, t, timeout=timeout) for t in todo]
+    outcomes = asyncio.run(run_all(jobs, work))
+    _render(outcomes, "confirm", as_json, release)
+
+
+class _progress:
+    """A progress bar per device on a terminal (rich); nothing otherwise."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.enabled = not quiet and sys.stderr.isatty()
+        self.bar: Any = None
+        self.tasks: dict[str, Any] = {}
+
+    def __enter__(self) -> Any:
+        if not self.enabled:
+            return None
+        from rich.console import Console
+        from rich.progress import Progress
+
+        self.bar = Progress(console=Console(stderr=True), transient=False)
+        self.bar.start()
+        return self.update
+
+    def update(self, target: Any, off: int, total: int) -> None:
+        task = self.tasks.get(target.comp)
+        if task is None:
+            task = self.tasks[target.comp] = self.bar.add_task(_shown(target.comp), total=total)
+        self.bar.update(task, completed=off)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
