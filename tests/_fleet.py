@@ -1,15 +1,21 @@
-"""A test robot whose comps are MCUs reached over SMP, and signed releases for it."""
+"""A test robot whose comps are MCUs reached over SMP, and signed releases for it; the
+``world`` and ``fleet`` fixtures (a plugin of conftest.py): in-process SMP devices for it."""
 
 from __future__ import annotations
 
+import hashlib
 import random
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+from click.testing import CliRunner
+
+from hcdf_trust.cli import main
 from hcdf_trust.ota.keys import generate, load_public, private_pem, public_pem
 from hcdf_trust.ota.release import read_release
 
-from .conftest import CORPUS
+from .conftest import CORPUS, CliResult
 
 FIXTURES = CORPUS.parent / "fixtures" / "smp-server"
 MICROBIT_HEX = FIXTURES / "zephyr_4.4.0_smp_server_0eae053d_qemu_cortex_m0_serial.merged.hex"
@@ -76,3 +82,81 @@ def make_fleet_robot(tmp_path: Path, comps: list[tuple[str, str, str]]) -> Fleet
     (keydir / "fw.pem").write_bytes(private_pem(key, None))
     (keydir / "fw.pub.pem").write_bytes(public_pem(key))
     return FleetRobot(root, root / "robot.hcdf", root / "fw", keydir / "fw.pem", keydir / "fw.pub.pem", comps)
+
+
+COMPS = [("left", "board_l", "motor"), ("right", "board_r", "motor-r"), ("imu", "board_i", "imu-fw")]
+
+
+def run(*args) -> CliResult:
+    r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return CliResult(r.exit_code, r.stdout, r.stderr)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """One robot, an old and a new signed release, three fake devices (one per comp)."""
+    tmp = tmp_path_factory.mktemp("fleet")
+    robot = make_fleet_robot(tmp, COMPS)
+    robot.write(run, "1.0.0")
+    old = robot.build(run, tmp / "old")
+    robot.write(run, "1.2.0")
+    new = robot.build(run, tmp / "new", "--previous", tmp / "old")
+    from ._smp_responder import FakeDevice, Responder, SlotState  # noqa: F401 - smp only where used
+
+    responder = Responder()
+    devices = {name: FakeDevice(slots=[]) for name, _, _ in COMPS}
+    uris = {name: responder.add(d) for name, d in devices.items()}
+    yield {
+        "robot": robot,
+        "old": old,
+        "new": new,
+        "old_dir": tmp / "old",
+        "new_dir": tmp / "new",
+        "devices": devices,
+        "uris": uris,
+        "doc_sha": hashlib.sha256(robot.doc.read_bytes()).hexdigest(),
+    }
+    responder.close()
+
+
+def set_running(world, name, which="new", *, confirmed=True, description=True, pending=None):
+    """Device ``name`` runs release ``which``'s image (or raw bytes); ``pending``: slot 1's."""
+    d = world["devices"][name]
+    h = world[which][name][1] if which in ("old", "new") else which
+    version = world[which][name][0] if which in ("old", "new") else "9.9.9"
+    from ._smp_responder import SlotState
+
+    d.slots = [SlotState(0, version, bytes.fromhex(h), active=True, confirmed=confirmed, bootable=True)]
+    if pending is not None:
+        d.slots.append(SlotState(1, world[pending][name][0], bytes.fromhex(world[pending][name][1]), pending=True))
+    d.description = ("https://example.invalid/robot.hcdf", world["doc_sha"]) if description else None
+    d.mode = None
+    d.latency = 0.0
+
+
+def status(world, *extra, devices=None, timeout="5"):
+    args = [
+        "fleet",
+        "status",
+        world["robot"].doc,
+        "--release",
+        world["new_dir"],
+        "--key",
+        world["robot"].pub,
+        "--timeout",
+        timeout,
+    ]
+    for name, uri in (devices or world["uris"]).items():
+        args += ["--device", f"{name}={uri}"]
+    return run(*args, *extra)
+
+
+def verdicts(r) -> dict[str, str]:
+    return {d["comp"]: d["verdict"] for d in r.json["devices"]}
+
+
+@pytest.fixture
+def fleet(world):
+    for name, _, _ in COMPS:
+        set_running(world, name)
+    return world

@@ -8,86 +8,9 @@ import json
 import os
 
 import pytest
-from click.testing import CliRunner
 
-from hcdf_trust.cli import main
-
-from ._fleet import make_fleet_robot
-from ._smp_responder import HOSTILE_MODES, FakeDevice, Responder, SlotState
-from .conftest import CliResult
-
-COMPS = [("left", "board_l", "motor"), ("right", "board_r", "motor-r"), ("imu", "board_i", "imu-fw")]
-
-
-def run(*args) -> CliResult:
-    r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return CliResult(r.exit_code, r.stdout, r.stderr)
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    """One robot, an old and a new signed release, three fake devices (one per comp)."""
-    tmp = tmp_path_factory.mktemp("fleet")
-    robot = make_fleet_robot(tmp, COMPS)
-    robot.write(run, "1.0.0")
-    old = robot.build(run, tmp / "old")
-    robot.write(run, "1.2.0")
-    new = robot.build(run, tmp / "new", "--previous", tmp / "old")
-    responder = Responder()
-    devices = {name: FakeDevice(slots=[]) for name, _, _ in COMPS}
-    uris = {name: responder.add(d) for name, d in devices.items()}
-    yield {
-        "robot": robot,
-        "old": old,
-        "new": new,
-        "old_dir": tmp / "old",
-        "new_dir": tmp / "new",
-        "devices": devices,
-        "uris": uris,
-        "doc_sha": hashlib.sha256(robot.doc.read_bytes()).hexdigest(),
-    }
-    responder.close()
-
-
-def set_running(world, name, which="new", *, confirmed=True, description=True, pending=None):
-    """Device ``name`` runs release ``which``'s image (or raw bytes); ``pending``: slot 1's."""
-    d = world["devices"][name]
-    h = world[which][name][1] if which in ("old", "new") else which
-    version = world[which][name][0] if which in ("old", "new") else "9.9.9"
-    d.slots = [SlotState(0, version, bytes.fromhex(h), active=True, confirmed=confirmed, bootable=True)]
-    if pending is not None:
-        d.slots.append(SlotState(1, world[pending][name][0], bytes.fromhex(world[pending][name][1]), pending=True))
-    d.description = ("https://example.invalid/robot.hcdf", world["doc_sha"]) if description else None
-    d.mode = None
-    d.latency = 0.0
-
-
-def status(world, *extra, devices=None, timeout="5"):
-    args = [
-        "fleet",
-        "status",
-        world["robot"].doc,
-        "--release",
-        world["new_dir"],
-        "--key",
-        world["robot"].pub,
-        "--timeout",
-        timeout,
-    ]
-    for name, uri in (devices or world["uris"]).items():
-        args += ["--device", f"{name}={uri}"]
-    return run(*args, *extra)
-
-
-def verdicts(r) -> dict[str, str]:
-    return {d["comp"]: d["verdict"] for d in r.json["devices"]}
-
-
-@pytest.fixture
-def fleet(world):
-    for name, _, _ in COMPS:
-        set_running(world, name)
-    return world
+from ._fleet import COMPS, run, set_running, status, verdicts
+from ._smp_responder import HOSTILE_MODES, SlotState
 
 
 def test_all_current(fleet):

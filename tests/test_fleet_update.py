@@ -7,8 +7,8 @@ import hashlib
 
 import pytest
 
+from ._fleet import COMPS, run, set_running, status, verdicts
 from ._smp_responder import mcuboot_identity
-from .test_fleet_status import COMPS, fleet, run, set_running, status, verdicts, world  # noqa: F401
 
 
 def update(w, *extra, devices=None):
@@ -52,7 +52,7 @@ def reset(w, name):
 
 
 @pytest.fixture
-def outdated(fleet):  # noqa: F811 - the fixture of test_fleet_status
+def outdated(fleet):
     for name, _, _ in COMPS:
         set_running(fleet, name, "old")
         fleet["devices"][name].upload = bytearray()

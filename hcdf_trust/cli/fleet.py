@@ -109,6 +109,14 @@ def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> 
     is_flag=True,
     help="Do not ask the HCDF group (100) which description the firmware was built for.",
 )
+@click.option(
+    "-o",
+    "--out",
+    type=click.Path(dir_okay=False),
+    help="Write a version report signed with --host-key here (host-attested, not device attestation).",
+)
+@click.option("--host-key", type=click.Path(dir_okay=False), help="The host's private key (PEM) that signs --out.")
+@click.option("--passphrase-file", type=click.Path(dir_okay=False), help="The --host-key's passphrase.")
 @handle_errors
 def status_cmd(
     doc: str,
@@ -121,6 +129,9 @@ def status_cmd(
     as_json: bool,
     previous: tuple[str, ...],
     skip_description: bool,
+    out: str | None,
+    host_key: str | None,
+    passphrase_file: str | None,
 ) -> None:
     """Ask each comp's MCU what it runs and judge it against the signed release.
 
@@ -132,6 +143,17 @@ def status_cmd(
     """
     from ..fleet.status import run_status
 
+    if (out is None) != (host_key is None):
+        raise click.UsageError("--out and --host-key go together: the report is signed by the host")
+    if passphrase_file is not None and host_key is None:
+        raise click.UsageError("--passphrase-file needs --host-key")
+    signer = None
+    if host_key is not None:
+        from ..fleet.report import host_signer
+        from ..ota.keys import load_private, read_passphrase
+
+        secret = read_passphrase(passphrase_file) if passphrase_file else None
+        signer = host_signer(load_private(host_key, secret))  # a wrong passphrase stops here, before any device
     release, before, _files = _verified_release(release_dir, key, previous)
     report = run_status(
         doc,
@@ -144,6 +166,11 @@ def status_cmd(
         check_description=not skip_description,
     )
     errors = [e for e in (d.error() for d in report.devices) if e is not None]
+    wrote: list[str] = []
+    if out is not None:
+        wrote = _write_report(
+            report, out, signer, doc=doc, tree=tree, inputs=(release_dir, key, host_key, passphrase_file)
+        )
     if as_json:
         emit_json(
             {
@@ -153,12 +180,42 @@ def status_cmd(
                 "notices": [
                     {"code": n.code, "message": n.message, "file": n.file, "line": n.line} for n in report.notices
                 ],
+                "wrote": wrote,
                 "errors": [e.to_dict() for e in errors],
             }
         )
     else:
         _table(report)
+        for path in wrote:
+            click.echo(f"wrote {path} (host-attested version report)", err=True)
     sys.exit(report.exit_code)
+
+
+def _write_report(
+    report: Any, out: str, signer: Any, *, doc: str, tree: Any, inputs: tuple[str | None, ...]
+) -> list[str]:
+    """Sign and write the report through the one output plan (never onto an input)."""
+    from ..errors import display_path
+    from ..fleet import report as fleet_report
+    from ..fleet.status import root_sha256
+    from ..outputs import OutputPlan, protect_inputs
+
+    release_dir, key, host_key, passphrase_file = inputs
+    assert release_dir is not None and key is not None and host_key is not None
+    plan = OutputPlan()
+    res = report.resolution
+    protect_inputs(plan, res, doc=doc, options=tree.resolve_options(locked=True))
+    plan.protect(res.lock_path, what="the lock file")
+    plan.protect_tree(release_dir, what="the release folder")
+    plan.protect(key, what="the public key")
+    plan.protect(host_key, what="the host key")
+    if passphrase_file is not None:
+        plan.protect(passphrase_file, what="the passphrase file")
+    statement = fleet_report.payload(
+        report, release_dir=release_dir, root_sha256=root_sha256(res), host_keyid=signer.public_key.keyid
+    )
+    plan.add(out, fleet_report.sign(statement, signer), flag="--out")
+    return [display_path(p) for p in plan.commit()]
 
 
 def _table(report: Any) -> None:
@@ -193,9 +250,9 @@ UPLOAD_TIMEOUT = 30.0  # emulated and busy devices can take many seconds for one
 
 
 def _targets(doc: str, tree: Any, release: Any, devices: tuple[str, ...], only: tuple[str, ...]) -> list[Any]:
-    from ..fleet.status import targets
+    from ..fleet.status import resolve_tree, targets
 
-    todo, notices = targets(doc, tree, release, _devices(devices), check_description=False)
+    todo, notices = targets(resolve_tree(doc, tree), release, _devices(devices), check_description=False)
     for n in notices:
         click.echo(f"note: {n}", err=True)
     unknown = sorted(set(only) - {t.comp for t in todo})

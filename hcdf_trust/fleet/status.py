@@ -86,6 +86,7 @@ class StatusReport:
     release: suit.Release
     devices: list[DeviceStatus]
     notices: list[Notice]
+    resolution: Any = None  # the description tree as resolved (what was read, for outputs to protect)
 
     @property
     def exit_code(self) -> int:
@@ -100,18 +101,30 @@ class StatusReport:
         return 0 if verdicts <= {state.CURRENT} else 1
 
 
-def targets(
-    doc_path: str, tree: Any, release: suit.Release, devices: dict[str, str], *, check_description: bool
-) -> tuple[list[Target], list[Notice]]:
-    """The comps to ask, from DOC's verified tree (raises ErrorGroup when it does not verify)."""
-    from ..document import single, single_text, software_elements
+def resolve_tree(doc_path: str, tree: Any) -> Any:
+    """DOC's tree under its lock, as ``ota build`` reads it (raises ErrorGroup when it does not verify)."""
     from ..errors import ErrorGroup
     from ..include.resolver import resolve
-    from ..xml import sourceline
 
     res = resolve(doc_path, tree.resolve_options(locked=True))
     if not res.ok:
         raise ErrorGroup(res.errors)
+    return res
+
+
+def root_sha256(res: Any) -> str:
+    sha = _document_sha(res, res.root_location.url)
+    assert sha is not None
+    return sha
+
+
+def targets(
+    res: Any, release: suit.Release, devices: dict[str, str], *, check_description: bool
+) -> tuple[list[Target], list[Notice]]:
+    """The comps to ask, from the verified tree ``res``."""
+    from ..document import single, single_text, software_elements
+    from ..xml import sourceline
+
     by_comp: dict[str, suit.Component] = {}
     for c in release.components:
         for name in c.comps:
@@ -237,6 +250,7 @@ def run_status(
     timeout: float = DEFAULT_TIMEOUT,
     check_description: bool = True,
 ) -> StatusReport:
-    todo, notices = targets(doc_path, tree, release, devices, check_description=check_description)
+    res = resolve_tree(doc_path, tree)
+    todo, notices = targets(res, release, devices, check_description=check_description)
     results = asyncio.run(ask_all(todo, earlier_components(previous), jobs=jobs, timeout=timeout))
-    return StatusReport(release, results, notices)
+    return StatusReport(release, results, notices, res)

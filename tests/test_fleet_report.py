@@ -1,0 +1,121 @@
+"""``fleet status --out`` (a version report signed by the host, host-attested) and
+``audit --fleet-report``, against the in-process SMP devices of test_fleet_status.py."""
+
+from __future__ import annotations
+
+import base64
+import json
+
+import pytest
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+
+from hcdf_trust.ota.keys import generate, private_pem, public_pem
+
+from ._fleet import run, set_running, status
+
+POLICY = """[checks.firmware-no-hash]
+enabled = false
+"""
+
+
+@pytest.fixture
+def host(tmp_path):
+    key = generate("ecdsa-p256")
+    (tmp_path / "host.pem").write_bytes(private_pem(key, None))
+    (tmp_path / "host.pub.pem").write_bytes(public_pem(key))
+    (tmp_path / "policy.toml").write_text(POLICY)
+    return tmp_path
+
+
+def dsse_verify(envelope: dict, public_pem_bytes: bytes) -> dict:
+    """Independent oracle: DSSE v1's PAE and an ECDSA P-256/SHA-256 check with cryptography alone."""
+    body = base64.b64decode(envelope["payload"])
+    ptype = envelope["payloadType"].encode()
+    pae = b"DSSEv1 %d %s %d %s" % (len(ptype), ptype, len(body), body)
+    key = serialization.load_pem_public_key(public_pem_bytes)
+    [sig] = envelope["signatures"]
+    key.verify(base64.b64decode(sig["sig"]), pae, ec.ECDSA(hashes.SHA256()))
+    return json.loads(body)
+
+
+def audit(world, host, report, key=None):
+    return run(
+        "audit",
+        world["robot"].doc,
+        "--release",
+        world["new_dir"],
+        "--key",
+        world["robot"].pub,
+        "--fleet-report",
+        report,
+        "--fleet-key",
+        key or host / "host.pub.pem",
+        "--policy",
+        host / "policy.toml",
+        "--json",
+    )
+
+
+def fleet_findings(r) -> list[tuple[str, str]]:
+    return [
+        (f["code"], f["message"])
+        for f in r.json["findings"]
+        if f["check"].startswith("fleet") or f["code"].startswith("fleet")
+    ]
+
+
+def test_signed_report_of_a_current_fleet(fleet, host):
+    out = host / "fleet-report.json"
+    r = status(fleet, "--json", "-o", out, "--host-key", host / "host.pem")
+    assert r.exit_code == 0, r.stdout
+    assert r.json["wrote"] == [str(out)] or r.json["wrote"][0].endswith("fleet-report.json")
+    statement = dsse_verify(json.loads(out.read_text()), (host / "host.pub.pem").read_bytes())
+    assert "host-attested" in statement["statement"] and "not device attestation" in statement["statement"]
+    assert statement["description"]["sha256"] == fleet["doc_sha"]
+    assert {d["comp"]: d["verdict"] for d in statement["devices"]} == dict.fromkeys(("left", "right", "imu"), "current")
+    r = audit(fleet, host, out)
+    assert r.exit_code == 0, r.stdout
+    assert "fleet" in r.json["checked"] and fleet_findings(r) == []
+
+
+def test_audit_flags_devices_not_running_the_release(fleet, host):
+    set_running(fleet, "right", "old")
+    out = host / "r.json"
+    r = status(fleet, "-o", out, "--host-key", host / "host.pem", "--previous", fleet["old_dir"])
+    assert r.exit_code == 1  # the status exit code is the verdicts', report or not
+    r = audit(fleet, host, out)
+    assert r.exit_code == 1
+    [(code, message)] = fleet_findings(r)
+    assert code == "fleet-device" and "'right'" in message and "outdated" in message
+
+
+def test_tampered_or_foreign_reports_are_refused(fleet, host):
+    out = host / "r.json"
+    assert status(fleet, "-o", out, "--host-key", host / "host.pem").exit_code == 0
+    env = json.loads(out.read_text())
+    body = json.loads(base64.b64decode(env["payload"]))
+    body["devices"] = body["devices"][:1]
+    env["payload"] = base64.b64encode(json.dumps(body).encode()).decode()
+    (host / "tampered.json").write_text(json.dumps(env))
+    with pytest.raises(InvalidSignature):
+        dsse_verify(env, (host / "host.pub.pem").read_bytes())
+    r = audit(fleet, host, host / "tampered.json")
+    assert r.exit_code == 1
+    assert any(code == "fleet-report" for code, _ in fleet_findings(r))
+    other = generate("ecdsa-p256")
+    (host / "other.pub.pem").write_bytes(public_pem(other))
+    r = audit(fleet, host, out, key=host / "other.pub.pem")
+    assert r.exit_code == 1 and any(code == "fleet-report" for code, _ in fleet_findings(r))
+    (host / "junk.json").write_text('{"payloadType": 1, "payloadType": 2}')
+    assert audit(fleet, host, host / "junk.json").exit_code == 3
+
+
+def test_report_needs_the_host_key_and_never_lands_on_an_input(fleet, host):
+    assert status(fleet, "-o", host / "r.json").exit_code == 2
+    key_before = (host / "host.pem").read_bytes()
+    r = status(fleet, "-o", host / "host.pem", "--host-key", host / "host.pem")
+    assert r.exit_code == 3 and (host / "host.pem").read_bytes() == key_before
+    r = status(fleet, "-o", fleet["robot"].doc, "--host-key", host / "host.pem")
+    assert r.exit_code == 3
