@@ -50,8 +50,20 @@ def setup(n: int) -> tuple[Path, Path, Path, str]:
     (WORK / "fw.pub.pem").write_bytes(public_pem(key))
     for argv in (
         [CLI, "resolve", doc],
-        [CLI, "ota", "build", doc, "--firmware-dir", WORK / "fw", "--key", WORK / "fw.pem", "--out", WORK / "rel",
-         "--base-url", "https://fw.example.invalid/"],
+        [
+            CLI,
+            "ota",
+            "build",
+            doc,
+            "--firmware-dir",
+            WORK / "fw",
+            "--key",
+            WORK / "fw.pem",
+            "--out",
+            WORK / "rel",
+            "--base-url",
+            "https://fw.example.invalid/",
+        ],
     ):
         subprocess.run([str(a) for a in argv], check=True, capture_output=True)
     return doc, WORK / "rel", WORK / "fw.pub.pem", hashlib.sha256(doc.read_bytes()).hexdigest()
@@ -117,7 +129,8 @@ def main() -> None:
     finally:
         responder.close()
     load = os.getloadavg()[0]
-    print(f"fleet status, {a.devices} devices, {a.latency * 1000:g} ms latency each, median of {a.repeat}, load {load:.1f}")
+    print(f"fleet status, {a.devices} devices, {a.latency * 1000:g} ms latency each, median of {a.repeat}, ", end="")
+    print(f"load {load:.1f}")
     for label, wall in rows.items():
         print(f"  {label:40s} {wall:7.3f} s  ({wall / a.devices * 1000:6.1f} ms per device)")
     labels = list(rows)

@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_options
+from . import emit_json, handle_errors, say, tree_options
 
 DEFAULT_JOBS = 16  # == fleet.status.DEFAULT_JOBS (not imported: --help stays fast)
 DEFAULT_TIMEOUT = 5.0
@@ -82,8 +82,17 @@ def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> 
     """The release, verified exactly as ``ota verify`` does (exit 1 on any error), the
     manifests of the ``--previous`` releases, each verified with the same key, and the
     release's files (the images ``update`` sends are these verified bytes)."""
-    from ..errors import ErrorGroup
+    from ..errors import ErrorGroup, InputError
     from ..ota.keys import load_public
+
+    try:
+        import serial  # noqa: F401
+        import smp  # noqa: F401
+        import smpclient  # noqa: F401
+    except ImportError as exc:
+        raise InputError(
+            f"fleet needs the 'fleet' extra ({exc.name} is missing): pip install 'hcdf-trust[fleet]'"
+        ) from None
     from ..ota.release import previous_manifest, read_release
     from ..ota.verify import check_release
 
@@ -116,7 +125,11 @@ def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> 
     help="Write a version report signed with --host-key here (host-attested, not device attestation).",
 )
 @click.option("--host-key", type=click.Path(dir_okay=False), help="The host's private key (PEM) that signs --out.")
-@click.option("--passphrase-file", type=click.Path(dir_okay=False), help="The --host-key's passphrase.")
+@click.option(
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Passphrase of an encrypted --host-key (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
+)
 @handle_errors
 def status_cmd(
     doc: str,
@@ -150,9 +163,10 @@ def status_cmd(
     signer = None
     if host_key is not None:
         from ..fleet.report import host_signer
-        from ..ota.keys import load_private, read_passphrase
+        from ..ota.keys import load_private
+        from ..passphrase import read_passphrase
 
-        secret = read_passphrase(passphrase_file) if passphrase_file else None
+        secret = read_passphrase(passphrase_file, required=False)
         signer = host_signer(load_private(host_key, secret))  # a wrong passphrase stops here, before any device
     release, before, _files = _verified_release(release_dir, key, previous)
     report = run_status(
@@ -187,7 +201,7 @@ def status_cmd(
     else:
         _table(report)
         for path in wrote:
-            click.echo(f"wrote {path} (host-attested version report)", err=True)
+            say(f"wrote {path} (host-attested version report)")
     sys.exit(report.exit_code)
 
 
@@ -227,7 +241,7 @@ def _table(report: Any) -> None:
         uri = d.target.endpoint.uri if d.target.endpoint else "-"
         rows.append((_shown(d.target.comp), _shown(uri), d.verdict, _shown(runs), want, _shown(d.reason)))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
-    echo = functools.partial(click.echo, err=True)
+    echo = say
     for n in report.notices:
         echo(f"note: {n}")
     for r in rows:
@@ -240,9 +254,11 @@ def _table(report: Any) -> None:
 
 
 def _shown(text: str) -> str:
-    """A device-supplied or description text as one printable cell (control characters
-    escaped: a device must not be able to rewrite the terminal)."""
-    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+    """A device-supplied or description text as one table cell, its control characters
+    escaped before the columns are measured (a device must not rewrite the terminal)."""
+    from ..scrub import escape_controls
+
+    return escape_controls(text)
 
 
 UPLOAD_JOBS = 4  # == fleet.update.DEFAULT_UPLOAD_JOBS
@@ -254,7 +270,7 @@ def _targets(doc: str, tree: Any, release: Any, devices: tuple[str, ...], only: 
 
     todo, notices = targets(resolve_tree(doc, tree), release, _devices(devices), check_description=False)
     for n in notices:
-        click.echo(f"note: {n}", err=True)
+        say(f"note: {n}")
     unknown = sorted(set(only) - {t.comp for t in todo})
     if unknown:
         raise click.UsageError(f"--only names comps with no released MCUboot image: {', '.join(unknown)}")
@@ -278,15 +294,13 @@ def _render(outcomes: list[Any], verb: str, as_json: bool, release: Any) -> None
     else:
         for o in outcomes:
             uri = o.target.endpoint.uri if o.target.endpoint else "-"
-            click.echo(f"{_shown(o.target.comp)} ({_shown(uri)}): {o.result}: {_shown(o.detail)}", err=True)
+            say(f"{_shown(o.target.comp)} ({_shown(uri)}): {o.result}: {_shown(o.detail)}")
         for e in errors:
-            click.echo(f"error: {e}", err=True)
+            say(f"error: {e}")
         counts: dict[str, int] = {}
         for o in outcomes:
             counts[o.result] = counts.get(o.result, 0) + 1
-        click.echo(
-            f"fleet {verb}: " + (", ".join(f"{n} {r}" for r, n in sorted(counts.items())) or "no devices"), err=True
-        )
+        say(f"fleet {verb}: " + (", ".join(f"{n} {r}" for r, n in sorted(counts.items())) or "no devices"))
     sys.exit(code)
 
 
