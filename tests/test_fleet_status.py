@@ -200,3 +200,47 @@ def test_address_from_discovered(world, tmp_path):
         assert verdicts(r)["imu"] == "current", json.dumps(r.json["devices"])
     finally:
         doc.write_text(text)
+
+
+def test_description_of_a_comp_in_an_included_fragment(tmp_path):
+    """A comp described in an included fragment was built for that fragment: its pinned sha."""
+    from ._fleet import make_fleet_robot
+    from ._smp_responder import FakeDevice, Responder
+
+    robot = make_fleet_robot(tmp_path, [("arm", "board_a", "arm-fw")])
+    robot.write(run, "2.0.0")
+    fragment = robot.root / "arm.hcdf"
+    fragment.write_text(robot.doc.read_text())
+    frag_sha = hashlib.sha256(fragment.read_bytes()).hexdigest()
+    robot.doc.write_text(
+        f'<?xml version="1.0"?>\n<hcdf version="1.0" name="r">\n  <include uri="arm.hcdf" sha="{frag_sha}"/>\n</hcdf>\n'
+    )
+    assert run("resolve", robot.doc).exit_code == 0
+    signed = robot.build(run, tmp_path / "rel")
+    responder = Responder()
+    try:
+        device = FakeDevice(
+            slots=[SlotState(0, "2.0.0", bytes.fromhex(signed["arm"][1]), active=True, confirmed=True)],
+            description=("https://example.invalid/arm.hcdf", frag_sha),
+        )
+        uri = responder.add(device)
+        args = [
+            "fleet",
+            "status",
+            robot.doc,
+            "--release",
+            tmp_path / "rel",
+            "--key",
+            robot.pub,
+            "--json",
+            "--device",
+            f"arm={uri}",
+        ]
+        r = run(*args)
+        assert r.exit_code == 0 and verdicts(r) == {"arm": "current"}, r.stdout
+        root_sha = hashlib.sha256(robot.doc.read_bytes()).hexdigest()
+        device.description = ("https://example.invalid/robot.hcdf", root_sha)
+        r = run(*args)
+        assert r.exit_code == 1 and verdicts(r) == {"arm": "wrong-description"}
+    finally:
+        responder.close()
