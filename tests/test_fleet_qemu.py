@@ -1,37 +1,41 @@
-"""``fleet status`` and ``fleet update`` against real SMP servers: Zephyr 4.4.0 smp_server +
-MCUboot under qemu-system-arm (started once for this module, killed by process id at the end).
-Uploads under emulation take seconds and can stall under load: generous timeouts, nothing timed."""
+"""``fleet status``, ``update`` and ``confirm`` against real SMP servers: Zephyr 4.4.0
+smp_server + MCUboot under qemu-system-arm (started once for this module, killed by process
+id at the end). Uploads under emulation take seconds and can stall under load: generous
+timeouts, nothing timed.
+
+The micro:bit's release image is the fixture's own application (its payload, without
+MCUboot's header and TLVs), signed by ``ota build`` with the test key at version 1.0.0: the
+fixture's MCUboot checks the image hash only, so after ``update`` and a reset it swaps the
+release's image in and runs it — unconfirmed until ``fleet confirm``.
+"""
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import struct
+import time
 
 import pytest
-from click.testing import CliRunner
-
-from hcdf_trust.cli import main
 
 from . import _qemu
-from ._fleet import MICROBIT_APP, MPS2_APP, make_fleet_robot
-from .conftest import CliResult
+from ._fleet import MICROBIT_APP, MPS2_APP, make_fleet_robot, run
 
 COMPS = [("mb", "qemu_microbit", "smp-mb"), ("mps", "qemu_mps2", "smp-mps")]
-TIMEOUT = "30"
+TIMEOUT = "60"
 
 
-def run(*args) -> CliResult:
-    r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return CliResult(r.exit_code, r.stdout, r.stderr)
-
-
-def mcuboot_hash(path) -> str:
+def mcuboot_hash(data: bytes) -> str:
     """Independent oracle: MCUboot's image hash is SHA-256 over header + payload + protected TLVs,
     read here straight from the header (struct image_header in MCUboot's image.h)."""
-    data = path.read_bytes()
     magic, _load, hdr_size, prot_tlv_size, img_size = struct.unpack_from("<IIHHI", data)
     assert magic == 0x96F3B83D
     return hashlib.sha256(data[: hdr_size + img_size + prot_tlv_size]).hexdigest()
+
+
+def payload(data: bytes) -> bytes:
+    _magic, _load, hdr_size, _prot, img_size = struct.unpack_from("<IIHHI", data)
+    return data[hdr_size : hdr_size + img_size]
 
 
 @pytest.fixture(scope="module")
@@ -41,97 +45,95 @@ def qemu(tmp_path_factory):
     devices = _qemu.start(["microbit", "mps2"], tmp)
     try:
         robot = make_fleet_robot(tmp, COMPS)
-        robot.write(run, "1.2.3", size=20000)
+        robot.write(run, "1.0.0", size=20000)
+        (robot.fw / "qemu_microbit" / "smp-mb.bin").write_bytes(payload(MICROBIT_APP.read_bytes()))
         hashes = robot.build(run, tmp / "release")
         yield {
             "robot": robot,
             "release": tmp / "release",
             "hashes": hashes,
             "uris": {"mb": devices[0].uri, "mps": devices[1].uri},
-            "devices": devices,
         }
     finally:
         _qemu.stop(devices)
 
 
-def status(q, *extra):
-    args = [
-        "fleet",
-        "status",
-        q["robot"].doc,
-        "--release",
-        q["release"],
-        "--key",
-        q["robot"].pub,
-        "--timeout",
-        TIMEOUT,
-        "--json",
-    ]
+def args(q, verb, *extra):
+    out = [verb, q["robot"].doc, "--release", q["release"], "--key", q["robot"].pub, "--timeout", TIMEOUT, "--json"]
     for name, uri in q["uris"].items():
-        args += ["--device", f"{name}={uri}"]
-    return run(*args, *extra)
+        out += ["--device", f"{name}={uri}"]
+    return ["fleet", *out, *extra]
 
 
-def test_status_reads_the_real_devices(qemu):
-    r = status(qemu)
+def by_comp(r) -> dict[str, dict]:
+    return {d["comp"]: d for d in r.json["devices"]}
+
+
+def reset(uri: str) -> None:
+    """What the user does after an update (here over SMP: os group, reset)."""
+    from smp import os_management as osm
+
+    from hcdf_trust.fleet import smp
+
+    async def go() -> None:
+        session = await smp.connect(smp.parse_endpoint(uri), 30)
+        try:
+            await session.request(osm.ResetWriteRequest(), osm.ResetWriteResponse, timeout=30)
+        finally:
+            await session.close()
+
+    asyncio.run(go())
+
+
+def test_status_update_reset_confirm_on_real_devices(qemu):
+    release_image = (qemu["release"] / "qemu_microbit" / "smp-mb" / "1.0.0.bin").read_bytes()
+    want = qemu["hashes"]["mb"][1]
+    assert mcuboot_hash(release_image) == want
+
+    # 1. they run the fixture's smp_server, which no release of this key lists
+    r = run(*args(qemu, "status"))
     assert r.exit_code == 1, r.stdout
-    by = {d["comp"]: d for d in r.json["devices"]}
-    # they run the fixture's smp_server, which no release of this key lists
-    assert by["mb"]["verdict"] == by["mps"]["verdict"] == "unknown-image"
-    assert by["mb"]["slots"][0] | {"hash": None} == {
-        "image": 0,
-        "slot": 0,
-        "version": "0.0.0",
-        "hash": None,
-        "active": True,
-        "confirmed": True,
-        "pending": False,
-        "permanent": False,
-        "bootable": True,
-    }
-    assert by["mb"]["slots"][0]["hash"] == mcuboot_hash(MICROBIT_APP)
-    assert by["mps"]["slots"][0]["hash"] == mcuboot_hash(MPS2_APP)
-    # neither implements the HCDF group: the answer is rc 8 (ENOTSUP), not a description
-    assert by["mb"]["description"] is None
+    mb, mps = by_comp(r)["mb"], by_comp(r)["mps"]
+    assert mb["verdict"] == mps["verdict"] == "unknown-image"
+    assert mb["slots"][0] | {"hash": None} == {
+        "image": 0, "slot": 0, "version": "0.0.0", "hash": None, "active": True, "confirmed": True,
+        "pending": False, "permanent": False, "bootable": True,
+    }  # fmt: skip
+    assert mb["slots"][0]["hash"] == mcuboot_hash(MICROBIT_APP.read_bytes())
+    assert mps["slots"][0]["hash"] == mcuboot_hash(MPS2_APP.read_bytes())
+    assert mb["description"] is None  # no HCDF group: the device answers rc 8 (ENOTSUP)
 
-
-def test_update_uploads_to_slot_1_and_marks_it_pending(qemu):
-    from ._smp_responder import mcuboot_identity
-
-    image = (qemu["release"] / "qemu_microbit" / "smp-mb" / "1.2.3.bin").read_bytes()
-    version, image_hash = mcuboot_identity(image)
-    assert image_hash.hex() == qemu["hashes"]["mb"][1]
-    base = [
-        "fleet",
-        "update",
-        qemu["robot"].doc,
-        "--release",
-        qemu["release"],
-        "--key",
-        qemu["robot"].pub,
-        "--device",
-        f"mb={qemu['uris']['mb']}",
-        "--device",
-        f"mps={qemu['uris']['mps']}",
-        "--only",
-        "mb",
-        "--timeout",
-        "60",
-        "--json",
-    ]
-    r = run(*base, "--dry-run")
-    assert r.exit_code == 0 and r.json["devices"][0]["result"] == "would-update", r.stdout
-    r = run(*base)
+    # 2. update: slot 1 of the real device reports the release image's hash and version, pending
+    r = run(*args(qemu, "update", "--only", "mb", "--dry-run"))
+    assert r.exit_code == 0 and by_comp(r)["mb"]["result"] == "would-update", r.stdout
+    r = run(*args(qemu, "update", "--only", "mb"))
     assert r.exit_code == 0, r.stdout
-    assert [d["result"] for d in r.json["devices"]] == ["updated"]
-    assert r.json["devices"][0]["bytes_sent"] >= len(image)
-    # what the real device now reports
-    r = status(qemu)
-    mb = next(d for d in r.json["devices"] if d["comp"] == "mb")
+    assert by_comp(r)["mb"]["result"] == "updated" and by_comp(r)["mb"]["bytes_sent"] >= len(release_image)
+    mb = by_comp(run(*args(qemu, "status")))["mb"]
     slot1 = next(s for s in mb["slots"] if s["slot"] == 1)
-    assert (slot1["version"], slot1["hash"]) == (version, image_hash.hex()) == ("1.2.3", qemu["hashes"]["mb"][1])
+    assert (slot1["version"], slot1["hash"]) == ("1.0.0", want)
     assert slot1["pending"] and not slot1["permanent"] and not slot1["active"]
-    assert mb["slots"][0]["hash"] == mcuboot_hash(MICROBIT_APP) and mb["verdict"] == "unknown-image"
-    # a second run finds it there and sends nothing
-    r = run(*base)
-    assert r.exit_code == 0 and r.json["devices"][0]["bytes_sent"] == 0, r.stdout
+    r = run(*args(qemu, "update", "--only", "mb"))  # found in slot 1: nothing sent again
+    assert r.exit_code == 0 and by_comp(r)["mb"]["bytes_sent"] == 0, r.stdout
+
+    # 3. reset: MCUboot swaps the release's image in; it runs unconfirmed (it would revert)
+    reset(qemu["uris"]["mb"])
+    deadline = time.monotonic() + 180  # a bound on waiting for the emulated swap, not an assertion
+    while True:
+        r = run(*args(qemu, "status", "--skip-description"))
+        mb = by_comp(r)["mb"]
+        if mb["verdict"] == "unconfirmed" or time.monotonic() > deadline:
+            break
+        time.sleep(2)
+    assert mb["verdict"] == "unconfirmed", mb
+    assert mb["slots"][0]["hash"] == want and mb["slots"][0]["active"] and not mb["slots"][0]["confirmed"]
+
+    # 4. confirm: only mb runs the release; mps is left alone (exit 1), mb is confirmed
+    r = run(*args(qemu, "confirm"))
+    assert r.exit_code == 1
+    assert {c: d["result"] for c, d in by_comp(r).items()} == {"mb": "confirmed", "mps": "not-running-release"}
+    r = run(*args(qemu, "status", "--skip-description"))
+    assert by_comp(r)["mb"]["verdict"] == "current"
+    assert by_comp(r)["mb"]["slots"][0]["confirmed"]
+    # with the description check, a device without the HCDF group cannot be current
+    assert by_comp(run(*args(qemu, "status")))["mb"]["verdict"] == "no-hcdf-group"
