@@ -124,7 +124,15 @@ def _verified_release(release_dir: str, key: str, previous: tuple[str, ...]) -> 
     type=click.Path(dir_okay=False),
     help="Write a version report signed with --host-key here (host-attested, not device attestation).",
 )
-@click.option("--host-key", type=click.Path(dir_okay=False), help="The host's private key (PEM) that signs --out.")
+@click.option(
+    "--host-key",
+    help="The host's private key that signs --out: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…).",
+)
+@click.option(
+    "--pin-file",
+    type=click.Path(dir_okay=False),
+    help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
+)
 @click.option(
     "--passphrase-file",
     type=click.Path(dir_okay=False),
@@ -144,6 +152,7 @@ def status_cmd(
     skip_description: bool,
     out: str | None,
     host_key: str | None,
+    pin_file: str | None,
     passphrase_file: str | None,
 ) -> None:
     """Ask each comp's MCU what it runs and judge it against the signed release.
@@ -161,7 +170,14 @@ def status_cmd(
     if passphrase_file is not None and host_key is None:
         raise click.UsageError("--passphrase-file needs --host-key")
     signer = None
-    if host_key is not None:
+    if host_key is not None and host_key.startswith("pkcs11:"):
+        from ..fleet.report import token_signer
+        from ..ota.hsm import HsmSigner, parse_uri, read_pin
+
+        uri = parse_uri(host_key)
+        hsm = HsmSigner(uri, read_pin(uri, pin_file))  # a wrong PIN stops here, before any device
+        signer = token_signer(hsm)
+    elif host_key is not None:
         from ..fleet.report import host_signer
         from ..ota.keys import load_private
         from ..passphrase import read_passphrase
@@ -183,7 +199,7 @@ def status_cmd(
     wrote: list[str] = []
     if out is not None:
         wrote = _write_report(
-            report, out, signer, doc=doc, tree=tree, inputs=(release_dir, key, host_key, passphrase_file)
+            report, out, signer, doc=doc, tree=tree, inputs=(release_dir, key, host_key, passphrase_file or pin_file)
         )
     if as_json:
         emit_json(
@@ -222,9 +238,10 @@ def _write_report(
     plan.protect(res.lock_path, what="the lock file")
     plan.protect_tree(release_dir, what="the release folder")
     plan.protect(key, what="the public key")
-    plan.protect(host_key, what="the host key")
+    if not host_key.startswith("pkcs11:"):
+        plan.protect(host_key, what="the host key")
     if passphrase_file is not None:
-        plan.protect(passphrase_file, what="the passphrase file")
+        plan.protect(passphrase_file, what="the passphrase or PIN file")
     statement = fleet_report.payload(
         report, release_dir=release_dir, root_sha256=root_sha256(res), host_keyid=signer.public_key.keyid
     )

@@ -67,6 +67,37 @@ def host_signer(private_key: Any) -> Any:
     return CryptoSigner(getattr(private_key, "key", private_key))
 
 
+def token_signer(hsm: Any) -> Any:
+    """A securesystemslib signer whose signatures are made in a PKCS#11 token, through
+    ``ota``'s one token session (:class:`hcdf_trust.ota.hsm.HsmSigner`): ECDSA P-256 signs
+    SHA-256 of the DSSE PAE (the token's raw r‖s, DER-encoded as securesystemslib's
+    ``ecdsa-sha2-nistp256`` scheme verifies it), Ed25519 the PAE itself."""
+    from cryptography.hazmat.primitives.asymmetric.utils import encode_dss_signature
+    from securesystemslib.signer import Signature, Signer, SSlibKey
+
+    public = SSlibKey.from_crypto(hsm.public.key if hasattr(hsm.public, "key") else hsm.public)
+
+    class TokenSigner(Signer):
+        @property
+        def public_key(self) -> Any:
+            return public
+
+        @classmethod
+        def from_priv_key_uri(cls, priv_key_uri: str, public_key: Any, secrets_handler: Any = None) -> Any:
+            raise NotImplementedError("made from an open token session only")
+
+        def sign(self, payload: bytes) -> Signature:
+            if hsm.kind == "ecdsa-p256":
+                raw = hsm._sign(hashlib.sha256(payload).digest())
+                half = len(raw) // 2
+                sig = encode_dss_signature(int.from_bytes(raw[:half], "big"), int.from_bytes(raw[half:], "big"))
+            else:
+                sig = hsm._sign(payload)
+            return Signature(public.keyid, sig.hex())
+
+    return TokenSigner()
+
+
 def sign(statement: dict[str, Any], signer: Any) -> bytes:
     """The DSSE envelope over ``statement``, as JSON bytes."""
     from securesystemslib.dsse import Envelope
