@@ -53,6 +53,7 @@ def qemu(tmp_path_factory):
             "release": tmp / "release",
             "hashes": hashes,
             "uris": {"mb": devices[0].uri, "mps": devices[1].uri},
+            "log": tmp / "qemu-0-microbit.log",
         }
     finally:
         _qemu.stop(devices)
@@ -118,14 +119,15 @@ def test_status_update_reset_confirm_on_real_devices(qemu):
 
     # 3. reset: MCUboot swaps the release's image in; it runs unconfirmed (it would revert)
     reset(qemu["uris"]["mb"])
-    deadline = time.monotonic() + 180  # a bound on waiting for the emulated swap, not an assertion
+    deadline = time.monotonic() + 300  # a bound on waiting for the emulated swap, not an assertion
     while True:
         r = run(*args(qemu, "status", "--skip-description"))
         mb = by_comp(r)["mb"]
         if mb["verdict"] == "unconfirmed" or time.monotonic() > deadline:
             break
         time.sleep(2)
-    assert mb["verdict"] == "unconfirmed", mb
+    log = qemu["log"].read_bytes()[-2000:]
+    assert mb["verdict"] == "unconfirmed", (mb["reason"], mb["slots"], log)
     assert mb["slots"][0]["hash"] == want and mb["slots"][0]["active"] and not mb["slots"][0]["confirmed"]
 
     # 4. confirm: only mb runs the release; mps is left alone (exit 1), mb is confirmed

@@ -130,16 +130,57 @@ def _serial_transport_class() -> Any:
             async def connect(self, address: str, timeout_s: float) -> None:
                 if "://" not in address:
                     await super().connect(address, timeout_s)
+                    object.__setattr__(self, "_conn", _BoundedReads(self._conn, chunk=None))
                     return
                 self._reset_state()
                 conn = serial.serial_for_url(address, timeout=0, write_timeout=0, do_not_open=True)
                 loop = asyncio.get_running_loop()
                 await asyncio.wait_for(loop.run_in_executor(None, conn.open), timeout_s)
                 conn.out_waiting = 0
-                object.__setattr__(self, "_conn", conn)
+                object.__setattr__(self, "_conn", _BoundedReads(conn, chunk=4096))
+
+            async def send(self, data: bytes) -> None:
+                # each request gets a fresh read budget; console output kept from earlier
+                # answers is dropped (smpclient keeps it until read_serial, which fleet never calls)
+                self._conn.left = MAX_SERIAL_BYTES
+                self._serial_buffer.clear()
+                await super().send(data)
 
         _SERIAL_CLASS = UrlSerialTransport
     return _SERIAL_CLASS
+
+
+MAX_SERIAL_BYTES = 256 << 10  # bytes read from a serial line per answer: a whole SMP frame base64-encoded is ~90 KiB
+
+
+class SerialFlood(ValueError):
+    """A serial line that sends more than :data:`MAX_SERIAL_BYTES` for one answer."""
+
+
+class _BoundedReads:
+    """A pyserial connection whose reads are counted per request: smpclient's serial
+    transport keeps everything it reads until a frame ends (console bytes and an unfinished
+    frame alike), so a line that never stops sending would grow it until the timeout.
+    ``chunk``: read up to that many bytes at once (a socket, opened with timeout 0, reports
+    only whether something is waiting); None: exactly what a serial port says is waiting."""
+
+    def __init__(self, conn: Any, *, chunk: int | None) -> None:
+        self._conn = conn
+        self._chunk = chunk
+        self.left = MAX_SERIAL_BYTES
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._conn, name)
+
+    def read_all(self) -> bytes:
+        waiting = self._conn.in_waiting
+        if not waiting:
+            return b""
+        data: bytes = self._conn.read(min(self._chunk or waiting, self.left + 1))
+        self.left -= len(data)
+        if self.left < 0:
+            raise SerialFlood(f"more than {MAX_SERIAL_BYTES} bytes on the serial line for one answer")
+        return data
 
 
 class Session:
