@@ -244,3 +244,42 @@ def test_description_of_a_comp_in_an_included_fragment(tmp_path):
         assert r.exit_code == 1 and verdicts(r) == {"arm": "wrong-description"}
     finally:
         responder.close()
+
+
+def test_serial_line_that_never_stops_sending(fleet):
+    """A device on socket:// (a serial console over TCP) that streams console bytes forever:
+    fleet reads at most 256 KiB for one answer, then calls it malformed (it stops by itself too)."""
+    import socket
+    import threading
+    import time
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+    sent = []
+
+    def flood() -> None:
+        conn, _ = server.accept()
+        total, deadline = 0, time.monotonic() + 60
+        junk = b"boot log line that never ends " * 140
+        try:
+            while total < (64 << 20) and time.monotonic() < deadline:
+                conn.sendall(junk)
+                total += len(junk)
+        except OSError:
+            pass
+        finally:
+            sent.append(total)
+            conn.close()
+            server.close()
+
+    thread = threading.Thread(target=flood, daemon=True)
+    thread.start()
+    devices = dict(fleet["uris"], imu=f"socket://127.0.0.1:{port}")
+    r = status(fleet, "--json", devices=devices, timeout="60")
+    thread.join(70)
+    assert r.exit_code == 3, r.stdout
+    imu = next(d for d in r.json["devices"] if d["comp"] == "imu")
+    assert imu["verdict"] == "malformed-answer" and "262144 bytes" in imu["reason"], imu
+    assert sent and sent[0] < (64 << 20)  # the reader gave up, not the flood
