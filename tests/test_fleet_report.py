@@ -121,15 +121,14 @@ def test_report_needs_the_host_key_and_never_lands_on_an_input(fleet, host):
     assert r.exit_code == 3
 
 
-def test_report_signed_in_a_pkcs11_token(fleet, tmp_path, monkeypatch):
-    """The host key in SoftHSM2 (made inside the token, never leaving it)."""
+def test_report_signed_in_a_pkcs11_token(fleet, tmp_path):
+    """The host key in SoftHSM2 (made inside the token, never leaving it). The token is used
+    from child processes only: python-pkcs11 loads a module once per process, and another
+    test's token folder would not be seen after this one's."""
     import os
     import shutil
     import subprocess
-
-    import pkcs11
-    from pkcs11 import Attribute, KeyType
-    from pkcs11.util.ec import encode_ec_public_key, encode_named_curve_parameters
+    import sys
 
     from hcdf_trust.ota.hsm import DEFAULT_MODULES
 
@@ -139,36 +138,50 @@ def test_report_signed_in_a_pkcs11_token(fleet, tmp_path, monkeypatch):
     conf = tmp_path / "softhsm2.conf"
     (tmp_path / "tokens").mkdir()
     conf.write_text(f"directories.tokendir = {tmp_path / 'tokens'}\nobjectstore.backend = file\nlog.level = ERROR\n")
-    monkeypatch.setenv("SOFTHSM2_CONF", str(conf))
+    env = dict(os.environ, SOFTHSM2_CONF=str(conf))
     subprocess.run(
         ["softhsm2-util", "--init-token", "--free", "--label", "host", "--pin", "4321", "--so-pin", "87654321"],
         check=True,
         capture_output=True,
+        env=env,
     )
-    lib = pkcs11.lib(module)
-    lib.reinitialize()
-    with lib.get_token(token_label="host").open(user_pin="4321", rw=True) as session:
-        ec_params = session.create_domain_parameters(
-            KeyType.EC, {Attribute.EC_PARAMS: encode_named_curve_parameters("secp256r1")}, local=True
-        )
-        pub, _ = ec_params.generate_keypair(store=True, label="fleet-host")
-        public = serialization.load_der_public_key(encode_ec_public_key(pub))
-    pem = public.public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
+    keygen = f"""
+import pkcs11, sys
+from pkcs11 import Attribute, KeyType
+from pkcs11.util.ec import encode_ec_public_key, encode_named_curve_parameters
+from cryptography.hazmat.primitives import serialization
+with pkcs11.lib({module!r}).get_token(token_label="host").open(user_pin="4321", rw=True) as s:
+    params = s.create_domain_parameters(
+        KeyType.EC, {{Attribute.EC_PARAMS: encode_named_curve_parameters("secp256r1")}}, local=True
+    )
+    pub, _ = params.generate_keypair(store=True, label="fleet-host")
+    key = serialization.load_der_public_key(encode_ec_public_key(pub))
+sys.stdout.buffer.write(key.public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))
+"""
+    pem = subprocess.run([sys.executable, "-c", keygen], check=True, capture_output=True, env=env).stdout
     (tmp_path / "host.pub.pem").write_bytes(pem)
     (tmp_path / "pin").write_text("4321\n")
     (tmp_path / "pin").chmod(0o600)
+    (tmp_path / "bad-pin").write_text("0000\n")
+    (tmp_path / "bad-pin").chmod(0o600)
     (tmp_path / "policy.toml").write_text(POLICY)
-    out = tmp_path / "r.json"
     uri = f"pkcs11:token=host;object=fleet-host?module-path={module}"
-    r = status(fleet, "-o", out, "--host-key", uri, "--pin-file", tmp_path / "pin")
-    assert r.exit_code == 0, r.stderr
+
+    def status_in_child(out, pin):
+        argv = [sys.executable, "-m", "hcdf_trust.cli", "fleet", "status", fleet["robot"].doc,
+                "--release", fleet["new_dir"], "--key", fleet["robot"].pub, "-o", out, "--host-key", uri,
+                "--pin-file", pin]  # fmt: skip
+        for name, device in fleet["uris"].items():
+            argv += ["--device", f"{name}={device}"]
+        return subprocess.run([str(a) for a in argv], capture_output=True, text=True, env=env, timeout=120)
+
+    out = tmp_path / "r.json"
+    p = status_in_child(out, tmp_path / "pin")
+    assert p.returncode == 0, p.stderr
     statement = dsse_verify(json.loads(out.read_text()), pem)
     assert "not device attestation" in statement["statement"]
     r = audit(fleet, tmp_path, out)
     assert r.exit_code == 0 and fleet_findings(r) == [], r.stdout
-    (tmp_path / "bad-pin").write_text("0000\n")
-    (tmp_path / "bad-pin").chmod(0o600)
-    assert (
-        status(fleet, "-o", tmp_path / "r2.json", "--host-key", uri, "--pin-file", tmp_path / "bad-pin").exit_code == 3
-    )
+    p = status_in_child(tmp_path / "r2.json", tmp_path / "bad-pin")
+    assert p.returncode == 3, p.stderr
     assert not (tmp_path / "r2.json").exists()
