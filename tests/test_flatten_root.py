@@ -31,7 +31,7 @@ def demo_lines(corpus: Path) -> list[str | list[str]]:
         line = line.strip().replace("$(CORPUS)", str(corpus))
         if line.startswith("$(BIN)/hcdf-trust "):
             lines.append(shlex.split(line)[1:])
-        elif not line.startswith("rm -rf "):
+        elif not line.startswith(("rm -rf ", "@echo")):  # @echo: the closing how-to-run text
             lines.append(line)
     return lines
 
