@@ -18,7 +18,7 @@ from typing import Any
 import click
 
 from .. import __version__
-from ..errors import ErrorGroup, HcdfTrustError
+from ..errors import ErrorGroup, HcdfTrustError, counted
 from .params import TIMEOUT
 
 
@@ -220,8 +220,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
         click.option(
             "--strict",
             is_flag=True,
-            help="Refuse weak pins (hex prefixes shorter than 64 digits); with --registry, also unregistered "
-            "extension domains and versions.",
+            help="Refuse weak pins (hex prefixes shorter than 64 digits).",
         ),
         JSON_OPTION,
     ]
@@ -230,18 +229,34 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
-def registry_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """``--registry`` and ``--trusted-root`` of resolve and verify (checks: hcdf_trust.registry.resolution)."""
-    func = click.option(
-        "--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust (with --registry)."
-    )(func)
-    return click.option(
-        "--registry",
-        "registry_site",
-        metavar="URL|DIR",
-        help="Check extensions and stream profiles against this signed registry: an http(s) URL or a folder "
-        "(a folder only when offline, as verify always is). Needs --trusted-root.",
-    )(func)
+def _registry_options(*, urls: bool) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--registry`` and ``--trusted-root`` (checks: hcdf_trust.registry.resolution); ``urls``: the
+    verb may fetch, so the site may be an http(s) URL (resolve), else only a folder (verify)."""
+    site = (
+        "an http(s) URL (not with --offline) or a folder holding a copy of the published site"
+        if urls
+        else "a folder holding a copy of the published site (verify never fetches)"
+    )
+
+    def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
+        func = click.option(
+            "--trusted-root",
+            type=click.Path(dir_okay=False),
+            help="The registry's root.json you trust (with --registry).",
+        )(func)
+        return click.option(
+            "--registry",
+            "registry_site",
+            metavar="URL|DIR" if urls else "DIR",
+            help=f"Check extensions and stream profiles against this signed registry: {site}. Needs "
+            "--trusted-root; with --strict, unregistered extension domains and versions are errors too.",
+        )(func)
+
+    return decorate
+
+
+registry_options = _registry_options(urls=True)
+offline_registry_options = _registry_options(urls=False)
 
 
 def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offline: bool, persist: bool) -> Any:
@@ -622,7 +637,7 @@ def resolve(
 @main.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
-@registry_options
+@offline_registry_options
 @handle_errors
 def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str | None, **kw: Any) -> None:
     """Check DOC's tree against its lock file, offline; write nothing.
@@ -770,7 +785,8 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
     _warn(res.warnings)
     s = _summary(res)
     say(
-        f"{s['references']} references to {s['files']} files: {s['pinned']} pinned, {s['weak']} weak, "
+        f"{counted(s['references'], 'reference')} to {counted(s['files'], 'file')}: "
+        f"{s['pinned']} pinned, {s['weak']} weak, "
         f"{s['unpinned']} unpinned; {s['bytes_verified']} bytes verified "
         f"({s['local']} local, {s['from_cache']} from cache, {s['fetched']} fetched)"
     )

@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 
@@ -90,7 +91,8 @@ def audit_cmd(
             say(str(f))
         counts = report.to_dict()["counts"]
         say(
-            f"audit: {counts['error']} error(s), {counts['warning']} warning(s), {counts['info']} info "
+            f"audit: {counted(counts['error'], 'error')}, {counted(counts['warning'], 'warning')}, "
+            f"{counts['info']} info "
             f"({', '.join(report.checked)}); {len(report.failing)} at or above {policy.threshold}",
         )
     sys.exit(0 if report.ok else 1)

@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .params import source_date_epoch_option
 
@@ -170,8 +171,8 @@ def build(
     for c in report.release.components:
         say(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}")
     say(
-        f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
-        f"{len(report.wrote)} file(s) written to {out_dir}"
+        f"release {report.release.sequence_number}: {counted(len(report.release.components), 'image')}, "
+        f"{counted(len(report.wrote), 'file')} written to {out_dir}"
     )
 
 
@@ -211,7 +212,7 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str 
         emit_json({"ok": True, **payload, "errors": []})
     else:
         say(
-            f"release {release.sequence_number}: {len(release.components)} component(s) verified "
+            f"release {release.sequence_number}: {counted(len(release.components), 'component')} verified "
             f"(signatures, digests, latest.json{', rollback' if before else ''})"
         )
 
@@ -327,7 +328,7 @@ def push(
     else:
         for n in warnings:
             say(f"warning: {n}")
-        say(f"pushed {len(result['layers'])} file(s) to {ref} ({result['digest']})")
+        say(f"pushed {counted(len(result['layers']), 'file')} to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
 
@@ -400,5 +401,5 @@ def pull(
         say(f"warning: {n}")
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
-        f"{len(report.files)} file(s) verified ({report.from_cache} from the cache), written to {out_dir}"
+        f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache), written to {out_dir}"
     )

@@ -6,6 +6,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, fail, fetch_options, handle_errors, resolve_options, say
 
 
@@ -71,6 +72,7 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
         say(f"wrote {path}")
     tail = "" if write or not report.planned else f" (dry run: --write writes {', '.join(report.planned)})"
     say(
-        f"{len(report.changes)} sha change(s), {len(report.lock_changes) - added} lock entr(ies) changed, "
+        f"{counted(len(report.changes), 'sha change')}, "
+        f"{counted(len(report.lock_changes) - added, 'lock entry', 'lock entries')} changed, "
         f"{added} new{tail}"
     )
