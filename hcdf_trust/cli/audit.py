@@ -88,7 +88,7 @@ def audit_cmd(
         emit_json(report.to_dict())
     else:
         for f in report.sorted():
-            say(str(f))
+            say(str(f), always=True)
         counts = report.to_dict()["counts"]
         say(
             f"audit: {counted(counts['error'], 'error')}, {counted(counts['warning'], 'warning')}, "

@@ -51,7 +51,7 @@ def _plan_lines(p: Any) -> None:
     for el, reason in p.skipped:
         say(f"skipped: {el.label}: {reason}", err=False)
     for w in p.warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
 
 
 @macsec.command("plan")
@@ -280,7 +280,7 @@ def generate(
         )
         return
     for w in warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
     if created:  # one write for 10,000 lines
         say(*(f"created {ca_id} generation 1" for ca_id in created), err=False)
     say(f"{counted(len(created), 'key')} created in {store.path}" if created else "nothing to do")
@@ -550,6 +550,6 @@ def export(
         )
         return
     for n in notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     for w in written:
         say(f"wrote {w}")

@@ -165,7 +165,7 @@ def build(
         )
         return
     for n in report.notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     for ch in report.hcdf_changes:
         say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
@@ -327,7 +327,7 @@ def push(
         )
     else:
         for n in warnings:
-            say(f"warning: {n}")
+            say(f"warning: {n}", always=True)
         say(f"pushed {counted(len(result['layers']), 'file')} to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
@@ -398,7 +398,7 @@ def pull(
         )
         return
     for n in report.notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
         f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache), written to {out_dir}"

@@ -54,13 +54,13 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     if report.errors:
         if not as_json:
             for w in report.warnings:
-                say(f"warning: {w}")
+                say(f"warning: {w}", always=True)
         fail(report.errors, as_json=as_json, payload=payload)
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
         return
     for w in report.warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
     verb = "pinned" if write else "would pin"
     for c in report.changes:
         say(f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new} [lock: {c.lock}]")

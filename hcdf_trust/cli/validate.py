@@ -68,7 +68,7 @@ def validate(
         )
     else:
         for f in report.findings:
-            say(str(f))
+            say(str(f), always=True)
         for n in report.notes:
             say(f"note: {n}")
         if report.schema is None:
