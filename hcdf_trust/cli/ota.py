@@ -305,7 +305,7 @@ def push(
 
             path = os.path.join(release_dir, MANIFEST_NAME)
             data = read_input(path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
-            release = suit.parse_manifest(suit.parse_envelope(data, source=path).manifest, source=path)
+            release = suit.parse_release(suit.parse_envelope(data, source=path), source=path)
         result = push_release(release_dir, ref, client, release)
     warnings = []
     if key is None:
