@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 
@@ -99,10 +100,11 @@ def audit_cmd(
         emit_json(report.to_dict())
     else:
         for f in report.sorted():
-            say(str(f))
+            say(str(f), always=True)
         counts = report.to_dict()["counts"]
         say(
-            f"audit: {counts['error']} error(s), {counts['warning']} warning(s), {counts['info']} info "
+            f"audit: {counted(counts['error'], 'error')}, {counted(counts['warning'], 'warning')}, "
+            f"{counts['info']} info "
             f"({', '.join(report.checked)}); {len(report.failing)} at or above {policy.threshold}",
         )
     sys.exit(0 if report.ok else 1)

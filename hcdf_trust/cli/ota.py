@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .params import source_date_epoch_option
 
@@ -172,14 +173,14 @@ def build(
         )
         return
     for n in report.notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     for ch in report.hcdf_changes:
         say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
         say(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}")
     say(
-        f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
-        f"{len(report.wrote)} file(s) written to {out_dir}"
+        f"release {report.release.sequence_number}: {counted(len(report.release.components), 'image')}, "
+        f"{counted(len(report.wrote), 'file')} written to {out_dir}"
     )
 
 
@@ -251,7 +252,7 @@ def verify_cmd(
         emit_json({"ok": True, **payload, "errors": []})
     else:
         say(
-            f"release {release.sequence_number}: {len(release.components)} component(s) verified "
+            f"release {release.sequence_number}: {counted(len(release.components), 'component')} verified "
             f"(signatures, digests, latest.json{', rollback' if before else ''}{', provenance' if provenance else ''})"
         )
 
@@ -366,8 +367,8 @@ def push(
         )
     else:
         for n in warnings:
-            say(f"warning: {n}")
-        say(f"pushed {len(result['layers'])} file(s) to {ref} ({result['digest']})")
+            say(f"warning: {n}", always=True)
+        say(f"pushed {counted(len(result['layers']), 'file')} to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
 
@@ -437,8 +438,8 @@ def pull(
         )
         return
     for n in report.notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
-        f"{len(report.files)} file(s) verified ({report.from_cache} from the cache), written to {out_dir}"
+        f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache), written to {out_dir}"
     )
