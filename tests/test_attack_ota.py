@@ -98,7 +98,7 @@ def test_the_rendering_with_a_duplicated_key_is_refused(built, cli):
     text = path.read_text()
     path.write_text(text.replace('"sequence_number"', '"sequence_number": 99, "sequence_number"', 1))
     r = verify(cli, robot, out)
-    assert r.exit_code == 3 and "'sequence_number' appears twice" in r.stderr
+    assert r.exit_code == 1 and "is not the rendering of the signed manifest" in r.stderr  # byte for byte
 
 
 def test_a_tuf_timestamp_with_two_signed_keys_is_refused(tmp_path, cli, monkeypatch):

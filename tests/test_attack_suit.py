@@ -5,6 +5,7 @@ a second COSE implementation, says so where it matters), so only a strict readin
 from __future__ import annotations
 
 import json
+import shutil
 
 import cbor2
 import pytest
@@ -25,8 +26,8 @@ def built(tmp_path, cli):
     return robot, out
 
 
-def verify(cli, robot, out):
-    return cli("ota", "verify", out, "--key", robot.pub, "--json")
+def verify(cli, robot, out, *extra):
+    return cli("ota", "verify", out, "--key", robot.pub, "--json", *extra)
 
 
 def _head(major: int, n: int) -> bytes:
@@ -265,9 +266,15 @@ def test_an_old_layout_release_in_the_output_folder_stops_the_build_and_the_docu
     (out / "release.suit.json").unlink()
     with (robot.root / "ota.toml").open("a") as f:
         f.write("[release]\nsequence_number = 42\n")
-    r = robot.build(cli, out)
+    r = robot.build(cli, out)  # latest.json without a signed manifest: unsigned history (issue 16 §8)
+    assert r.exit_code == 3 and "--import-unsigned-history" in r.stderr
+    old = robot.root / "old-release"
+    shutil.copytree(out, old)
+    r = robot.build(cli, out, "--import-unsigned-history")
     assert r.exit_code == 0, r.stderr
     r = verify(cli, robot, out)
-    assert r.exit_code == 0 and r.json["sequence_number"] == 42
+    assert r.exit_code == 1 and "previous[0] (0.2.0) is not a release this key signed" in r.stdout
+    r = verify(cli, robot, out, "--previous", old, "--import-unsigned-history")
+    assert r.exit_code == 0 and r.json["sequence_number"] == 42, r.json["errors"]
     doc = json.loads((out / "mr_mcxn_t1" / "flex-io" / "latest.json").read_text())
     assert [e["version"] for e in doc["previous"]] == ["0.2.0"]  # history kept from latest.json

@@ -817,6 +817,8 @@ def read_release(
 
     accounted = {MANIFEST_NAME, MANIFEST_JSON_NAME, HISTORY_NAME, PROVENANCE_NAME, *images, *history_images}
     accounted.update(f"{c.board}/{c.app}/latest.json" for c in release.components if c.type == "mcuboot")
+    # images of history imported on the user's word (--import-unsigned-history): theirs too, unchecked
+    accounted.update(f"{b}/{a}/{e.version}.bin" for (b, a), entries in unsigned.items() for e in entries)
     found: dict[str, bytes] = {}
     unaccounted: list[str] = []
     for rel, kind in entries:

@@ -90,7 +90,8 @@ LEGACY = (
     "this release uses hcdf-trust's layout from before draft-34 conformance (custom parameters "
     "-257…-261 in the shared sequence, manifest keys -257…-259); its facts now sit in an integrated "
     "release record (README 'Release manifest layout'): rebuild the release with this hcdf-trust "
-    "(to carry its history on: move release.suit aside, set [release] sequence_number in ota.toml above its own)"
+    "(to carry its history on: move release.suit aside, set [release] sequence_number in ota.toml above its own, "
+    "build with --import-unsigned-history)"
 )
 
 
