@@ -373,7 +373,8 @@ def main(ctx: click.Context) -> None:
     flag_value="",
     metavar="[URI]",
     help="Accept new content for a reference the lock pins: --update alone re-pins every entry, "
-    "--update URI (repeatable; the uri as written or the lock's url) only that one. Put it after DOC.",
+    "--update URI (repeatable; the uri as written, the lock's url, the file's URL or its path) only that one. "
+    "Put it after DOC.",
 )
 @handle_errors
 def resolve(
