@@ -22,7 +22,9 @@ Every change reports its old and new digests and how the lock entry related to
 them (:func:`lock_agreement`). The run has five steps:
 
 1. Resolve the tree with ``accept_mismatch`` so that a disagreeing pin does not
-   stop the walk. Whether content agrees with its pins and its lock entry is
+   stop the walk, and with the ``update`` names, so that a named include's new
+   content is read and walked (and a named remote file cached), as ``resolve --update``
+   does. Whether content agrees with its pins and its lock entry is
    decided again here, by the rules above; every other error (missing file,
    malformed XML, transport, path escape, a bad ``sha`` text, an unreadable lock,
    ...) stops the run.
@@ -31,7 +33,11 @@ them (:func:`lock_agreement`). The run has five steps:
    from the child's *edited* bytes. After ``pin --write`` a plain ``resolve`` passes.
 3. Locate each reference's start tag in the raw bytes (by element order, checked
    against lxml's ``sourceline``) and its attributes within that tag only.
-4. Plan the outputs with :class:`~hcdf_trust.outputs.OutputPlan`: the edited
+4. Check the new lock against the rule that a pin run changes only what it was told
+   to accept (:func:`kept_violations`): only the entries of files named (``update``,
+   ``update_all``), of documents this run edits and of files a full sha pins may change,
+   and no include may be left unread (its references' entries would be dropped).
+   Then plan the outputs with :class:`~hcdf_trust.outputs.OutputPlan`: the edited
    documents (in place, keeping their permission bits) and the lock file, rendered
    exactly as a following plain ``resolve`` writes it. Every other input (the
    tree's other documents, the verified artifacts, the cache) is protected, so the
