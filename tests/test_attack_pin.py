@@ -406,3 +406,29 @@ def test_a_lock_symlinked_outside_is_replaced_never_written_through(run, robot):
     assert r.exit_code == 0, r.stderr
     assert outside.read_bytes() == kept  # the link's target is not written
     assert not os.path.islink("robot.hcdf.lock") and run("verify").exit_code == 0
+
+
+# -- a remote file: the new content accepted by pin is cached, so verify passes ----------
+
+
+@pytest.mark.parametrize("accept", ["update", "all"])
+def test_pin_update_of_a_remote_file_looks_at_the_server_and_caches_what_it_pins(
+    cli, tls, https_server, tmp_path, accept
+):
+    """pin used to take a changed remote file from the cache by its old lock entry, as if
+    --update had not named it (resolve was not told): the new content was never seen."""
+    url = https_server.add("/m.glb", b"remote-v1")
+    work, cache = tmp_path / "work", tmp_path / "cache"
+    work.mkdir()
+    doc = work / "robot.hcdf"
+    doc.write_text(
+        f'<hcdf version="1.0" name="r"><comp name="c"><visual name="v"><model uri="{url}"/></visual></comp></hcdf>\n'
+    )
+    tls_args = ("--ca-bundle", tls.ca_pem, "--cache-dir", cache)
+    assert cli("resolve", doc, *tls_args).exit_code == 0
+    https_server.add("/m.glb", b"remote-v2")
+    r = cli("pin", doc, "--write", *(["--update", url] if accept == "update" else ["--all"]), *tls_args)
+    assert r.exit_code == 0, r.stderr
+    assert json.loads(lock_lines(work / "robot.hcdf.lock")[url])["sha256"] == hashlib.sha256(b"remote-v2").hexdigest()
+    r = cli("verify", doc, "--cache-dir", cache)  # offline: the new content is in the cache
+    assert r.exit_code == 0, r.stderr
