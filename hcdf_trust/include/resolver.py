@@ -301,8 +301,15 @@ class _Run:
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
         self._updating: set[str] = set()  # lock urls re-pinned by --update
-        self._update_real = {os.path.realpath(n) for n in options.update}  # names given as paths
-        self._real: dict[str, str] = {}  # an artifact's real path, by url (only with --update)
+        self._update_names = frozenset(options.update)
+        self._named_files: dict[str, list[str]] = {}  # by artifact url: see _named_paths
+        self._update_files: dict[tuple[int, int], list[str]] = {}  # --update names that are paths, by inode
+        for name in options.update:
+            try:
+                st = os.stat(name)
+            except (OSError, ValueError):
+                continue  # not a path (a uri as written, a URL), or nothing there
+            self._update_files.setdefault((st.st_dev, st.st_ino), []).append(name)
         if options.ca_bundle and not options.offline:
             # A bad --ca-bundle fails the run even when the tree needs no fetch: it is a
             # flag error, not something to find out on the first remote reference.
@@ -421,23 +428,40 @@ class _Run:
         """Does ``--update`` re-pin this artifact? (All, or named by one of :meth:`_names`.)"""
         if self.o.update_all:
             return True
-        if not self.o.update:
+        names = self._update_names
+        if not names:
             return False
-        return self.res.lock_url(art.url) in self._updating or not self._names(art).isdisjoint(self.o.update)
+        lock_url = self.res.lock_url(art.url)
+        return (
+            lock_url in self._updating
+            or lock_url in names
+            or art.url in names
+            or any(u.ref.uri in names for u in art.uses)
+            or bool(self._named_paths(art))
+        )
 
     def _names(self, art: Artifact) -> set[str]:
         """Every name ``--update`` may give this artifact (resolve and pin alike): a uri as
-        written in a document, its lock url, its URL, or its path (compared as real paths)."""
-        names = {u.ref.uri for u in art.uses if u.ref.uri}
-        names |= {self.res.lock_url(art.url), art.url, display_url(art.url)}
-        path = art.location.path
-        if path is not None:
-            real = self._real.get(art.url)
-            if real is None:
-                real = self._real[art.url] = os.path.realpath(path)
-            if real in self._update_real:
-                names.update(n for n in self.o.update if os.path.realpath(n) == real)
-        return names
+        written in a document, its lock url, its URL, or its path (a name that is the same
+        file, compared by inode: what the shell names, through symlinks and ``..``)."""
+        names = {self.res.lock_url(art.url), art.url, *self._named_paths(art)}
+        return names | {u.ref.uri for u in art.uses if u.ref.uri}
+
+    def _named_paths(self, art: Artifact) -> list[str]:
+        """The ``--update`` names that are paths of this artifact's local file (by inode)."""
+        if not self._update_files or art.location.path is None:
+            return []
+        hits = self._named_files.get(art.url)
+        if hits is None:
+            inode = art.inode
+            if inode is None:
+                try:
+                    st = os.stat(art.location.path)
+                    inode = (st.st_dev, st.st_ino)
+                except OSError:
+                    inode = None
+            hits = self._named_files[art.url] = self._update_files.get(inode, []) if inode is not None else []
+        return hits
 
     def _confinement_root(self, doc_path: Path) -> Path:
         if self.o.root:
