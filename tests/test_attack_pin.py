@@ -432,3 +432,20 @@ def test_pin_update_of_a_remote_file_looks_at_the_server_and_caches_what_it_pins
     assert json.loads(lock_lines(work / "robot.hcdf.lock")[url])["sha256"] == hashlib.sha256(b"remote-v2").hexdigest()
     r = cli("verify", doc, "--cache-dir", cache)  # offline: the new content is in the cache
     assert r.exit_code == 0, r.stderr
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ("audit", "robot.hcdf"),
+        ("sbom", "robot.hcdf", "--format", "cyclonedx"),
+        ("macsec", "plan", "robot.hcdf"),
+    ],
+)
+def test_a_lock_with_merge_conflict_markers_is_refused_by_the_verbs_built_on_resolve(cli, robot, argv):
+    conflicted()
+    before = files()
+    r = cli(*argv, "--cache-dir", robot / "cache") if argv[0] != "macsec" else cli(*argv)
+    assert r.exit_code == 3, r.stdout + r.stderr
+    assert "merge-conflict markers" in r.stderr and f"{MESH} (" in r.stderr, r.stderr
+    assert files() == before
