@@ -231,8 +231,17 @@ def test_a_lock_computed_without_reading_an_accepted_include_is_refused(run, mon
     before = files()
     r = run("pin", "--write", "--update", ARM, "--json")
     assert r.exit_code == 3, r.stdout
-    assert [e["code"] for e in r.json["errors"]] == ["pin-edit"]
-    assert "was not read" in r.json["errors"][0]["message"]
+    (err,) = r.json["errors"]  # named at its first reference (robot.hcdf includes it twice)
+    assert (err["code"], err["file"], err["line"], err["url"].endswith(ARM)) == (
+        "pin-edit",
+        "robot.hcdf",
+        88,
+        True,
+    )
+    assert err["message"] == (
+        f"{ARM} was not read, so the files it references are unknown: refusing to write a lock that would drop "
+        "their entries"
+    )
     assert files() == before
 
 
@@ -250,7 +259,13 @@ def test_a_lock_entry_changed_without_being_accepted_is_refused(run, monkeypatch
     r = run("pin", "--write", "--update", ARM, "--json")
     assert r.exit_code == 1, r.stdout
     (err,) = r.json["errors"]
-    assert err["code"] == "lock-kept" and err["url"] == MESH and err["actual"].startswith("0" * 64), err
+    assert (err["code"], err["url"], err["file"]) == ("lock-kept", MESH, "robot.hcdf.lock"), err
+    size = Path(MESH).stat().st_size
+    assert (err["expected"], err["actual"]) == (f"{sha(MESH)} ({size} bytes)", f"{'0' * 64} ({size} bytes)")
+    assert err["message"] == (
+        f"{MESH}: this run would change its entry in robot.hcdf.lock though nothing it was told to accept changes "
+        "it (name the file with --update to accept its content); nothing written"
+    )
     assert files() == before
 
 
