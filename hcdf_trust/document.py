@@ -25,6 +25,12 @@ exit 3); nothing that another XML reader would take for a reference is skipped:
   (``<x:include>``, XInclude's ``<xi:include href>``, ``<x:software><hash>``,
   ``<comp xmlns="urn:x">``), a namespaced ``uri``, ``href`` or ``sha`` attribute
   (``xlink:href``) and ``xml:base`` (which moves every relative reference) are refused.
+- An element the schema allows once and a verb reads (``<software>``'s ``<version>``,
+  ``<hash>`` and ``<firmware-manifest-uri>``, ``<comp>``'s ``<board>`` and ``<software>``)
+  written twice is refused (:class:`AmbiguousError`, naming both lines): one reader would
+  take the first, another the last. Every verb reads such elements through :func:`single`
+  and :func:`single_text`, so they cannot disagree (the MACsec planner checks its own:
+  ``<macsec>``, ``<key-store>``, ``<speed>``... as it reads them).
 - Extension content is opaque: what is inside an ``<extension>`` child of ``<comp>``
   (HCDF's one extension point) is vendor data, never walked. An ``<extension>``
   anywhere else is reported and its content walked like the rest of the document,
@@ -34,13 +40,14 @@ exit 3); nothing that another XML reader would take for a reference is skipped:
 from __future__ import annotations
 
 import unicodedata
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousReferenceError, NotHcdfError, redact
+from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, Notice, redact
 from .xml import parse_bytes, sourceline
 
 
@@ -69,7 +76,7 @@ class Reference:
     uri_attr: str | None = None  # "uri" or "href" ("uri" when both, equal, are written); None for text
     name: str | None = None  # include name prefix, software name
     pose: str | None = None  # include pose "x y z roll pitch yaw"
-    active: bool = True  # stream-profile
+    selected: bool | None = None  # stream-profile: marked selected / not (see stream_profile_selection)
     domain: str | None = None  # extension
     version: str | None = None  # extension / software version
     element: Any = field(default=None, compare=False, repr=False, hash=False)
@@ -83,7 +90,7 @@ class Reference:
         uri_attr: str | None = None,
         name: str | None = None,
         pose: str | None = None,
-        active: bool = True,
+        selected: bool | None = None,
         domain: str | None = None,
         version: str | None = None,
         element: Any = None,
@@ -99,16 +106,25 @@ class Reference:
         d["uri_attr"] = uri_attr
         d["name"] = name
         d["pose"] = pose
-        d["active"] = active
+        d["selected"] = selected
         d["domain"] = domain
         d["version"] = version
         d["element"] = element
 
 
-def _bool(value: str | None, default: bool = True) -> bool:
-    if value is None:
-        return default
-    return value.strip().lower() in ("true", "1")
+_XS_BOOLEAN = {"true": True, "1": True, "false": False, "0": False}  # xs:boolean, whitespace collapsed
+SELECTION_ROLES = ("default",)  # upstream's StreamProfileSelectionRole (hcdformat-rs, 05d27b58)
+
+
+def _marked(el: etree._Element) -> bool | None:
+    """How a ``<stream-profile>`` marks itself: True (``selection-role="default"``, upstream's
+    newer form, or 1.0's ``active="true"``), False (``active="false"``), None (neither, or a
+    value that is not understood: :func:`stream_profile_selection` reports those)."""
+    role = el.get("selection-role")
+    if role is not None and role.strip() in SELECTION_ROLES:
+        return True
+    active = el.get("active")
+    return None if active is None else _XS_BOOLEAN.get(active.strip())
 
 
 ROOT = "hcdf"
@@ -177,6 +193,15 @@ class Document:
         return self.root.get("version", "1.0")
 
     @property
+    def foreign_major(self) -> bool:
+        """Whether ``version`` names a major other than 1 (``"2.0"``, as hcdf_models writes).
+
+        Upstream keeps ``version="1.0"`` and its own reader (hcdformat-rs ``version.rs``)
+        refuses any other major; this walker reads such a document as it reads 1.0.
+        """
+        return self.version.strip().split(".")[0] != "1"
+
+    @property
     def body_frame(self) -> str | None:
         return self.root.get("body-frame")
 
@@ -192,7 +217,7 @@ class Document:
         """
         if self._references is None:
             refs: list[Reference] = []
-            problems: list[AmbiguousReferenceError] = []
+            problems: list[AmbiguousError] = []
             _walk(self.root, self.source, refs, problems, namespaces=_may_use_namespaces(self))
             if problems:
                 problems.sort(key=lambda e: e.line or 0)
@@ -212,6 +237,13 @@ _ATTRIBUTE_REFERENCES = ("include", "model", "mesh", "stream-profile")
 _TEXT_REFERENCES = ("hash", "firmware-manifest-uri")
 _REFERENCE_TAGS = (*_ATTRIBUTE_REFERENCES, *_TEXT_REFERENCES, "extension")
 _REFERENCE_ATTR_NAMES = frozenset((*URI_ATTRS, "sha"))
+# Children that hcdf.xsd allows once (maxOccurs="1") and that a verb reads, checked from the
+# <software> they belong to (or sit in): a second one is refused, and every verb reads them
+# through single() / single_text(). (Walking <software>, not <version>, keeps root.iter() free
+# on documents without firmware: lxml skips a walk for names the document never uses, and
+# "version" is the root's attribute in every document.)
+_ONCE_IN_SOFTWARE = ("version", "hash", "firmware-manifest-uri")
+_WALK_TAGS = (*_REFERENCE_TAGS, "software")
 _XML_BASE = "{http://www.w3.org/XML/1998/namespace}base"
 _XML_SPACE = " \t\r\n"
 _NAMESPACED_ELEMENTS = etree.XPath("//*[namespace-uri()]")
@@ -245,7 +277,7 @@ def _walk(
     root: etree._Element,
     source: str,
     refs: list[Reference],
-    problems: list[AmbiguousReferenceError],
+    problems: list[AmbiguousError],
     *,
     namespaces: bool = True,
 ) -> None:
@@ -284,17 +316,44 @@ def _walk(
     # Most documents have no <comp><extension>: then nothing is opaque (one scan in C).
     opaque = any(getattr(ext.getparent(), "tag", None) == "comp" for ext in root.iter("extension"))
     add = refs.append
-    for el in root.iter(*_REFERENCE_TAGS):
+    for el in root.iter(*_WALK_TAGS):
         if opaque and _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
         tag = el.tag
+        if tag == "software":
+            _check_software(el, source, problems)
+            continue
         try:
             ref = (tag == "model" and _plain_model(el)) or _reference(el, tag, source)
-        except AmbiguousReferenceError as exc:
+        except AmbiguousError as exc:
             problems.append(exc)
             continue
         if ref is not None:
             add(ref)
+
+
+def _check_software(sw: etree._Element, source: str, problems: list[AmbiguousError]) -> None:
+    """Refuse what the verbs read of a ``<software>`` written so that two readers could
+    differ: its ``<version>``, ``<hash>``, ``<firmware-manifest-uri>`` twice, a second
+    ``<software>`` in its ``<comp>``, the comp's ``<board>`` twice, and a ``<version>`` or
+    ``<board>`` that is not plain text."""
+    tags = [child.tag for child in sw]
+    if len(set(tags)) < len(tags):  # some child twice (the common case, all distinct, stops here)
+        for tag in _ONCE_IN_SOFTWARE:
+            if tags.count(tag) > 1:
+                problems.append(_twice(sw, list(sw.iterchildren(tag)), source))
+    texts = [el for el in sw.iterchildren("version") if len(el)][:1]
+    comp = sw.getparent()
+    if comp is not None and comp.tag == "comp":
+        first = next(sw.itersiblings("software", preceding=True), None)
+        if first is not None:
+            problems.append(_twice(comp, [first, sw], source))
+        else:  # (the comp's board checked once, from its first <software>)
+            boards = list(comp.iterchildren("board"))
+            if len(boards) > 1:
+                problems.append(_twice(comp, boards, source))
+            texts += [el for el in boards[:1] if len(el)]
+    problems.extend(_not_plain_text(el, source) for el in texts)
 
 
 def _plain_model(el: etree._Element) -> Reference | None:
@@ -388,15 +447,8 @@ def _string_value(el: etree._Element, tag: str, source: str) -> str | None:
             or a value readers could disagree on.
     """
     for child in el:
-        kind = (
-            "a comment"
-            if isinstance(child, etree._Comment)
-            else "a processing instruction"
-            if isinstance(child, etree._ProcessingInstruction)
-            else f"a {_describe(child)} element"
-        )
         raise AmbiguousReferenceError(
-            f"<{tag}> contains {kind}: its text could be read in more than one way",
+            f"<{tag}> contains {_what(child)}: its text could be read in more than one way",
             file=source,
             line=sourceline(child) or sourceline(el),
         )
@@ -450,19 +502,18 @@ def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
             uri=uri,
             sha=el.get("sha"),
             uri_attr=attr,
-            active=_bool(el.get("active")),
+            selected=_marked(el),
             element=el,
         )
     if tag == "hash":
         if parent is None or parent.tag != "software":
             return None
-        version = parent.find("version")
         return Reference(
             Kind.FIRMWARE,
             line,
             sha=_string_value(el, tag, source),
             name=parent.get("name"),
-            version=(version.text or "").strip() or None if version is not None else None,
+            version=single_text(parent, "version", source=source),
             element=el,
         )
     if tag == "firmware-manifest-uri":
@@ -481,7 +532,168 @@ def _has_location(el: etree._Element) -> bool:
     return any(el.get(a) is not None for a in URI_ATTRS)
 
 
+STREAM_SELECTION = "stream-profile-selection"
+
+
+@dataclass(frozen=True)
+class StreamSelection:
+    """Which of a document's ``<stream-profile>`` references are the ones a robot runs.
+
+    Both dialects are read, with one meaning: 1.0's ``active`` (an ``xs:boolean``, default
+    true: "one is active at a time", per ``<network>``) and upstream's ``selection-role="default"``
+    (05d27b58, top-level profiles: "the root document may identify one profile as the default
+    selection"). One selection per scope (a 1.0 ``<network>``, or the document's top level): in
+    a scope where no profile carries ``selection-role`` an unmarked profile is selected (1.0's
+    default); once one does, only marked profiles are. ``problems`` (message, line) are what
+    cannot be read one way: a value neither dialect defines, ``selection-role="default"`` with
+    ``active="false"``, or more than one profile selected in one scope.
+    """
+
+    profiles: tuple[Reference, ...]
+    selected: tuple[Reference, ...]
+    problems: tuple[tuple[str, int | None], ...]
+
+
+def stream_profile_selection(doc: Document) -> StreamSelection:
+    """The :class:`StreamSelection` of one document (validate, audit and sbom read it)."""
+    profiles = tuple(r for r in doc.references() if r.kind is Kind.STREAM_PROFILE)
+    problems: list[tuple[str, int | None]] = []
+    for r in profiles:
+        role, active = r.element.get("selection-role"), r.element.get("active")
+        what = f"<stream-profile uri={redact(r.uri or '')!r}>"
+        if role is not None and role.strip() not in SELECTION_ROLES:
+            problems.append((f'{what}: selection-role="{redact(role)}" is not one HCDF defines ("default")', r.line))
+        if active is not None and active.strip() not in _XS_BOOLEAN:
+            problems.append((f'{what}: active="{redact(active)}" is not a boolean (true, false, 1, 0)', r.line))
+        elif role is not None and r.selected and active is not None and not _XS_BOOLEAN[active.strip()]:
+            problems.append((f'{what}: selection-role="default" and active="{active}" say opposite things', r.line))
+    # One selection per scope: a 1.0 <network> holds its own profiles; upstream's newer model
+    # lists them at the top level. 1.0's default applies to a profile that writes neither
+    # attribute, in a scope where no profile uses selection-role.
+    scopes: dict[Any, list[Reference]] = {}  # keyed by the parent element (lxml keeps one proxy while held)
+    for r in profiles:
+        scopes.setdefault(r.element.getparent(), []).append(r)
+    selected: list[Reference] = []
+    for group in scopes.values():
+        newer = any(r.element.get("selection-role") is not None for r in group)
+        chosen = [r for r in group if r.selected or (not newer and r.element.get("active") is None)]
+        selected += chosen
+        if len(chosen) > 1:
+            lines = ", ".join(str(r.line) for r in chosen)
+            parent = chosen[0].element.getparent()
+            where = f"<{parent.tag} name={parent.get('name')!r}>" if parent.tag == "network" else "this document"
+            problems.append(
+                (
+                    f"{len(chosen)} stream profiles are selected in {where} (lines {lines}): a robot runs one at a "
+                    'time; mark one selection-role="default" (or active="true"), the others active="false"',
+                    chosen[1].line,
+                )
+            )
+    return StreamSelection(profiles, tuple(selected), tuple(problems))
+
+
+FOREIGN_MAJOR = "foreign-major-version"
+
+
+def foreign_major_notice(docs: Iterable[Document]) -> Notice | None:
+    """One notice for every document of a run whose version has a major other than 1.
+
+    Said once per run, at the first such document, naming the others: a tree of
+    hcdf_models boards is one fact to know, not one warning per file.
+    """
+    foreign = [d for d in docs if d.foreign_major]
+    if not foreign:
+        return None
+    first = foreign[0]
+    others = f" (and {len(foreign) - 1} more document(s) of this tree)" if len(foreign) > 1 else ""
+    return Notice(
+        FOREIGN_MAJOR,
+        f'version="{first.version}"{others}: read here as HCDF 1.0, but upstream\'s own reader '
+        '(hcdformat-rs) accepts only 1.x and refuses this document; upstream keeps version="1.0"',
+        file=first.source,
+        line=sourceline(first.root),
+    )
+
+
 def software_elements(doc: Document) -> list[etree._Element]:
     """Every ``<software>`` entry outside extension content, in document order (the ota
     verbs read them whole: name, version, hash, and the enclosing ``<comp>``'s board)."""
     return [el for el in doc.root.iter("software") if not any(True for _ in el.iterancestors("extension"))]
+
+
+# --- the one reading of an element the schema allows once ------------------------------
+
+
+def single(parent: etree._Element, tag: str, *, source: str) -> etree._Element | None:
+    """The one ``<tag>`` child of ``parent`` (None when there is none), for a child that
+    hcdf.xsd allows once. Every verb reads such children through this function (or
+    :func:`only`), so no two verbs can take different ones.
+
+    Raises:
+        AmbiguousError: two or more, naming the lines of the first two.
+    """
+    return only(list(parent.iterchildren(tag)), source=source)
+
+
+def only(found: list[etree._Element], *, source: str) -> etree._Element | None:
+    """The one element of ``found`` (same-named children of one parent, as a caller that
+    groups children in one pass collected them), None when empty.
+
+    Raises:
+        AmbiguousError: two or more, naming the lines of the first two.
+    """
+    if len(found) > 1:
+        parent = found[0].getparent()
+        raise _twice(parent if parent is not None else found[0], found, source)
+    return found[0] if found else None
+
+
+def single_text(parent: etree._Element, tag: str, *, source: str) -> str | None:
+    """The text of the one ``<tag>`` child of ``parent``, without the XML whitespace
+    around it; None when the child is missing or empty.
+
+    Raises:
+        AmbiguousError: the child is written twice, or holds a comment, processing
+            instruction or element (``.text`` and the string value then differ).
+    """
+    el = single(parent, tag, source=source)
+    if el is None:
+        return None
+    if len(el):
+        raise _not_plain_text(el, source)
+    return (el.text or "").strip(_XML_SPACE) or None
+
+
+def _not_plain_text(el: etree._Element, source: str) -> AmbiguousError:
+    child = el[0]
+    return AmbiguousError(
+        f"<{_local(el)}> contains {_what(child)}: its text could be read in more than one way",
+        file=source,
+        line=sourceline(child) or sourceline(el),
+    )
+
+
+def _local(el: etree._Element) -> str:
+    return etree.QName(el).localname if isinstance(el.tag, str) else "?"
+
+
+def _what(child: etree._Element) -> str:
+    if isinstance(child, etree._Comment):
+        return "a comment"
+    if isinstance(child, etree._ProcessingInstruction):
+        return "a processing instruction"
+    return f"a {_describe(child)} element"
+
+
+def _twice(parent: etree._Element, found: list[etree._Element], source: str) -> AmbiguousError:
+    tag = _local(found[0])
+    lines = [sourceline(e) for e in found]
+    shown = " and ".join(str(n) for n in lines[:2]) + (f" (and {len(lines) - 2} more)" if len(lines) > 2 else "")
+    return AmbiguousError(
+        f"<{_local(parent)}> has {len(found)} <{tag}> elements, at lines {shown}: the schema allows one, "
+        "and one reader would take the first, another the last",
+        file=source,
+        line=lines[1],
+        expected=f"one <{tag}>",
+        actual=f"{len(found)} <{tag}> elements (lines {shown})",
+    )

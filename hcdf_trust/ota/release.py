@@ -15,7 +15,6 @@ The steps, in order (any error stops the build before anything is written):
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import re
 import stat
@@ -27,10 +26,11 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
-from ..document import Kind, software_elements
-from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
+from ..document import Kind, single, single_text, software_elements
+from ..errors import ErrorGroup, HcdfTrustError, InputError, NotFoundError, Notice
+from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import DOCUMENT, ORDINARY, OutputPlan
 from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
@@ -59,12 +59,11 @@ class BuildOptions:
     config: str | None = None
     changelog: str | None = None
     update_hcdf: bool = False
-    lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
-    online: bool = False  # resolve the tree with the network (still under its lock)
-    cache_dir: str | None = None
+    # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline (the default) / --online
+    tree: TreeOptions = field(default_factory=TreeOptions)
 
 
 @dataclass
@@ -114,20 +113,10 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         ErrorGroup / HcdfTrustError: the tree does not verify, an input is missing or
             malformed, a hash or counter check fails, or an output cannot be written.
     """
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import resolve
 
     # 1. a verified description: the tree under its lock (offline unless --online)
-    res = resolve(
-        doc_path,
-        ResolveOptions(
-            locked=True,
-            offline=not options.online,
-            write_cache=options.online,
-            lock_path=options.lock_path,
-            cache_dir=options.cache_dir,
-            ca_bundle=options.ca_bundle,
-        ),
-    )
+    res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
     lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
@@ -210,6 +199,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
             )
         rel = f"{p.board}/{p.app}/{version_name}.bin"
         url = _join(base_url, rel)
+        changelog = p.settings.changelog or options.changelog or config.changelog
         outputs.append((Path(options.out_dir, rel), image.data))
         components.append(
             suit.Component(
@@ -223,6 +213,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                 mcuboot_hash=None if is_raw else image.image_hash,
                 security_counter=None if is_raw else image.security_counter,
                 comps=tuple(u.comp for u in p.uses),
+                changelog=changelog,
             )
         )
         if not is_raw:
@@ -232,7 +223,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                 mcuboot_hash=image.image_hash,
                 size=image.size,
                 url=url,
-                changelog=p.settings.changelog or options.changelog or config.changelog,
+                changelog=changelog,
             )
             try:
                 doc = latest_json.advance(
@@ -257,10 +248,12 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     plan = OutputPlan()
     _protect(plan, res, options, config_path, edited=set(edited))
     for path, data in outputs:
-        plan.add(path, data, flag="--out")
+        plan.add(path, data, flag="--out", under=options.out_dir)
     for url, data in edited.items():
         local = unquote(urlsplit(url).path)
-        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+        plan.add(
+            local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode), replaces=(ORDINARY, DOCUMENT)
+        )
     if edited:
         plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
@@ -271,26 +264,27 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         root=os.path.basename(res.root.source),
         root_sha256=hashlib.sha256(root_data).hexdigest(),
         components=tuple(components),
+        date=date,
     )
     env, alg, kid = sign_release(release, options.signer)
-    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
-    rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
-    plan.add(
-        Path(options.out_dir, MANIFEST_JSON_NAME),
-        (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
-        flag="--out",
-    )
+    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
+    rendering = suit.render_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
+    plan.add(Path(options.out_dir, MANIFEST_JSON_NAME), rendering, flag="--out", under=options.out_dir)
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
 
 
 def sign_release(release: suit.Release, signer: Signer) -> tuple[bytes, int, bytes]:
     """The signed envelope, the COSE algorithm and the key id."""
-    return sign_manifest(suit.manifest_bytes(release), signer)
+    manifest, payloads = suit.encode(release)
+    return sign_manifest(manifest, signer, payloads)
 
 
-def sign_manifest(manifest: bytes, signer: Signer) -> tuple[bytes, int, bytes]:
-    """The envelope around ``manifest`` with its COSE_Sign1, made by cwt with the signer's key.
+def sign_manifest(
+    manifest: bytes, signer: Signer, payloads: dict[str, bytes] | None = None
+) -> tuple[bytes, int, bytes]:
+    """The envelope around ``manifest`` (and its integrated ``payloads``) with its COSE_Sign1,
+    made by cwt with the signer's key.
 
     cwt has no detached encode: it signs ``["Signature1", protected, h'', payload]`` with
     the payload attached, and the payload is then set to nil (the signature is the same).
@@ -308,14 +302,14 @@ def sign_manifest(manifest: bytes, signer: Signer) -> tuple[bytes, int, bytes]:
     )
     assert isinstance(tag, cbor2.CBORTag) and tag.tag == suit.COSE_SIGN1_TAG and tag.value[2] == payload
     tag.value[2] = None
-    return suit.envelope(manifest, cbor2.dumps(tag)), alg, kid
+    return suit.envelope(manifest, cbor2.dumps(tag), payloads), alg, kid
 
 
 def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     hashes = {}
     for _source, ref in res.others:
         if ref.kind is Kind.FIRMWARE and ref.element is not None:
-            hashes[ref.element.getparent()] = ref
+            hashes[ref.element] = ref
     plans: dict[tuple[str, str], Planned] = {}
     for doc_url, doc in res.documents.items():
         for sw in software_elements(doc):
@@ -330,7 +324,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
             comp_name = comp.get("name") or "?"
             if not app:
                 raise FirmwareError(f"comp {comp_name!r}: <software> has no name", file=doc.source, line=line)
-            board = (comp.findtext("board") or "").strip() or comp_name
+            board = single_text(comp, "board", source=doc.source) or comp_name
             for what, value in (("board", board), ("software name", app)):
                 if not _SAFE.fullmatch(value) or value in (".", ".."):
                     raise FirmwareError(
@@ -340,8 +334,8 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
                         expected="letters, digits, '.', '_', '+', '-'",
                         actual=value,
                     )
-            version = sw.findtext("version")
-            ref = hashes.get(sw)
+            version = single_text(sw, "version", source=doc.source)
+            ref = hashes.get(single(sw, "hash", source=doc.source))
             use = Use(
                 comp_name,
                 doc.source,
@@ -587,9 +581,23 @@ def _join(base: str | None, rel: str) -> str:
 
 
 def _now() -> str:
-    epoch = os.environ.get("SOURCE_DATE_EPOCH")
-    t = int(epoch) if epoch and epoch.isdigit() else int(time.time())
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+    """``SOURCE_DATE_EPOCH`` (checked by :func:`hcdf_trust.clock.parse_epoch`), else the clock.
+
+    Raises:
+        InputError: ``SOURCE_DATE_EPOCH`` is refused (the CLI refuses it first, as a usage error).
+    """
+    from ..clock import source_date_epoch
+
+    try:
+        epoch = source_date_epoch()
+    except ValueError as exc:
+        raise InputError(f"SOURCE_DATE_EPOCH: {exc}", file="SOURCE_DATE_EPOCH") from None
+    return format_date(epoch.timestamp() if epoch is not None else time.time())
+
+
+def format_date(seconds: float) -> str:
+    """How a release is dated (``latest.json``'s ``date``): UTC, to the second."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(int(seconds)))
 
 
 def read_release(folder: str, public_key: Any) -> tuple[suit.Release, Any]:
