@@ -18,6 +18,8 @@ PROJECT = Path(__file__).resolve().parents[1]
 CORPUS = Path(os.environ.get("HCDF_CORPUS", PROJECT.parent / "shared" / "corpus")).resolve()
 MODELS = CORPUS / "hcdf_models"
 HCDFORMAT = CORPUS / "hcdformat"
+# machine-readable parts of the specifications our outputs follow (see its README): SPDX 3.0.1, SUIT draft-34
+SPECS = Path(os.environ.get("HCDF_SPECS", PROJECT.parent / "shared" / "specs")).resolve()
 
 
 @pytest.fixture(autouse=True)
