@@ -44,7 +44,12 @@ def cli():
     """Run ``hcdf-trust ARGS...`` in-process; returns exit code, stdout and stderr."""
 
     def run(*args: str | os.PathLike[str]) -> CliResult:
-        result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+        argv = [str(a) for a in args]
+        result = CliRunner().invoke(main, argv, catch_exceptions=False)
+        if result.exit_code == 0 and argv[:2] == ["ota", "build"]:
+            from tests._dendrite import check_cli_run
+
+            check_cli_run(tuple(argv))  # every latest.json a build writes is one the fleet daemon reads
         return CliResult(result.exit_code, result.stdout, result.stderr)
 
     return run
