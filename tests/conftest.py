@@ -50,6 +50,10 @@ def cli():
             from tests._dendrite import check_cli_run
 
             check_cli_run(tuple(argv))  # every latest.json a build writes is one the fleet daemon reads
+        if result.exit_code == 0 and argv[:2] == ["macsec", "export"]:
+            from tests._consumers import check_export
+
+            check_export(argv)  # wpa_supplicant, systemd-networkd and iproute2 read what was exported
         return CliResult(result.exit_code, result.stdout, result.stderr)
 
     return run
