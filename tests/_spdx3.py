@@ -87,3 +87,11 @@ def _run(data: bytes) -> list[str]:
         path.write_bytes(data)
         result = validate(str(path), version="3.0.1")
     return [f"[{e.kind}] {e.message}" for e in result.errors]
+
+
+def check_cli_run(argv: list[str], stdout: str) -> None:
+    """After a successful ``hcdf-trust sbom ... --format spdx``: what it wrote passes the validator."""
+    out = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("-o", "--out")), None)
+    data = Path(out).read_bytes() if out is not None else stdout.encode()
+    errors = spdx3_validate(data)
+    assert not errors, f"spdx3-validate refuses the SPDX document: {errors}"[:4000]

@@ -50,6 +50,10 @@ def cli():
             from tests._dendrite import check_cli_run
 
             check_cli_run(tuple(argv))  # every latest.json a build writes is one the fleet daemon reads
+        if result.exit_code == 0 and argv[:1] == ["sbom"] and "spdx" in argv:
+            from tests._spdx3 import check_cli_run as check_spdx
+
+            check_spdx(argv, result.stdout)  # the official SPDX 3 validator accepts every SPDX document
         if result.exit_code == 0 and argv[:2] == ["macsec", "export"]:
             from tests._consumers import check_export
 
