@@ -25,6 +25,12 @@ exit 3); nothing that another XML reader would take for a reference is skipped:
   (``<x:include>``, XInclude's ``<xi:include href>``, ``<x:software><hash>``,
   ``<comp xmlns="urn:x">``), a namespaced ``uri``, ``href`` or ``sha`` attribute
   (``xlink:href``) and ``xml:base`` (which moves every relative reference) are refused.
+- An element the schema allows once and a verb reads (``<software>``'s ``<version>``,
+  ``<hash>`` and ``<firmware-manifest-uri>``, ``<comp>``'s ``<board>`` and ``<software>``)
+  written twice is refused (:class:`AmbiguousError`, naming both lines): one reader would
+  take the first, another the last. Every verb reads such elements through :func:`single`
+  and :func:`single_text`, so they cannot disagree (the MACsec planner checks its own:
+  ``<macsec>``, ``<key-store>``, ``<speed>``... as it reads them).
 - Extension content is opaque: what is inside an ``<extension>`` child of ``<comp>``
   (HCDF's one extension point) is vendor data, never walked. An ``<extension>``
   anywhere else is reported and its content walked like the rest of the document,
@@ -40,7 +46,7 @@ from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousReferenceError, NotHcdfError, redact
+from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, redact
 from .xml import parse_bytes, sourceline
 
 
@@ -192,7 +198,7 @@ class Document:
         """
         if self._references is None:
             refs: list[Reference] = []
-            problems: list[AmbiguousReferenceError] = []
+            problems: list[AmbiguousError] = []
             _walk(self.root, self.source, refs, problems, namespaces=_may_use_namespaces(self))
             if problems:
                 problems.sort(key=lambda e: e.line or 0)
@@ -212,6 +218,13 @@ _ATTRIBUTE_REFERENCES = ("include", "model", "mesh", "stream-profile")
 _TEXT_REFERENCES = ("hash", "firmware-manifest-uri")
 _REFERENCE_TAGS = (*_ATTRIBUTE_REFERENCES, *_TEXT_REFERENCES, "extension")
 _REFERENCE_ATTR_NAMES = frozenset((*URI_ATTRS, "sha"))
+# Children that hcdf.xsd allows once (maxOccurs="1") and that a verb reads, checked from the
+# <software> they belong to (or sit in): a second one is refused, and every verb reads them
+# through single() / single_text(). (Walking <software>, not <version>, keeps root.iter() free
+# on documents without firmware: lxml skips a walk for names the document never uses, and
+# "version" is the root's attribute in every document.)
+_ONCE_IN_SOFTWARE = ("version", "hash", "firmware-manifest-uri")
+_WALK_TAGS = (*_REFERENCE_TAGS, "software")
 _XML_BASE = "{http://www.w3.org/XML/1998/namespace}base"
 _XML_SPACE = " \t\r\n"
 _NAMESPACED_ELEMENTS = etree.XPath("//*[namespace-uri()]")
@@ -245,7 +258,7 @@ def _walk(
     root: etree._Element,
     source: str,
     refs: list[Reference],
-    problems: list[AmbiguousReferenceError],
+    problems: list[AmbiguousError],
     *,
     namespaces: bool = True,
 ) -> None:
@@ -284,17 +297,44 @@ def _walk(
     # Most documents have no <comp><extension>: then nothing is opaque (one scan in C).
     opaque = any(getattr(ext.getparent(), "tag", None) == "comp" for ext in root.iter("extension"))
     add = refs.append
-    for el in root.iter(*_REFERENCE_TAGS):
+    for el in root.iter(*_WALK_TAGS):
         if opaque and _opaque(el):
             continue  # vendor content: may contain anything, never fetched by us
         tag = el.tag
+        if tag == "software":
+            _check_software(el, source, problems)
+            continue
         try:
             ref = (tag == "model" and _plain_model(el)) or _reference(el, tag, source)
-        except AmbiguousReferenceError as exc:
+        except AmbiguousError as exc:
             problems.append(exc)
             continue
         if ref is not None:
             add(ref)
+
+
+def _check_software(sw: etree._Element, source: str, problems: list[AmbiguousError]) -> None:
+    """Refuse what the verbs read of a ``<software>`` written so that two readers could
+    differ: its ``<version>``, ``<hash>``, ``<firmware-manifest-uri>`` twice, a second
+    ``<software>`` in its ``<comp>``, the comp's ``<board>`` twice, and a ``<version>`` or
+    ``<board>`` that is not plain text."""
+    tags = [child.tag for child in sw]
+    if len(set(tags)) < len(tags):  # some child twice (the common case, all distinct, stops here)
+        for tag in _ONCE_IN_SOFTWARE:
+            if tags.count(tag) > 1:
+                problems.append(_twice(sw, list(sw.iterchildren(tag)), source))
+    texts = [el for el in sw.iterchildren("version") if len(el)][:1]
+    comp = sw.getparent()
+    if comp is not None and comp.tag == "comp":
+        first = next(sw.itersiblings("software", preceding=True), None)
+        if first is not None:
+            problems.append(_twice(comp, [first, sw], source))
+        else:  # (the comp's board checked once, from its first <software>)
+            boards = list(comp.iterchildren("board"))
+            if len(boards) > 1:
+                problems.append(_twice(comp, boards, source))
+            texts += [el for el in boards[:1] if len(el)]
+    problems.extend(_not_plain_text(el, source) for el in texts)
 
 
 def _plain_model(el: etree._Element) -> Reference | None:
@@ -388,15 +428,8 @@ def _string_value(el: etree._Element, tag: str, source: str) -> str | None:
             or a value readers could disagree on.
     """
     for child in el:
-        kind = (
-            "a comment"
-            if isinstance(child, etree._Comment)
-            else "a processing instruction"
-            if isinstance(child, etree._ProcessingInstruction)
-            else f"a {_describe(child)} element"
-        )
         raise AmbiguousReferenceError(
-            f"<{tag}> contains {kind}: its text could be read in more than one way",
+            f"<{tag}> contains {_what(child)}: its text could be read in more than one way",
             file=source,
             line=sourceline(child) or sourceline(el),
         )
@@ -456,13 +489,12 @@ def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
     if tag == "hash":
         if parent is None or parent.tag != "software":
             return None
-        version = parent.find("version")
         return Reference(
             Kind.FIRMWARE,
             line,
             sha=_string_value(el, tag, source),
             name=parent.get("name"),
-            version=(version.text or "").strip() or None if version is not None else None,
+            version=single_text(parent, "version", source=source),
             element=el,
         )
     if tag == "firmware-manifest-uri":
@@ -485,3 +517,81 @@ def software_elements(doc: Document) -> list[etree._Element]:
     """Every ``<software>`` entry outside extension content, in document order (the ota
     verbs read them whole: name, version, hash, and the enclosing ``<comp>``'s board)."""
     return [el for el in doc.root.iter("software") if not any(True for _ in el.iterancestors("extension"))]
+
+
+# --- the one reading of an element the schema allows once ------------------------------
+
+
+def single(parent: etree._Element, tag: str, *, source: str) -> etree._Element | None:
+    """The one ``<tag>`` child of ``parent`` (None when there is none), for a child that
+    hcdf.xsd allows once. Every verb reads such children through this function (or
+    :func:`only`), so no two verbs can take different ones.
+
+    Raises:
+        AmbiguousError: two or more, naming the lines of the first two.
+    """
+    return only(list(parent.iterchildren(tag)), source=source)
+
+
+def only(found: list[etree._Element], *, source: str) -> etree._Element | None:
+    """The one element of ``found`` (same-named children of one parent, as a caller that
+    groups children in one pass collected them), None when empty.
+
+    Raises:
+        AmbiguousError: two or more, naming the lines of the first two.
+    """
+    if len(found) > 1:
+        parent = found[0].getparent()
+        raise _twice(parent if parent is not None else found[0], found, source)
+    return found[0] if found else None
+
+
+def single_text(parent: etree._Element, tag: str, *, source: str) -> str | None:
+    """The text of the one ``<tag>`` child of ``parent``, without the XML whitespace
+    around it; None when the child is missing or empty.
+
+    Raises:
+        AmbiguousError: the child is written twice, or holds a comment, processing
+            instruction or element (``.text`` and the string value then differ).
+    """
+    el = single(parent, tag, source=source)
+    if el is None:
+        return None
+    if len(el):
+        raise _not_plain_text(el, source)
+    return (el.text or "").strip(_XML_SPACE) or None
+
+
+def _not_plain_text(el: etree._Element, source: str) -> AmbiguousError:
+    child = el[0]
+    return AmbiguousError(
+        f"<{_local(el)}> contains {_what(child)}: its text could be read in more than one way",
+        file=source,
+        line=sourceline(child) or sourceline(el),
+    )
+
+
+def _local(el: etree._Element) -> str:
+    return etree.QName(el).localname if isinstance(el.tag, str) else "?"
+
+
+def _what(child: etree._Element) -> str:
+    if isinstance(child, etree._Comment):
+        return "a comment"
+    if isinstance(child, etree._ProcessingInstruction):
+        return "a processing instruction"
+    return f"a {_describe(child)} element"
+
+
+def _twice(parent: etree._Element, found: list[etree._Element], source: str) -> AmbiguousError:
+    tag = _local(found[0])
+    lines = [sourceline(e) for e in found]
+    shown = " and ".join(str(n) for n in lines[:2]) + (f" (and {len(lines) - 2} more)" if len(lines) > 2 else "")
+    return AmbiguousError(
+        f"<{_local(parent)}> has {len(found)} <{tag}> elements, at lines {shown}: the schema allows one, "
+        "and one reader would take the first, another the last",
+        file=source,
+        line=lines[1],
+        expected=f"one <{tag}>",
+        actual=f"{len(found)} <{tag}> elements (lines {shown})",
+    )

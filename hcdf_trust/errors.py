@@ -181,7 +181,16 @@ class NotHcdfError(XmlError):
     code = "not-hcdf"
 
 
-class AmbiguousReferenceError(InputError):
+class AmbiguousError(InputError):
+    """An element the schema allows once (``maxOccurs="1"``), written twice where a verb reads it
+    (``<software><hash>``, ``<version>``, ``<comp><board>``, a link's ``<macsec>``, a port's
+    ``<speed>``...): one reader would take the first, another the last. Refused by every verb,
+    naming both lines (:func:`hcdf_trust.document.single`)."""
+
+    code = "ambiguous"
+
+
+class AmbiguousReferenceError(AmbiguousError):
     """A reference that readers could read two ways (``uri`` and ``href`` that differ, a comment
     inside a text reference, a namespaced ``<x:include>``...): refused, never skipped."""
 

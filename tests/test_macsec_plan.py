@@ -311,8 +311,12 @@ def test_refuses_without_a_lock(tmp_path, cli):
     assert "lock" in r.stderr
 
 
-def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]]:
-    """The port rule of macsec.plan written plainly with lxml's filtered iterators and QName."""
+def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]] | None:
+    """The port rule of macsec.plan written plainly with lxml's filtered iterators and QName;
+    None when a port read has two <capabilities>, or two <speed> (<speed-tx>, <speed-rx>,
+    <macsec>) in one: the schema allows each once, and the planner refuses it."""
+    from collections import Counter
+
     from lxml import etree
 
     from hcdf_trust.macsec.plan import _mbps
@@ -324,7 +328,12 @@ def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]]:
             continue
         ciphers: list[str] = []
         speeds: list[float] = []
+        if len(list(el.iterchildren("{*}capabilities"))) > 1:
+            return None
         for caps in el.iterchildren("{*}capabilities"):
+            once = Counter(etree.QName(i).localname for i in caps.iterchildren(etree.Element))
+            if any(once[t] > 1 for t in ("speed", "speed-tx", "speed-rx", "macsec")):
+                return None
             for item in caps.iterchildren(etree.Element):
                 local = etree.QName(item).localname
                 if local == "macsec":
@@ -386,19 +395,25 @@ def test_port_reading_matches_a_plain_reference(seed):
         body = f"<switch>{body}</switch>"
     text = f'<hcdf xmlns:x="urn:x" xmlns:y="urn:y"><comp name="c">\n{body}\n</comp></hcdf>'
     comp_el = parse_bytes(text.encode(), source="t.hcdf").getroot()[0]
-    assert _read_ports(comp_el, "t.hcdf") == _reference_ports(comp_el, "t.hcdf")
+    expected = _reference_ports(comp_el, "t.hcdf")
+    if expected is None:
+        from hcdf_trust.errors import AmbiguousError
+
+        with pytest.raises(AmbiguousError, match="the schema allows one"):
+            _read_ports(comp_el, "t.hcdf")
+    else:
+        assert _read_ports(comp_el, "t.hcdf") == expected
 
 
-def test_link_children_are_read_in_any_namespace_first_override_wins():
-    # _link reads the first <wired>, all its <port>s and its first <macsec> in one loop of tag tests
+def test_link_children_are_read_in_any_namespace():
+    # _link reads the one <wired>, all its <port>s and its one <macsec> in one loop of tag tests
     from hcdf_trust.document import Document
     from hcdf_trust.macsec.plan import plan_resolution
     from hcdf_trust.xml import parse_bytes
 
     wired = (
         '<x:wired xmlns:x="urn:x"><!-- a comment --><x:port>a/p0</x:port><?pi?><ports>c/p0</ports>'
-        '<port> b/p0</port><x:macsec policy="must-secure" key-ref="k"/><macsec policy="disabled"/></x:wired>'
-        '<wired><port>c/p0</port><macsec policy="disabled"/></wired>'
+        '<port> b/p0</port><x:macsec policy="must-secure" key-ref="k"/></x:wired>'
     )
     text = hcdf(
         comp("a", port("p0", "gcm-aes-128")),
@@ -412,3 +427,39 @@ def test_link_children_are_read_in_any_namespace_first_override_wins():
     ca = p.associations["key-ref:k"]
     assert ca.policy is not None and ca.policy.policy == "must-secure"
     assert _members(ca) == {"a": ["p0"], "b": ["p0"]}
+
+
+@pytest.mark.parametrize(
+    ("wired", "tag"),
+    [
+        (
+            '<wired><port>a/p0</port><port>b/p0</port><macsec policy="must-secure"/>'
+            '<x:macsec xmlns:x="urn:x" policy="disabled"/></wired>',
+            "macsec",
+        ),
+        (
+            '<wired><port>a/p0</port><port>b/p0</port><macsec policy="must-secure"/></wired>'
+            '<wired><port>c/p0</port><macsec policy="disabled"/></wired>',
+            "wired",
+        ),
+    ],
+)
+def test_link_with_two_macsec_or_two_wired_is_refused(wired, tag):
+    # First-one-wins used to secure the link with the first <macsec> while another reader took the
+    # second (disabled): the schema allows one, so two are refused, naming both lines.
+    from hcdf_trust.document import Document
+    from hcdf_trust.errors import AmbiguousError, ErrorGroup
+    from hcdf_trust.macsec.plan import plan_resolution
+    from hcdf_trust.xml import parse_bytes
+
+    text = hcdf(
+        comp("a", port("p0", "gcm-aes-128")),
+        comp("b", port("p0", "gcm-aes-128")),
+        comp("c", port("p0", "gcm-aes-128")),
+        f'<network name="n"><link name="l">\n{wired}\n</link></network>',
+    )
+    doc = Document(source="t.hcdf", tree=parse_bytes(text.encode(), source="t.hcdf"), data=text.encode())
+    with pytest.raises(ErrorGroup) as info:
+        plan_resolution({"u": doc}, {}, "u")
+    (error,) = [e for e in info.value.errors if isinstance(e, AmbiguousError)]
+    assert error.code == "ambiguous" and f"2 <{tag}> elements" in error.message

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from ..errors import InputError, LockFileError
+from ..errors import AmbiguousError, InputError, LockFileError
 from ..include import lockfile
-from ..include.resolver import ResolveOptions, resolve
+from ..include.resolver import TreeOptions, resolve
 from . import extensions, firmware, macsec, references
 from .policy import CHECKS, DEFAULT, Policy, PolicyError
 from .report import Finding, Report
@@ -39,10 +39,7 @@ class AuditOptions:
     """What to audit against. Keyword-only by convention."""
 
     policy: Policy = DEFAULT
-    lock_path: str | None = None
-    offline: bool = True
-    cache_dir: str | None = None
-    root: str | None = None
+    tree: TreeOptions = TreeOptions()  # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline
     release_dir: str | None = None
     release_key: str | None = None
     store_dir: str | None = None
@@ -59,15 +56,15 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
             cannot be read (a wrong passphrase included); the registry cannot be reached.
     """
     o = options or AuditOptions()
-    if o.lock_path is not None and not os.path.lexists(o.lock_path):
-        raise LockFileError(f"lock file {o.lock_path} does not exist", file=o.lock_path)
-    res = resolve(
-        doc,
-        ResolveOptions(lock_path=o.lock_path, offline=o.offline, write_cache=False, cache_dir=o.cache_dir, root=o.root),
-    )
+    lock_path = o.tree.lock_path
+    if lock_path is not None and not os.path.lexists(lock_path):
+        raise LockFileError(f"lock file {lock_path} does not exist", file=lock_path)
+    res = resolve(doc, o.tree.resolve_options(write_cache=False))
     for error in res.errors:
-        if isinstance(error, LockFileError):
-            raise error  # a lock that cannot be read: nothing about the tree can be trusted to it
+        # A lock that cannot be read, or a document that reads two ways: nothing about the tree
+        # can be trusted to it (exit 3, as every other verb refuses it).
+        if isinstance(error, LockFileError | AmbiguousError):
+            raise error
     lock = lockfile.load(res.lock_path) if os.path.lexists(res.lock_path) else None
     report = Report(document=res.root.source, policy=o.policy)
     report.checked.append("references")

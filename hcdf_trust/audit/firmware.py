@@ -12,7 +12,7 @@ import re
 from typing import TYPE_CHECKING, Any
 
 from ..digest import is_full_sha256
-from ..document import Kind, software_elements
+from ..document import Kind, single, single_text, software_elements
 from ..errors import HcdfTrustError
 from ..include.resolver import Resolution
 from ..xml import sourceline
@@ -70,7 +70,7 @@ def _software(report: Report, source: str, sw: Any, hashes: dict[Any, Any], rele
     comp = sw.getparent()
     comp_name = comp.get("name") if comp is not None and comp.tag == "comp" else None
     what = f"comp {comp_name!r}: <software name={name!r}>" if comp_name else f"<software name={name!r}>"
-    hash_el = sw.find("hash")
+    hash_el = single(sw, "hash", source=source)
     ref = hashes.get(hash_el) if hash_el is not None else None
     sha = ref.sha if ref is not None else None
     if sha is None:
@@ -82,8 +82,8 @@ def _software(report: Report, source: str, sw: Any, hashes: dict[Any, Any], rele
             file=source,
             line=ref.line if ref is not None else line,
         )
-    version_el = sw.find("version")
-    version = (version_el.text or "").strip() if version_el is not None else ""
+    version_el = single(sw, "version", source=source)
+    version = single_text(sw, "version", source=source) or ""
     if not SEMVER.fullmatch(version):
         shown = repr(version) if version else "missing"
         report.add(
@@ -94,7 +94,7 @@ def _software(report: Report, source: str, sw: Any, hashes: dict[Any, Any], rele
         )
     if release is None or comp_name is None:
         return
-    board = (comp.findtext("board") or "").strip() or comp_name
+    board = single_text(comp, "board", source=source) or comp_name
     component = release.component(board, name)
     if component is None:
         report.add(

@@ -11,7 +11,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from ..errors import HcdfTrustError
+from ..errors import AmbiguousError, HcdfTrustError
 from ..include.flatten import SEPARATOR
 from ..include.resolver import Resolution
 from ..macsec.plan import Element, Plan, plan_resolution
@@ -27,6 +27,8 @@ def plan_of(report: Report, res: Resolution) -> Plan | None:
     try:
         return plan_resolution(res.documents, res.includes, res.root_location.url)
     except HcdfTrustError as exc:
+        if any(isinstance(e, AmbiguousError) for e in getattr(exc, "errors", None) or [exc]):
+            raise  # an element the planner reads written twice: refused as every verb refuses it (exit 3)
         report.add_error(exc)
         return None
 

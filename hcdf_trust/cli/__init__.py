@@ -6,6 +6,7 @@ need them, so ``--help`` and an offline ``verify`` start fast.
 
 from __future__ import annotations
 
+import errno
 import functools
 import gc
 import json
@@ -23,7 +24,10 @@ from ..errors import ErrorGroup, HcdfTrustError
 
 def emit_json(payload: dict[str, Any]) -> None:
     """The one JSON object of ``--json``: indented on a terminal, compact into a pipe or file
-    (where json's C encoder writes a 10,000-link macsec plan in 0.1 s instead of 0.4 s)."""
+    (where json's C encoder writes a 10,000-link macsec plan in 0.1 s instead of 0.4 s).
+    Every object has ``errors`` (the README's shape), empty when the verb gave none."""
+    if "errors" not in payload:
+        payload = {**payload, "errors": []}
     indent = 2 if sys.stdout.isatty() else None
     click.echo(json.dumps(payload, indent=indent, sort_keys=True))
 
@@ -121,37 +125,84 @@ def _seconds(ctx: click.Context, param: click.Parameter, value: float) -> float:
     return value
 
 
+# The options that say where a description tree is, shared by every verb that reads one, so
+# that each means the same and reads the same in every --help (tests/test_flags_uniform.py).
+LOCK_OPTION = click.option(
+    "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC]."
+)
+CACHE_DIR_OPTION = click.option(
+    "--cache-dir",
+    type=click.Path(file_okay=False),
+    help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
+)
+BASE_OPTION = click.option(
+    "--base",
+    callback=_base,
+    metavar="DIR|URL",
+    help="Existing folder, or https URL, that relative references resolve against (default: the referencing document).",
+)
+ROOT_OPTION = click.option(
+    "--root",
+    type=click.Path(exists=True, file_okay=False),
+    help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
+)
+MIRROR_OPTION = click.option(
+    "--mirror",
+    "mirrors",
+    multiple=True,
+    callback=_mirror,
+    metavar="PREFIX=DIR|URL",
+    help="Rewrite a URL prefix to an existing folder or an https URL (repeatable).",
+)
+OFFLINE_HELP = "Use only local files, mirrors and the cache; never open a socket."
+JSON_OPTION = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+_LOCATION_KEYS = ("base", "mirrors", "root")
+_TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
+
+
+def tree_location_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``--base``, ``--mirror``, ``--root`` (resolve's), passed to ``func`` as one
+    ``tree``: a :class:`~hcdf_trust.include.resolver.TreeOptions`. For a verb that reads
+    local files only (validate)."""
+    return _tree_decorator(func, (BASE_OPTION, MIRROR_OPTION, ROOT_OPTION), _LOCATION_KEYS)
+
+
+def tree_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock`` and
+    ``--offline`` (default here; ``--online`` fetches what the cache lacks, still checked
+    against the lock), passed to ``func`` as one ``tree``: a
+    :class:`~hcdf_trust.include.resolver.TreeOptions`. For every verb that reads a description
+    tree under its lock (audit, sbom, macsec, ota build)."""
+    offline = click.option(
+        "--offline/--online",
+        default=True,
+        show_default=True,
+        help=OFFLINE_HELP + " --online fetches what they lack (still checked against the lock).",
+    )
+    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline)
+    return _tree_decorator(func, options, _TREE_KEYS)
+
+
+def _tree_decorator(func: Callable[..., Any], options: tuple[Any, ...], keys: tuple[str, ...]) -> Callable[..., Any]:
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from ..include.resolver import TreeOptions
+
+        return func(*args, tree=TreeOptions(**{k: kwargs.pop(k) for k in keys}), **kwargs)
+
+    for option in reversed(options):
+        wrapper = option(wrapper)
+    return wrapper
+
+
 def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options of every verb that resolves a document tree (resolve, verify, pin); none is about the network."""
     options = [
-        click.option(
-            "--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC]."
-        ),
-        click.option(
-            "--cache-dir",
-            type=click.Path(file_okay=False),
-            help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
-        ),
-        click.option(
-            "--base",
-            callback=_base,
-            metavar="DIR|URL",
-            help="Existing folder, or https URL, that relative references resolve against "
-            "(default: the referencing document).",
-        ),
-        click.option(
-            "--root",
-            type=click.Path(exists=True, file_okay=False),
-            help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
-        ),
-        click.option(
-            "--mirror",
-            "mirrors",
-            multiple=True,
-            callback=_mirror,
-            metavar="PREFIX=DIR|URL",
-            help="Rewrite a URL prefix to an existing folder or an https URL (repeatable).",
-        ),
+        LOCK_OPTION,
+        CACHE_DIR_OPTION,
+        BASE_OPTION,
+        ROOT_OPTION,
+        MIRROR_OPTION,
         click.option(
             "--max-depth",
             type=click.IntRange(min=1),
@@ -165,7 +216,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             help="Refuse weak pins (hex prefixes shorter than 64 digits); with --registry, also unregistered "
             "extension domains and versions.",
         ),
-        click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout."),
+        JSON_OPTION,
     ]
     for option in reversed(options):
         func = option(func)
@@ -203,9 +254,7 @@ def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offli
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Options of the verbs that may fetch (resolve, pin); verify never does, and neither offers nor reads them."""
     options = [
-        click.option(
-            "--offline", is_flag=True, help="Use only local files, mirrors and the cache; never open a socket."
-        ),
+        click.option("--offline", is_flag=True, help=OFFLINE_HELP),
         click.option(
             "--allow-http",
             is_flag=True,
@@ -248,6 +297,63 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
+class _ClosedStdout:
+    """Standard output when the process was started with it closed (``>&-``): every write fails,
+    so a verb that prints its result exits 3 instead of printing nothing and succeeding."""
+
+    def write(self, data: object) -> int:
+        raise OSError(errno.EBADF, "standard output is closed")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    @property
+    def buffer(self) -> _ClosedStdout:  # sys.stdout.buffer.write(bytes) fails the same way
+        return self
+
+
+def _standard_streams() -> None:
+    """Keep descriptors 0-2 taken (/dev/null where the process was started with one closed), so
+    that no file this run opens becomes its stdout or stderr; a closed stdout then refuses writes."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+    if sys.stdout is None:  # Python found fd 1 closed at start (it may hold another file by now)
+        sys.stdout = _ClosedStdout()
+
+
+def _stdout_failed(exc: OSError) -> None:
+    """When standard output cannot be written (closed, full, a closed pipe), say so and exit 3;
+    otherwise return (``exc`` is someone else's to report)."""
+    stream: Any = sys.stdout
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    frame = tb.tb_frame if tb is not None else None
+    # every line a verb prints goes through click.echo (err=False: stdout), which also flushes it
+    echoed = frame is not None and frame.f_code.co_name == "echo" and frame.f_globals.get("__name__") == "click.utils"
+    if not (isinstance(stream, _ClosedStdout) or (echoed and frame is not None and not frame.f_locals.get("err"))):
+        return
+    try:  # what is still buffered goes nowhere, so the exit's own flush does not fail again
+        fd = stream.fileno()
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, fd)
+        os.close(null)
+    except (AttributeError, OSError, ValueError):
+        pass
+    why = exc.strerror or str(exc)
+    click.echo(f"error: cannot write to standard output: {why}", err=True)
+    raise click.exceptions.Exit(3)
+
+
 # Objects that a console-script run leaves for the kernel to reclaim (see _Main); None in-process.
 _KEPT: list[object] | None = None
 
@@ -270,12 +376,26 @@ class _Main(click.Group):
     An interrupt exits 130, as shells report SIGINT, not click's 1 ("Aborted!"), which a
     build script would read as an integrity failure."""
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        _standard_streams()
+        return super().main(*args, **kwargs)
+
+    def make_context(self, *args: Any, **kwargs: Any) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except OSError as exc:  # --help into a full or closed stdout
+            _stdout_failed(exc)
+            raise
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
             click.echo("interrupted: nothing more was written", err=True)
             ctx.exit(130)
+        except OSError as exc:
+            _stdout_failed(exc)
+            raise
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *_LAZY_COMMANDS})
@@ -346,7 +466,40 @@ def main(ctx: click.Context) -> None:
             ctx.call_on_close(gc.enable)
 
 
-@main.command()
+class _OptionalValueCommand(click.Command):
+    """A command with one positional argument and an option whose value may be omitted
+    (resolve's ``--update [URI]``). Click gives such an option the next word as its value,
+    so ``resolve --update robot.hcdf`` lost DOC ("Missing argument"); when that leaves no
+    positional argument at all, the word was the positional: the option gets no value."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        options = [p for p in self.params if isinstance(p, click.Option)]
+        optional = {o for p in options if p._flag_needs_value for o in p.opts}
+        valued = {o for p in options if not p.is_flag and not p.count and not p._flag_needs_value for o in p.opts}
+        args = list(args)
+        positionals, omitted, i = 0, None, 0
+        while i < len(args):
+            word = args[i]
+            if word == "--":
+                positionals += len(args) - i - 1
+                break
+            if word.startswith("-") and len(word) > 1:
+                follows = i + 1 < len(args) and not args[i + 1].startswith("-")
+                if word in valued:
+                    i += 2
+                    continue
+                if word in optional and follows:
+                    omitted, i = i, i + 2
+                    continue
+            else:
+                positionals += 1
+            i += 1
+        if positionals == 0 and omitted is not None:
+            args[omitted] += "="  # "--update=": the value left out; the next word is the positional
+        return super().parse_args(ctx, args)
+
+
+@main.command(cls=_OptionalValueCommand)
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
 @click.option(
@@ -354,7 +507,11 @@ def main(ctx: click.Context) -> None:
 )
 @fetch_options
 @click.option(
-    "--out", "out", type=click.Path(dir_okay=False), help="Write one flattened document with every include expanded."
+    "-o",
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False),
+    help="Write one flattened document with every include expanded.",
 )
 @click.option(
     "--max-elements",
@@ -373,7 +530,7 @@ def main(ctx: click.Context) -> None:
     flag_value="",
     metavar="[URI]",
     help="Accept new content for a reference the lock pins: --update alone re-pins every entry, "
-    "--update URI (repeatable; the uri as written or the lock's url) only that one. Put it after DOC.",
+    "--update URI (repeatable; the uri as written or the lock's url) only that one.",
 )
 @handle_errors
 def resolve(
@@ -420,13 +577,16 @@ def resolve(
         plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
+        from ..outputs import DOCUMENT, ORDINARY
 
-        plan.check(out, flag="--out")  # an input is named as such, before flattening
+        flat = (ORDINARY, DOCUMENT)  # the previous flattened document; never one of the tree (an input)
+        plan.check(out, flag="--out", replaces=flat)  # an input is named as such, before flattening
         plan.add(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),
             flag="--out",
             if_changed=True,
+            replaces=flat,
         )
     wrote = plan.commit()
     _report(

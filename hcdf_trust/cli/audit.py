@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, tree_options
 from .macsec import store_options
 
 
@@ -17,12 +17,7 @@ from .macsec import store_options
 @click.option(
     "--policy", "policy_file", type=click.Path(dir_okay=False), help="Audit policy (TOML) [default: built-in]."
 )
-@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock].")
-@click.option(
-    "--offline/--online", default=True, show_default=True, help="Never open a socket (remote files from the cache)."
-)
-@click.option("--cache-dir", type=click.Path(file_okay=False), help="Content cache to read remote files from.")
-@click.option("--root", type=click.Path(file_okay=False), help="Folder local references may not leave.")
+@tree_options
 @click.option("--release", "release_dir", type=click.Path(file_okay=False), help="Signed OTA release folder.")
 @click.option("--key", "release_key", type=click.Path(dir_okay=False), help="The release's public key (PEM).")
 @click.option("--registry", "registry_site", help="Registry (URL or folder): extension domains and schemas.")
@@ -33,10 +28,7 @@ from .macsec import store_options
 def audit_cmd(
     doc: str,
     policy_file: str | None,
-    lock_path: str | None,
-    offline: bool,
-    cache_dir: str | None,
-    root: str | None,
+    tree: Any,
     release_dir: str | None,
     release_key: str | None,
     registry_site: str | None,
@@ -60,7 +52,7 @@ def audit_cmd(
         raise click.UsageError("--release and --key go together")
     if registry_site is not None and trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
-    if registry_site is not None and "://" in registry_site and offline:
+    if registry_site is not None and "://" in registry_site and tree.offline:
         raise click.UsageError(f"--registry {registry_site} is on the network: add --online (or give a folder)")
     if store_dir is None and (passphrase_file or now_text or any(backend.values())):
         raise click.UsageError("the key store options need --store")
@@ -81,10 +73,7 @@ def audit_cmd(
         doc,
         AuditOptions(
             policy=policy,
-            lock_path=lock_path,
-            offline=offline,
-            cache_dir=cache_dir,
-            root=root,
+            tree=tree,
             release_dir=release_dir,
             release_key=release_key,
             store_dir=store_dir,

@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from ..errors import HcdfTrustError
-from . import emit_json, handle_errors, keep_until_exit
+from . import emit_json, handle_errors, keep_until_exit, tree_options
 
 
 @click.group()
@@ -54,17 +54,18 @@ def _plan_lines(p: Any) -> None:
 
 @macsec.command("plan")
 @click.argument("doc", type=click.Path(dir_okay=False))
+@tree_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
-def plan_cmd(doc: str, as_json: bool) -> None:
+def plan_cmd(doc: str, tree: Any, as_json: bool) -> None:
     """Show the connectivity associations DOC's MACsec policy asks for.
 
-    The include tree is resolved and verified first (offline, against its lock file);
-    any resolve error refuses the plan.
+    The include tree is resolved and verified first (against its lock file, offline unless
+    --online); any resolve error refuses the plan.
     """
     from ..macsec.plan import plan
 
-    p = plan(doc)
+    p = plan(doc, tree=tree)
     keep_until_exit(p)  # a 10,000-link plan and its XML trees are left for the kernel to reclaim
     if as_json:
         payload = {"ok": True, **p.to_dict()}
@@ -202,6 +203,14 @@ def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]
     return out
 
 
+def _indexed(doc: str, tree: Any) -> str | None:
+    """``doc``, whose export index generate and rotate write, when its tree is found where
+    resolve finds it by default (the index's fast path assumes so); None otherwise."""
+    from ..include.resolver import TreeOptions
+
+    return doc if tree == TreeOptions() else None
+
+
 def _save(
     store: Any, now: Any, *, doc: str | None, p: Any, passphrase_file: str | None, backend: dict[str, Any]
 ) -> None:
@@ -225,10 +234,17 @@ def _save(
 @macsec.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @store_options
+@tree_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
 def generate(
-    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+    doc: str,
+    store_dir: str,
+    passphrase_file: str | None,
+    now_text: str | None,
+    tree: Any,
+    as_json: bool,
+    **backend: Any,
 ) -> None:
     """Create every missing key DOC's associations need (running it again changes nothing)."""
     from ..macsec.store import KeyStore, locked
@@ -242,7 +258,7 @@ def generate(
     from ..macsec.plan import plan
     from ..macsec.rotation import generate as run
 
-    p = plan(doc)
+    p = plan(doc, tree=tree)
     keep_until_exit(p)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
@@ -252,7 +268,7 @@ def generate(
             store = fresh.result() if fresh is not None else KeyStore.create(store_dir, wrapper)
         keep_until_exit(store)
         created, notices = run(store, p, now=now)
-        _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=_indexed(doc, tree), p=p, passphrase_file=passphrase_file, backend=backend)
     warnings = [*p.warnings, *notices]
     if as_json:
         emit_json(
@@ -269,10 +285,17 @@ def generate(
 @macsec.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @store_options
+@tree_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
 def status(
-    doc: str, store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any
+    doc: str,
+    store_dir: str,
+    passphrase_file: str | None,
+    now_text: str | None,
+    tree: Any,
+    as_json: bool,
+    **backend: Any,
 ) -> None:
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
     from ..macsec.store import KeyStore
@@ -282,7 +305,7 @@ def status(
     from ..macsec.plan import plan
     from ..macsec.rotation import status as run
 
-    p = plan(doc)
+    p = plan(doc, tree=tree)
     keep_until_exit(p)
     store = opening.result()
     keep_until_exit(store)
@@ -302,6 +325,7 @@ def status(
 @macsec.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @store_options
+@tree_options
 @click.option("--network", help="Only associations of this network.")
 @click.option("--key-ref", help="Only the association of this key-ref (as scoped in the plan).")
 @click.option("--due", is_flag=True, help="Only associations due under rekey-interval-sec.")
@@ -319,6 +343,7 @@ def rotate(
     store_dir: str,
     passphrase_file: str | None,
     now_text: str | None,
+    tree: Any,
     network: str | None,
     key_ref: str | None,
     due: bool,
@@ -339,14 +364,14 @@ def rotate(
     from ..macsec.rotation import rotate as run
     from ..macsec.rotation import select
 
-    p = plan(doc)
+    p = plan(doc, tree=tree)
     keep_until_exit(p)
     wrapper = (warm.result() if warm is not None else None) or _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
         done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
-        _save(store, now, doc=doc, p=p, passphrase_file=passphrase_file, backend=backend)
+        _save(store, now, doc=_indexed(doc, tree), p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
@@ -397,6 +422,7 @@ def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 @macsec.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @store_options
+@tree_options
 @click.option("--device", required=True, help="The comp (as named in the plan) whose keys to export.")
 @click.option(
     "--format",
@@ -406,7 +432,7 @@ def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     help="The consumer of the exported files.",
 )
 @click.option(
-    "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder for the files (mode 0600)."
+    "-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder for the files (mode 0600)."
 )
 @click.option(
     "--wpa-version",
@@ -427,6 +453,7 @@ def export(
     store_dir: str,
     passphrase_file: str | None,
     now_text: str | None,
+    tree: Any,
     device: str,
     fmt: str,
     out_dir: str,
@@ -439,19 +466,23 @@ def export(
     import os
 
     from ..macsec.store import KeyStore
+    from ..outputs import ORDINARY, kind_of
 
     now = _now(now_text)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
     # the description verified and planned.
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
+    from ..include.resolver import TreeOptions
     from ..macsec import index
     from ..macsec.export import collect, mesh_keys, render
 
     # The export index, when it was written for this description as it is now, holds its
     # verified plan: once the store opens, it is checked (MAC, every file's digest) and used.
     # A store that does not open sends us to the description too: its errors come first, and
-    # opening.result() then raises the store's error again.
-    found, p = index.candidate(doc, store_dir, device), None
+    # opening.result() then raises the store's error again. Only for a tree found where resolve
+    # finds it by default: with --base, --root, --lock... it is planned in full.
+    found = index.candidate(doc, store_dir, device) if tree == TreeOptions() else None
+    p = None
     if found is not None:
         try:
             store = opening.result()
@@ -462,7 +493,7 @@ def export(
     if p is None:
         from ..macsec.plan import plan
 
-        p = plan(doc, device=device)  # only the networks that can hold the device's associations
+        p = plan(doc, device=device, tree=tree)  # only the networks that can hold the device's associations
         keep_until_exit(p)
         store = opening.result()
     keep_until_exit(store)
@@ -477,9 +508,19 @@ def export(
         found.protect(out)
     out.protect(store.path, what="the key store")
     out.protect(index.path_in(store_dir), what="the export index")
+    out.protect_tree(store.path.parent, what="the key store's folder")
     for name in sorted(files):
-        out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
-    os.makedirs(out_dir, mode=0o700, exist_ok=True)
+        # a re-export replaces the previous one's EAP-TLS device key: key material of the same kind
+        kind = kind_of(files[name])
+        out.add(
+            os.path.join(out_dir, name),
+            files[name],
+            flag="--out",
+            mode=0o600,
+            under=out_dir,
+            folder_mode=0o700,
+            replaces=(ORDINARY, kind),
+        )
     written = out.commit()
     target = f"{wpa_version[0]}.{wpa_version[1]}" if fmt == "wpa_supplicant" else None
     if as_json:

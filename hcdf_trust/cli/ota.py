@@ -5,12 +5,11 @@ imgtool, cbor2 and the COSE library are imported inside the commands only.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import click
 
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, tree_options
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
 
@@ -31,9 +30,8 @@ def ota() -> None:
 @handle_errors
 def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_json: bool) -> None:
     """Generate a signing key with imgtool; the public key goes beside it (KEY.pub.pem)."""
-    from ..ota.errors import KeyFileError
     from ..ota.keys import generate, key_type, private_pem, public_path, public_pem, read_passphrase
-    from ..outputs import OutputPlan
+    from ..outputs import NEW_ONLY, PRIVATE_KEY, PUBLIC_KEY, OutputPlan
 
     pub = public_path(out)
     plan = OutputPlan()
@@ -41,13 +39,14 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     if passphrase_file:
         plan.protect(passphrase_file, what="the passphrase file")
         passphrase = read_passphrase(passphrase_file)
-    if not force:
-        for path in (out, pub):
-            if os.path.lexists(path):
-                raise KeyFileError("exists: refusing to replace a key (use --force)", file=str(path))
+    # an existing key is replaced only with --force, and only by a key: never a document, never a passphrase file
+    plan.check(out, flag="--out", replaces=(PRIVATE_KEY,) if force else NEW_ONLY)
+    plan.check(pub, flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
     key = generate(kind)
-    plan.add(out, private_pem(key, passphrase), flag="--out", mode=0o600)
-    plan.add(pub, public_pem(key), flag="public key")
+    plan.add(
+        out, private_pem(key, passphrase), flag="--out", mode=0o600, replaces=(PRIVATE_KEY,) if force else NEW_ONLY
+    )
+    plan.add(pub, public_pem(key), flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
     plan.commit()
     result = {"type": key_type(key), "private": out, "public": str(pub), "encrypted": passphrase is not None}
     if as_json:
@@ -69,7 +68,9 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     type=click.Path(dir_okay=False),
     help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
 )
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write.")
+@click.option(
+    "-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write."
+)
 @click.option("--base-url", help="URL prefix of the release folder, for latest.json and the manifest.")
 @click.option(
     "--previous", help="The previous release (folder or https URL): history, sequence number, security counters."
@@ -87,13 +88,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     is_flag=True,
     help="Write each image's hash into a <software><hash> that differs (minimal edits; includers and lock follow).",
 )
-@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: beside DOC].")
-@click.option(
-    "--online", is_flag=True, help="Fetch remote references the cache lacks (still checked against the lock)."
-)
-@click.option(
-    "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
-)
+@tree_options
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
@@ -110,9 +105,7 @@ def build(
     config: str | None,
     changelog: str | None,
     update_hcdf: bool,
-    lock_path: str | None,
-    online: bool,
-    cache_dir: str | None,
+    tree: Any,
     jobs: int,
     as_json: bool,
 ) -> None:
@@ -137,11 +130,9 @@ def build(
                 config=config,
                 changelog=changelog,
                 update_hcdf=update_hcdf,
-                lock_path=lock_path,
+                tree=tree,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
-                online=online,
-                cache_dir=cache_dir,
             ),
         )
     finally:

@@ -13,7 +13,7 @@ from typing import Any
 import click
 
 from ..outputs import OutputPlan
-from . import emit_json, handle_errors
+from . import JSON_OPTION, emit_json, handle_errors
 
 _DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
 _UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
@@ -43,17 +43,12 @@ def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
     return KeyRing(keys, lambda: read_passphrase(passphrase_file))
 
 
-def _commit(plan: OutputPlan, keydir: Path) -> None:
-    """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
-    from ..registry.keys import prepare_keydir
-
-    created = prepare_keydir(keydir)
-    try:
-        plan.commit()
-    except BaseException:
-        if created and not any(keydir.iterdir()):
-            keydir.rmdir()
-        raise
+def _plan(passphrase_file: str | None) -> OutputPlan:
+    """The run's OutputPlan, with the passphrase file (an input of every verb that signs) protected."""
+    plan = OutputPlan()
+    if passphrase_file is not None:
+        plan.protect(passphrase_file, what="the passphrase file")
+    return plan
 
 
 sigstore_root_option = click.option(
@@ -85,15 +80,20 @@ def registry() -> None:
     help="Folder for the private keys (kept outside DIR).",
 )
 @passphrase_option
+@JSON_OPTION
 @handle_errors
-def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
+def init(source_dir: str, keydir: str, passphrase_file: str | None, as_json: bool) -> None:
     """Start a registry source in DIR: fresh root, targets, snapshot and timestamp keys."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
+    plan.commit()
+    if as_json:
+        roles = {role: t.keyids[0] for role, t in root.roles.items()}
+        emit_json({"ok": True, "source": source_dir, "keys": keydir, "roles": roles, "errors": []})
+        return
     for role, t in root.roles.items():
         click.echo(f"{role}: key {t.keyids[0]}", err=True)
     click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
@@ -102,17 +102,23 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None) -> None:
 @registry.command()
 @click.option("--keys", "keydir", required=True, type=click.Path(file_okay=False), help="Folder for the private key.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Public key file to write.")
+@click.option("--force", is_flag=True, help="Replace an existing public key file at --out.")
 @passphrase_option
+@JSON_OPTION
 @handle_errors
-def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
+def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None, as_json: bool) -> None:
     """Make an owner key: the private half in --keys, the public half in --out."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
-    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
-    click.echo(f"key {key.keyid}: public {out}, private {keydir}/{key.keyid}.key", err=True)
+    plan = _plan(passphrase_file)
+    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan, force=force)
+    plan.commit()
+    private = f"{keydir}/{key.keyid}.key"
+    if as_json:
+        emit_json({"ok": True, "keyid": key.keyid, "public": out, "private": private, "errors": []})
+        return
+    click.echo(f"key {key.keyid}: public {out}, private {private}", err=True)
 
 
 @registry.command()
@@ -162,6 +168,7 @@ def keygen(keydir: str, out: str, passphrase_file: str | None) -> None:
 )
 @sigstore_root_option
 @passphrase_option
+@JSON_OPTION
 @handle_errors
 def add(
     source_dir: str,
@@ -181,6 +188,7 @@ def add(
     sigstore_bundle: str | None,
     sigstore_root: str | None,
     passphrase_file: str | None,
+    as_json: bool,
 ) -> None:
     """Record a domain version (signed by its owner), a stream profile or a core schema."""
     from ..registry import edit
@@ -190,7 +198,7 @@ def add(
     if len(chosen) != 1:
         raise click.UsageError("give exactly one of --domain, --profile or --core")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     content = Path(content_dir)
     if profile:
         name, ver = edit.profile_identity(profile)
@@ -226,11 +234,15 @@ def add(
                 sigstore_root=sigstore_root,
             )
             what = f"{domain} {version}" if version else f"domain {domain}"
-    if done is None:
+    if done is not None:
+        plan.commit()
+    if as_json:
+        recorded = str(plan.paths[0]) if done is not None else None
+        emit_json({"ok": True, "entry": what, "recorded": recorded, "unchanged": done is None, "errors": []})
+    elif done is None:
         click.echo(f"{what}: already registered with the same content", err=True)
-        return
-    plan.commit()
-    click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+    else:
+        click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
 
 
 @registry.command()
@@ -245,17 +257,27 @@ def add(
     show_default=True,
     help="Content folder the schema lies in.",
 )
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@click.option(
+    "-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement (- for stdout)."
+)
+@JSON_OPTION
 @handle_errors
-def statement(domain: str, version: str, schema: str, content_dir: str, out: str) -> None:
+def statement(domain: str, version: str, schema: str, content_dir: str, out: str, as_json: bool) -> None:
     """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
     from ..registry import edit
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
-    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="-o")
+    plan.protect_tree(content_dir, what="the content folder")
+    if out == "-" and as_json:
+        raise click.UsageError("-o - and --json would both write to stdout")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out", stdout=True)
     plan.commit()
-    click.echo(f"statement for {domain} {version} written to {out}", err=True)
+    if as_json:
+        emit_json({"ok": True, "domain": domain, "version": version, "wrote": [out], "errors": []})
+        return
+    if out != "-":
+        click.echo(f"statement for {domain} {version} written to {out}", err=True)
 
 
 @registry.command()
@@ -273,9 +295,15 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
     help="Keys folder; the new private key goes into the first (repeatable).",
 )
 @passphrase_option
+@JSON_OPTION
 @handle_errors
 def rotate(
-    source_dir: str, role: str | None, domain: str | None, keydirs: tuple[str, ...], passphrase_file: str | None
+    source_dir: str,
+    role: str | None,
+    domain: str | None,
+    keydirs: tuple[str, ...],
+    passphrase_file: str | None,
+    as_json: bool,
 ) -> None:
     """Replace a top-level role's key or a domain owner's key; `publish` then signs the change."""
     from ..registry import edit
@@ -285,7 +313,7 @@ def rotate(
     if (role is None) == (domain is None):
         raise click.UsageError("give exactly one of --role or --domain")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     keydir = Path(keydirs[0])
     passphrase = read_passphrase(passphrase_file)
     if role:
@@ -293,7 +321,10 @@ def rotate(
     else:
         assert domain is not None
         key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
-    _commit(plan, keydir)
+    plan.commit()
+    if as_json:
+        emit_json({"ok": True, "role": role, "domain": domain, "keyid": key.keyid, "errors": []})
+        return
     click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
 
 
@@ -315,6 +346,7 @@ def rotate(
     help="Folder holding the files the entries name.",
 )
 @click.option(
+    "-o",
     "--out",
     "site",
     required=True,
@@ -331,7 +363,7 @@ def rotate(
 )
 @sigstore_root_option
 @passphrase_option
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
+@JSON_OPTION
 @handle_errors
 def publish(
     source_dir: str,
@@ -348,7 +380,7 @@ def publish(
     from ..registry.source import load_source
 
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     plan.protect_tree(source_dir, what="the registry source")
     plan.protect_tree(content_dir, what="the content folder")
     for k in keydirs:
@@ -370,6 +402,7 @@ def publish(
                 "versions": result.versions,
                 "signed": result.signed,
                 "written": [str(p) for p in result.written],
+                "errors": [],
             }
         )
     else:
@@ -421,7 +454,7 @@ def _with_client_options(func: Any) -> Any:
 @registry.command()
 @click.argument("site", metavar="SITE_URL|DIR")
 @_with_client_options
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
+@JSON_OPTION
 @handle_errors
 def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, as_json: bool) -> None:
     """Refresh from SITE and check every role and every file it publishes."""
@@ -456,9 +489,18 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 )
 @click.option("--from", "site", required=True, help="Registry site: an http(s) URL or a folder.")
 @_with_client_options
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
+@click.option(
+    "-o",
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Where to write the verified file (- for stdout).",
+)
+@JSON_OPTION
 @handle_errors
-def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str) -> None:
+def fetch(
+    what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str, as_json: bool
+) -> None:
     """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
     from ..errors import NotFoundError
     from ..registry.client import latest
@@ -488,13 +530,26 @@ def fetch(what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | 
     plan.protect_tree(client.cache_dir, what="the registry cache")
     if "://" not in site:
         plan.protect_tree(site, what="the registry site")
-    plan.add(out, data, flag="-o")
+    if out == "-" and as_json:
+        raise click.UsageError("-o - and --json would both write to stdout")
+    plan.add(out, data, flag="--out", stdout=True)
     plan.commit()
-    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
+    if as_json:
+        result = {"kind": kind, "name": name, "version": version, "size": len(data), "wrote": [out]}
+        emit_json({"ok": True, **result, "errors": []})
+        return
+    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {'stdout' if out == '-' else out}", err=True)
 
 
 def validate_with_registry(
-    doc: str, *, schema: str | None, site: str, trusted_root: str | None, strict: bool, cache_dir: str | None = None
+    doc: str,
+    *,
+    schema: str | None,
+    site: str,
+    trusted_root: str | None,
+    strict: bool,
+    cache_dir: str | None = None,
+    tree: Any = None,
 ) -> Any:
     """``validate --registry``: the registry supplies the schema (unless ``--schema``) and
     checks extension domains, versions, content and registered stream-profile digests."""
@@ -509,7 +564,7 @@ def validate_with_registry(
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
-    report = validate_document(doc, schema=schema or schemas)
+    report = validate_document(doc, schema=schema or schemas, tree_options=tree)
     path = Path(os.path.abspath(doc))
     source = display_path(path)
     tree = parse_bytes(read_local(path, path.parent, source=source), source=source)

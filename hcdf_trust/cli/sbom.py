@@ -5,11 +5,11 @@ The SBOM libraries are imported inside the command only (start-up stays light).
 
 from __future__ import annotations
 
-import sys
+from typing import Any
 
 import click
 
-from . import handle_errors
+from . import emit_json, handle_errors, tree_options
 
 
 @click.command()
@@ -17,7 +17,7 @@ from . import handle_errors
 @click.option(
     "--format", "fmt", required=True, type=click.Choice(["cyclonedx", "spdx"]), help="CycloneDX 1.6 or SPDX 3.0.1 JSON."
 )
-@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout].")
+@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout, also -].")
 @click.option(
     "--release",
     "release_dir",
@@ -27,9 +27,12 @@ from . import handle_errors
 @click.option(
     "--key", type=click.Path(dir_okay=False), help="Public key (PEM) the --release must verify with (required with it)."
 )
-@click.option("--lock", "lock_path", type=click.Path(dir_okay=False), help="Lock file [default: DOC.lock beside DOC].")
+@tree_options
 @click.option(
-    "--cache-dir", type=click.Path(file_okay=False), help="Content-addressed cache [default: ~/.cache/hcdf-trust]."
+    "--json",
+    "as_json",
+    is_flag=True,
+    help="Print one JSON object on stdout: ok, format, warnings, wrote, and the SBOM itself (as `sbom`) without -o.",
 )
 @handle_errors
 def sbom(
@@ -38,29 +41,30 @@ def sbom(
     out: str | None,
     release_dir: str | None,
     key: str | None,
-    lock_path: str | None,
-    cache_dir: str | None,
+    tree: Any,
+    as_json: bool,
 ) -> None:
     """Write a bill of materials of DOC's verified tree: sub-assemblies with their author and
     license, comps (devices) with their board, firmware, drivers, every file with its SHA-256,
     and the dependency graph.
 
-    The tree is verified first, offline, under its lock (as `verify` does); any error stops
+    The tree is verified first, under its lock (offline unless --online, as `verify` does); any error stops
     the run with nothing written. The same inputs give byte-identical output: the serial
     number comes from the lock's, root document's (and release's) digests, the time from
     SOURCE_DATE_EPOCH (else 1970-01-01T00:00:00Z).
     """
     from ..errors import ErrorGroup
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import resolve
     from ..outputs import OutputPlan, protect_inputs
     from ..sbom.model import collect, read_release
 
     if (release_dir is None) != (key is None):
         raise click.UsageError("--release and --key go together: a release's signer is only named once verified")
-    options = ResolveOptions(locked=True, offline=True, write_cache=False, lock_path=lock_path, cache_dir=cache_dir)
+    options = tree.resolve_options(locked=True)
     res = resolve(doc, options)
-    for w in res.warnings:
-        click.echo(f"warning: {w}", err=True)
+    if not as_json:
+        for w in res.warnings:
+            click.echo(f"warning: {w}", err=True)
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
@@ -70,11 +74,19 @@ def sbom(
     else:
         from ..sbom.spdx import render
     data = render(facts)
-    for n in facts.notices:
-        click.echo(f"warning: {n}", err=True)
-    if out is None:
-        sys.stdout.buffer.write(data)
-        sys.stdout.buffer.flush()
+    warnings = [*res.warnings, *facts.notices]
+    if not as_json:
+        for n in facts.notices:
+            click.echo(f"warning: {n}", err=True)
+    if out is None or out == "-":
+        if as_json:
+            import json
+
+            emit_json(_payload(fmt, warnings, wrote=[], document=json.loads(data)))
+            return
+        from ..outputs import write_stdout
+
+        write_stdout(data)  # a full or closed stdout: exit 3, with a message
         return
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)
@@ -85,5 +97,17 @@ def sbom(
     plan.add(out, data, flag="--out")
     from ..errors import display_path
 
-    for path in plan.commit():
-        click.echo(f"wrote {display_path(path)}", err=True)
+    wrote = [display_path(path) for path in plan.commit()]
+    if as_json:
+        emit_json(_payload(fmt, warnings, wrote=wrote))
+        return
+    for path in wrote:
+        click.echo(f"wrote {path}", err=True)
+
+
+def _payload(fmt: str, warnings: list[Any], *, wrote: list[str], document: Any = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"ok": True, "format": fmt, "warnings": [w.to_dict() for w in warnings], "wrote": wrote}
+    if document is not None:
+        out["sbom"] = document
+    out["errors"] = []
+    return out

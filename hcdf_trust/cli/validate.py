@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import click
 
-from . import emit_json, handle_errors
+from . import emit_json, handle_errors, tree_location_options
 
 
 @click.command()
@@ -18,13 +19,21 @@ from . import emit_json, handle_errors
 @click.option("--registry", "registry_site", help="Registry (URL or folder): schemas, extensions, stream profiles.")
 @click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
 @click.option("--strict", is_flag=True, help="With --registry: unregistered extension domains/versions are errors.")
+@tree_location_options
 @handle_errors
 def validate(
-    doc: str, schema: str | None, as_json: bool, registry_site: str | None, trusted_root: str | None, strict: bool
+    doc: str,
+    schema: str | None,
+    as_json: bool,
+    registry_site: str | None,
+    trusted_root: str | None,
+    strict: bool,
+    tree: Any,
 ) -> None:
     """Validate DOC against an XSD and check the HCDF semantic rules the XSD cannot express.
 
-    Exits 1 if any error was found; every finding is listed, not just the first.
+    Exits 1 if any error was found; every finding is listed, not just the first. Includes are
+    read from local files only (--base, --mirror and --root as resolve's; nothing is fetched).
     """
     from ..validate import validate_document
 
@@ -32,10 +41,10 @@ def validate(
         from .registry import validate_with_registry
 
         report = validate_with_registry(
-            doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict
+            doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict, tree=tree
         )
     else:
-        report = validate_document(doc, schema=schema)
+        report = validate_document(doc, schema=schema, tree_options=tree)
     if as_json:
         emit_json(
             {

@@ -100,6 +100,16 @@ def refuse_credentials(url: str, *, what: str, file: str | None = None, line: in
         )
 
 
+def confinement_root(doc_path: str | os.PathLike[str], *, root: str | None, base: str | None) -> Path:
+    """The folder local references may not leave: ``--root``, else a local ``--base``, else the
+    document's folder (resolve's rule, for every verb that reads a tree)."""
+    if root:
+        return Path(absolute(root))
+    if base and not _is_url(base):
+        return Path(absolute(base))
+    return Path(absolute(doc_path)).parent
+
+
 @dataclass(frozen=True)
 class Locator:
     """Turns the ``uri`` of a reference into a :class:`Location`.
@@ -381,7 +391,8 @@ def explain_missing(exc: NotFoundError, *, uri: str | None, referrer_url: str, b
                 shown = display_path(above)
                 hint = (
                     f"; {relative} exists under {shown}: if the reference is relative to a site root "
-                    f"(as published hcdf_models fragments write it), resolve with --base {shown}"
+                    f"(as published hcdf_models fragments write it), give --base {shown} "
+                    "(every verb that reads a tree takes it)"
                 )
                 break
         else:

@@ -28,7 +28,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
@@ -52,7 +52,7 @@ from ..localfile import ConfinedFolders, absolute, open_local, read_bounded
 from ..store import ContentStore, default_cache_dir
 from ..xml import MAX_DOCUMENT_BYTES
 from . import lockfile
-from .locate import Location, Locator, display_path, explain_missing, file_url
+from .locate import Location, Locator, confinement_root, display_path, explain_missing, file_url
 
 if TYPE_CHECKING:
     from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
@@ -97,6 +97,34 @@ class ResolveOptions:
     # For `pin`, which repairs mismatches: a pin mismatch no longer stops an include from
     # being parsed and walked (or a blob from being cached); it is still reported in errors.
     accept_mismatch: bool = False
+
+
+@dataclass(frozen=True)
+class TreeOptions:
+    """Where a verb built on resolve (audit, sbom, macsec, ota build, validate) finds the tree:
+    resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock`` and ``--offline``,
+    with resolve's meaning. Such verbs read the tree offline unless told ``--online``."""
+
+    base: str | None = None
+    mirrors: tuple[tuple[str, str], ...] = ()
+    root: str | None = None
+    cache_dir: str | None = None
+    lock_path: str | None = None
+    offline: bool = True
+
+    def resolve_options(self, **fixed: Any) -> ResolveOptions:
+        """These options as a :class:`ResolveOptions`, with the verb's own ``fixed`` ones
+        (``locked``, ``write_cache``, ``ca_bundle``...). The cache is written only online."""
+        fixed.setdefault("write_cache", not self.offline)
+        return ResolveOptions(
+            base=self.base,
+            mirrors=self.mirrors,
+            root=self.root,
+            cache_dir=self.cache_dir,
+            lock_path=self.lock_path,
+            offline=self.offline,
+            **fixed,
+        )
 
 
 @dataclass
@@ -422,11 +450,7 @@ class _Run:
         )
 
     def _confinement_root(self, doc_path: Path) -> Path:
-        if self.o.root:
-            return Path(absolute(self.o.root))
-        if self.o.base and "://" not in self.o.base:
-            return Path(absolute(self.o.base))
-        return doc_path.parent
+        return confinement_root(doc_path, root=self.o.root, base=self.o.base)
 
     # -- step 1: the include tree ----------------------------------------------------
 

@@ -51,13 +51,16 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, cast
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 from lxml import etree
 
-from ..document import Document
+from ..document import Document, only
 from ..errors import ErrorGroup, HcdfTrustError, InputError, Notice
 from ..xml import sourceline
+
+if TYPE_CHECKING:
+    from ..include.resolver import TreeOptions
 
 # The include prefix separator, as hcdf_trust.include.flatten.SEPARATOR (a test checks they agree);
 # not imported from there, so that planning does not load the flattener.
@@ -246,8 +249,9 @@ class Plan:
         }
 
 
-def plan(doc_path: str | Path, *, device: str | None = None) -> Plan:
-    """Resolve and verify ``doc_path`` (locked, offline), then plan its associations.
+def plan(doc_path: str | Path, *, device: str | None = None, tree: TreeOptions | None = None) -> Plan:
+    """Resolve and verify ``doc_path`` (locked; offline unless ``tree`` says otherwise, where
+    ``tree`` holds resolve's --base, --mirror, --root, --cache-dir, --lock), then plan its associations.
 
     With ``device``, only the networks that can hold that device's associations are planned
     (see :func:`plan_resolution`); when the device is in none of them, the whole description
@@ -257,9 +261,9 @@ def plan(doc_path: str | Path, *, device: str | None = None) -> Plan:
         ErrorGroup / HcdfTrustError: the tree fails to resolve or verify (a missing or
             drifted lock included), or its MACsec policy is malformed or contradictory.
     """
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import TreeOptions, resolve
 
-    res = resolve(doc_path, ResolveOptions(locked=True, offline=True, write_cache=False))
+    res = resolve(doc_path, (tree or TreeOptions()).resolve_options(locked=True))
     if res.errors:
         raise ErrorGroup(list(res.errors))
     result = plan_resolution(res.documents, res.includes, res.root_location.url, device=device)
@@ -616,9 +620,9 @@ class _Planner:
         default = None
         self._override_cache = {}
         parts = _by_tag(net)
-        cfg = parts.get("macsec")
-        if cfg:
-            default = self._policy(doc, cfg[0], None, network_level=True)
+        cfg = self._once(doc, parts.get("macsec", []))
+        if cfg is not None:
+            default = self._policy(doc, cfg, None, network_level=True)
         for link in parts.get("link", ()):
             self._link(inst, doc, net_name, link, default)
         for chain in parts.get("chain", ()):
@@ -628,6 +632,16 @@ class _Planner:
         for bus in parts.get("bus", ()):
             el = self._element(inst, doc, "bus", net_name, bus)
             self.plan.skipped.append((el, "a bus has no MACsec"))
+
+    def _once(self, doc: Document, found: list[etree._Element]) -> etree._Element | None:
+        """:func:`hcdf_trust.document.only` (the one reading of an element the schema allows
+        once); a second one is recorded as an error naming both lines, and planning goes on
+        with the first so that every other error is reported too."""
+        try:
+            return only(found, source=doc.source)
+        except HcdfTrustError as exc:
+            self.errors.append(exc)
+            return found[0]
 
     def _element(self, inst: _Instance, doc: Document, kind: str, net: str, el: etree._Element) -> Element:
         name = self._scoped(inst, el.get("name", "").strip())
@@ -687,16 +701,16 @@ class _Planner:
                     )
                 else:
                     rekey = int(text)
-            stores = _children(el, "key-store")
-            if stores:
-                store_type = stores[0].get("type", "").strip()
-                store_ref = (stores[0].get("ref") or "").strip() or None
+            store = self._once(doc, _children(el, "key-store"))
+            if store is not None:
+                store_type = store.get("type", "").strip()
+                store_ref = (store.get("ref") or "").strip() or None
                 if store_type not in KEY_STORE_TYPES:
                     self.errors.append(
                         MacsecPlanError(
                             "<key-store type> is not a known key store",
                             file=doc.source,
-                            line=sourceline(stores[0]),
+                            line=sourceline(store),
                             expected=" | ".join(KEY_STORE_TYPES),
                             actual=store_type or "(missing)",
                         )
@@ -722,14 +736,11 @@ class _Planner:
 
     def _link(self, inst: _Instance, doc: Document, net: str, link: etree._Element, default: Policy | None) -> None:
         element = self._element(inst, doc, "link", net, link)
-        # The first <wired>, its <port>s and its first <macsec> (in any namespace), read in plain
+        # The one <wired>, its <port>s and its one <macsec> (in any namespace), read in plain
         # loops with tag tests: cheaper in lxml than three filtered iterators, for 10,000 links.
-        wired = None
-        for child in link:
-            tag = child.tag
-            if tag == "wired" or (type(tag) is str and tag.endswith("}wired")):
-                wired = child
-                break
+        wired = self._once(
+            doc, [c for c in link if c.tag == "wired" or (type(c.tag) is str and c.tag.endswith("}wired"))]
+        )
         if wired is None:
             self.plan.skipped.append((element, "a wireless link has no MACsec"))
             return
@@ -743,8 +754,8 @@ class _Planner:
             if local == "port":
                 device, _, port = (el.text or "").strip().partition("/")
                 endpoints.append((self._device(inst, device), port, self._port(self._find_comp(inst, device), port)))
-            elif local == "macsec" and override is None:
-                override = el
+            elif local == "macsec":
+                override = el if override is None else self._once(doc, [override, el])
         types = {p.type for *_, p in endpoints if p is not None}
         if types and types != {"ethernet"}:
             self.plan.skipped.append((element, f"not an Ethernet link (port type {', '.join(sorted(types))})"))
@@ -761,12 +772,12 @@ class _Planner:
 
     def _chain(self, inst: _Instance, doc: Document, net: str, chain: etree._Element, default: Policy | None) -> None:
         element = self._element(inst, doc, "chain", net, chain)
-        overrides = _children(chain, "macsec")
-        policy, key_ref = self._override(doc, overrides[0] if overrides else None, default)
+        override = self._once(doc, _children(chain, "macsec"))
+        policy, key_ref = self._override(doc, override, default)
         if policy is None:
             self.plan.unprotected.append(element)
             return
-        ca = self._association(inst, doc, element, policy, key_ref, overrides[0] if overrides else chain)
+        ca = self._association(inst, doc, element, policy, key_ref, override if override is not None else chain)
         if ca is None:
             return
         for hop in _children(chain, "hop"):
@@ -926,6 +937,7 @@ _PortRef = _PortInfo | None
 
 
 _SPEEDS = frozenset(("speed", "speed-tx", "speed-rx"))
+_ONCE_IN_CAPABILITIES = _SPEEDS | {"macsec"}  # hcdf.xsd port_capabilities: maxOccurs="1"
 
 
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
@@ -940,15 +952,23 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
             continue
         ciphers: list[str] = []
         speed: float | None = None
+        seen: dict[str, etree._Element] = {}  # <capabilities>, <macsec>, <speed>...: each allowed once
         for caps in el:  # plain iteration and tag tests: faster in lxml than filtered iterators
             tag = caps.tag
             if tag != "capabilities" and not (type(tag) is str and tag.endswith("}capabilities")):
                 continue
+            if "capabilities" in seen:
+                only([seen["capabilities"], caps], source=file)  # raises AmbiguousError, both lines
+            seen["capabilities"] = caps
             for item in caps:
                 tag = item.tag
                 if type(tag) is not str:
                     continue
                 local = tag[tag.rfind("}") + 1 :]
+                if local in _ONCE_IN_CAPABILITIES:
+                    if local in seen:
+                        only([seen[local], item], source=file)  # raises AmbiguousError, both lines
+                    seen[local] = item
                 if local == "macsec":
                     for c in item:
                         tag = c.tag

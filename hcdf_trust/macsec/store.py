@@ -54,7 +54,7 @@ from typing import Any
 
 from ..errors import InputError, IntegrityError
 from ..localfile import read_input
-from ..outputs import OutputPlan
+from ..outputs import KEY_STORE, OutputPlan, sweep_folder
 from .backends import KeyStoreFormatError, Wrapper, b64, unb64
 
 STORE_NAME = "macsec-keys.json"
@@ -106,22 +106,10 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
                         f"the key store is locked by another run (waited {LOCK_WAIT_SEC:g} s)", file=str(path)
                     ) from None
                 time.sleep(0.05)
-        _remove_stale_temporaries(path.parent)
+        sweep_folder(path.parent)  # a killed run's staged store and its link to the previous one
         yield
     finally:
         os.close(fd)
-
-
-def _remove_stale_temporaries(folder: Path) -> None:
-    """Temporary store and index files a killed run left behind (we hold the lock: no run is writing them):
-    staged files (``.tmp``) and OutputPlan's links to the files they replaced (``.old``, which keep a
-    previous store, with generations a retire removed, on disk)."""
-    prefixes = (f".{STORE_NAME}.", f".{INDEX_NAME}.")
-    for name in os.listdir(folder):
-        if name.startswith(prefixes) and name.endswith((".tmp", ".old")):
-            with contextlib.suppress(OSError):
-                if stat.S_ISREG(os.lstat(folder / name).st_mode):
-                    os.unlink(folder / name)
 
 
 def now_utc() -> datetime:
@@ -461,7 +449,7 @@ class KeyStore:
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
-        plan.add(self.path, self.serialize(now), flag="--store", mode=0o600)
+        plan.add(self.path, self.serialize(now), flag="--store", mode=0o600, replaces=(KEY_STORE,))
 
 
 def line_encoder(*, sort_keys: bool) -> Callable[[Any], str]:

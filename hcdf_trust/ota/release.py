@@ -27,10 +27,11 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
-from ..document import Kind, software_elements
+from ..document import Kind, single, single_text, software_elements
 from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
+from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import DOCUMENT, ORDINARY, OutputPlan
 from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
@@ -59,12 +60,11 @@ class BuildOptions:
     config: str | None = None
     changelog: str | None = None
     update_hcdf: bool = False
-    lock_path: str | None = None
     date: str | None = None
     jobs: int = 0  # 0: one per core
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
-    online: bool = False  # resolve the tree with the network (still under its lock)
-    cache_dir: str | None = None
+    # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline (the default) / --online
+    tree: TreeOptions = field(default_factory=TreeOptions)
 
 
 @dataclass
@@ -114,20 +114,10 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         ErrorGroup / HcdfTrustError: the tree does not verify, an input is missing or
             malformed, a hash or counter check fails, or an output cannot be written.
     """
-    from ..include.resolver import ResolveOptions, resolve
+    from ..include.resolver import resolve
 
     # 1. a verified description: the tree under its lock (offline unless --online)
-    res = resolve(
-        doc_path,
-        ResolveOptions(
-            locked=True,
-            offline=not options.online,
-            write_cache=options.online,
-            lock_path=options.lock_path,
-            cache_dir=options.cache_dir,
-            ca_bundle=options.ca_bundle,
-        ),
-    )
+    res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
     lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
@@ -257,10 +247,12 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     plan = OutputPlan()
     _protect(plan, res, options, config_path, edited=set(edited))
     for path, data in outputs:
-        plan.add(path, data, flag="--out")
+        plan.add(path, data, flag="--out", under=options.out_dir)
     for url, data in edited.items():
         local = unquote(urlsplit(url).path)
-        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+        plan.add(
+            local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode), replaces=(ORDINARY, DOCUMENT)
+        )
     if edited:
         plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
@@ -273,12 +265,13 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         components=tuple(components),
     )
     env, alg, kid = sign_release(release, options.signer)
-    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
+    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
     plan.add(
         Path(options.out_dir, MANIFEST_JSON_NAME),
         (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
         flag="--out",
+        under=options.out_dir,
     )
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
@@ -315,7 +308,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     hashes = {}
     for _source, ref in res.others:
         if ref.kind is Kind.FIRMWARE and ref.element is not None:
-            hashes[ref.element.getparent()] = ref
+            hashes[ref.element] = ref
     plans: dict[tuple[str, str], Planned] = {}
     for doc_url, doc in res.documents.items():
         for sw in software_elements(doc):
@@ -330,7 +323,7 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
             comp_name = comp.get("name") or "?"
             if not app:
                 raise FirmwareError(f"comp {comp_name!r}: <software> has no name", file=doc.source, line=line)
-            board = (comp.findtext("board") or "").strip() or comp_name
+            board = single_text(comp, "board", source=doc.source) or comp_name
             for what, value in (("board", board), ("software name", app)):
                 if not _SAFE.fullmatch(value) or value in (".", ".."):
                     raise FirmwareError(
@@ -340,8 +333,8 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
                         expected="letters, digits, '.', '_', '+', '-'",
                         actual=value,
                     )
-            version = sw.findtext("version")
-            ref = hashes.get(sw)
+            version = single_text(sw, "version", source=doc.source)
+            ref = hashes.get(single(sw, "hash", source=doc.source))
             use = Use(
                 comp_name,
                 doc.source,

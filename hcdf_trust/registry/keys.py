@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..localfile import read_input
-from ..outputs import OutputPlan
+from ..outputs import NEW_ONLY, OutputPlan
 from .errors import KeyFileError, RefusedError
 from .source import PublicKey, compute_keyid
 
@@ -65,19 +65,8 @@ def plan_private(plan: OutputPlan, keydir: Path, private: Ed25519PrivateKey, pas
 
     pem = private.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, BestAvailableEncryption(passphrase))
     key = public_of(private)
-    plan.add(keydir / f"{key.keyid}.key", pem, flag="--keys", mode=0o600)
+    plan.add(keydir / f"{key.keyid}.key", pem, flag="--keys", mode=0o600, replaces=NEW_ONLY, folder_mode=0o700)
     return key
-
-
-def prepare_keydir(keydir: Path) -> bool:
-    """Create the keys folder 0700 if missing; True when it was created (for cleanup)."""
-    if keydir.exists():
-        return False
-    try:
-        keydir.mkdir(mode=0o700, parents=True)
-    except OSError as exc:
-        raise KeyFileError(f"cannot create keys folder {keydir}: {exc.strerror}", file=str(keydir)) from None
-    return True
 
 
 class KeyRing:

@@ -33,7 +33,7 @@ from urllib.parse import quote
 
 from lxml import etree
 
-from ..document import Document, Kind, software_elements
+from ..document import Document, Kind, single, single_text, software_elements
 from ..errors import InputError, Notice
 from ..localfile import read_input
 from ..xml import sourceline
@@ -250,10 +250,10 @@ class _Collector:
         for art in res.artifacts.values():
             for use in art.uses:
                 self.artifact_of[(use.doc_url, use.ref.element)] = art
-        self.hash_of: dict[Any, Any] = {}  # <software> element -> its FIRMWARE reference
+        self.hash_of: dict[Any, Any] = {}  # <hash> element -> its FIRMWARE reference
         for _src, ref in res.others:
             if ref.kind is Kind.FIRMWARE and ref.element is not None:
-                self.hash_of[ref.element.getparent()] = ref
+                self.hash_of[ref.element] = ref
         self.files: dict[str, FileFact] = {}
         self.firmware: dict[tuple[str, str, str | None, str | None], FirmwareFact] = {}
         self.drivers: dict[str, DriverFact] = {}
@@ -331,9 +331,9 @@ class _Collector:
                     name=SEPARATOR.join((*at.prefix, local)),
                     local_name=local,
                     instance=at.shown,
-                    board=_text(comp, "board"),
+                    board=single_text(comp, "board", source=doc.source),
                     role=comp.get("role"),
-                    description=_text(comp, "description"),
+                    description=_text(comp, "description", doc.source),
                     file=self.res.lock_url(url),
                     line=sourceline(comp),
                     depends_on=tuple(sorted(set(comp_deps))),
@@ -358,9 +358,9 @@ class _Collector:
             file=self.res.lock_url(url),
             sha256=sha256,
             size=size,
-            author=_text(root, "author"),
-            license=_text(root, "license"),
-            description=_text(root, "description"),
+            author=_text(root, "author", doc.source),
+            license=_text(root, "license", doc.source),
+            description=_text(root, "description", doc.source),
             line=line,
             depends_on=tuple(sorted(set(depends))),
         )
@@ -437,10 +437,10 @@ class _Collector:
                 expected='<software name="...">',
                 actual="no name",
             )
-        ref = self.hash_of.get(sw)
+        ref = self.hash_of.get(single(sw, "hash", source=doc.source))
         digest = ref.sha.lower() if ref is not None and ref.sha else None
-        version = _text(sw, "version")
-        board = _text(comp, "board") or (comp.get("name") or "")
+        version = single_text(sw, "version", source=doc.source)
+        board = single_text(comp, "board", source=doc.source) or (comp.get("name") or "")
         signature = None
         if self.release is not None:
             c = self.release.components.get((board, name))
@@ -536,8 +536,9 @@ def _owner(el: Any, comps: dict[Any, list[str]]) -> Any:
     return None
 
 
-def _text(el: etree._Element, tag: str) -> str | None:
-    child = el.find(tag)
+def _text(el: etree._Element, tag: str, source: str) -> str | None:
+    """Free text of the one ``<tag>`` child (author, license, description), whitespace collapsed."""
+    child = single(el, tag, source=source)
     if child is None:
         return None
     text = " ".join("".join(str(t) for t in child.itertext()).split())

@@ -26,7 +26,7 @@ from lxml import etree
 
 from ..document import ROOT, Document, require_root
 from ..include.locate import display_path
-from ..include.resolver import link_stub_target
+from ..include.resolver import TreeOptions, link_stub_target
 from ..localfile import absolute
 from ..xml import parse_bytes, sourceline
 from . import semantic
@@ -53,13 +53,15 @@ def validate_document(
     doc: str | os.PathLike[str] | Document,
     *,
     schema: str | os.PathLike[str] | SchemaSource | None = None,
+    tree_options: TreeOptions | None = None,
 ) -> ValidationReport:
     """Validate one document; every problem found is a finding in the report.
 
     ``doc`` is a path (an ``<hcdf>`` document or a ``<stream-profile>``) or an
     already parsed :class:`Document` (its includes are then not read).
     ``schema`` is an XSD path, any :class:`SchemaSource`, or None for the
-    semantic rules only (``report.schema`` is then None).
+    semantic rules only (``report.schema`` is then None). ``tree_options`` holds resolve's
+    ``--base``, ``--mirror`` and ``--root``, for finding the local includes.
 
     Raises:
         InputError (NotFoundError, XmlError, ...): the document or the schema
@@ -99,7 +101,7 @@ def validate_document(
             findings.extend(_version_mismatch(root, found, source))
 
     if kind == "hcdf":
-        edges = local_include_edges(doc, path, source=source) if path is not None else []
+        edges = local_include_edges(doc, path, source=source, tree=tree_options) if path is not None else []
         result = semantic.check(root, source=source, includes=edges)
         report.checked.append("semantic")
         findings.extend(result.findings)

@@ -15,15 +15,18 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TypedDict
+from typing import TYPE_CHECKING, TypedDict
 
 from ..document import Document, Kind, Reference
 from ..errors import HcdfTrustError, NotFoundError
 from ..include.flatten import SEPARATOR
-from ..include.locate import Location, Locator, display_path, file_url, redact
+from ..include.locate import Location, Locator, confinement_root, display_path, file_url, redact
 from ..localfile import open_local, read_bounded
 from ..xml import MAX_DOCUMENT_BYTES
 from .semantic import IncludeEdge
+
+if TYPE_CHECKING:
+    from ..include.resolver import TreeOptions
 
 MAX_INCLUDE_DEPTH = 16
 MAX_INCLUDE_EDGES = 1000
@@ -57,18 +60,22 @@ def _includes(doc: Document) -> Iterator[Reference]:
     return (ref for ref in doc.references() if ref.kind is Kind.INCLUDE)
 
 
-def local_include_edges(document: Document, path: Path, *, source: str) -> list[IncludeEdge]:
+def local_include_edges(
+    document: Document, path: Path, *, source: str, tree: TreeOptions | None = None
+) -> list[IncludeEdge]:
     """Every ``<include>`` reachable through local files, depth first in document order
     (the order flattening uses).
 
     Each edge carries the prefix flattening gives the included file's names
     (the include ``name`` chain joined with ``_``) and, when the file could be
     read, its parsed root and frames. A file included twice under two names is
-    visited twice but read once.
+    visited twice but read once. ``tree`` gives resolve's ``--base``, ``--mirror`` and ``--root``.
     """
     path = Path(os.path.abspath(path))
-    locator = Locator.create(root=path.parent)
-    start = Location(url=file_url(path), path=str(path), root=path.parent)
+    base, mirrors, root = (tree.base, tree.mirrors, tree.root) if tree is not None else (None, (), None)
+    root_dir = confinement_root(path, root=root, base=base)
+    locator = Locator.create(root=root_dir, base=base, mirrors=mirrors)
+    start = Location(url=file_url(path), path=str(path), root=root_dir)
     read: dict[str, tuple[str, Document] | HcdfTrustError] = {}  # url -> (display, document) or why not
     edges: list[IncludeEdge] = []
 

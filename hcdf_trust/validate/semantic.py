@@ -23,6 +23,7 @@ from typing import NamedTuple
 
 from lxml import etree
 
+from ..document import single
 from ..include.flatten import SEPARATOR
 from ..include.locate import redact
 from ..xml import sourceline
@@ -524,11 +525,11 @@ class _Checker:
         schedules = {s.get("name") for s in net.findall("schedule")}
         chains_here = {c.get("name") for c in net.findall("chain")}
         for link in net.findall("link"):
-            wired = link.find("wired")
+            wired = single(link, "wired", source=self.source)
             if wired is not None:
                 ports = [self._item_ref(p.text, p, "port") for p in wired.findall("port")]
                 self.links.append(_Link(net, link, wired, ports))
-            wireless = link.find("wireless")
+            wireless = single(link, "wireless", source=self.source)
             if wireless is not None:
                 for ant in wireless.findall("antenna"):
                     self._item_ref(ant.text, ant, "antenna")
@@ -843,8 +844,9 @@ class _Checker:
             for link in self.links
         ] + [(info.chain, info.network, f"chain {info.chain.get('name')!r}", info.ports) for info in self.chain_info]
         for at, net, label, ports in scopes:
-            own = at.find("macsec")
-            policy = own if own is not None else net.find("macsec")
+            # Both read as the planner reads them: one each, or the document is refused.
+            own, default = single(at, "macsec", source=self.source), single(net, "macsec", source=self.source)
+            policy = own if own is not None else default
             whose = "" if own is not None else f"network {net.get('name')!r} default "
             if policy is None or policy.get("policy") == "disabled":
                 continue
