@@ -12,6 +12,7 @@ import contextlib
 import email.message
 import hashlib
 import io
+import json
 import tempfile
 import threading
 import urllib.error
@@ -92,6 +93,12 @@ def _run(data: bytes) -> list[str]:
 def check_cli_run(argv: list[str], stdout: str) -> None:
     """After a successful ``hcdf-trust sbom ... --format spdx``: what it wrote passes the validator."""
     out = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("-o", "--out")), None)
-    data = Path(out).read_bytes() if out is not None else stdout.encode()
+    out = next((a.split("=", 1)[1] for a in argv if a.startswith("--out=")), out)
+    if out not in (None, "-"):
+        data = Path(out).read_bytes()
+    elif "--json" in argv:  # the document inside the summary object
+        data = json.dumps(json.loads(stdout)["sbom"]).encode()
+    else:
+        data = stdout.encode()
     errors = spdx3_validate(data)
     assert not errors, f"spdx3-validate refuses the SPDX document: {errors}"[:4000]
