@@ -11,11 +11,11 @@
   complaint ("Unknown key", "Invalid", "ignoring", "too permissive"); each .netdev must log
   ``NAME: loaded "macsec"``.
 - iproute2: ``bash -n`` on the script; then its ``ip`` lines as an ``ip -batch`` file in a
-  private network namespace with the parent link as a dummy device. Where the kernel has no
+  private network namespace with the parent link as a veth (this kernel has no dummy). Where it has no
   MACsec, ``ip link add ... type macsec`` can only fail in the kernel ("Unknown device type",
   after iproute2 parsed every argument) and ``ip macsec`` cannot start (no "macsec" generic
   netlink family): the result says so and how far the check went.
-Each runner returns ``None`` where the consumer can run here, else the reason it cannot.
+Each ``*_unavailable()`` returns ``None`` where its consumer can run here, else the reason it cannot.
 """
 
 from __future__ import annotations
