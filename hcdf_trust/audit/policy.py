@@ -17,12 +17,11 @@ naming the file and the key.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, cast
 
 from ..errors import InputError, display_path
-from ..localfile import read_input
+from ..localfile import read_toml
 from ..macsec.plan import CIPHERS
 
 Severity = Literal["info", "warning", "error"]
@@ -121,13 +120,7 @@ def load(path: str) -> Policy:
         PolicyError: not UTF-8 TOML, or an unknown key, a wrong type, an unknown value.
     """
     shown = display_path(path)
-    data = read_input(path, limit=MAX_POLICY_BYTES, what="audit policy")
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise PolicyError(f"audit policy is not UTF-8 (byte {exc.start})", file=shown) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PolicyError(f"audit policy is not valid TOML: {exc}", file=shown) from None
+    raw = read_toml(path, limit=MAX_POLICY_BYTES, what="audit policy", source=shown, error=PolicyError)
     return _policy(raw, shown)
 
 

@@ -9,7 +9,8 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_options
+from . import emit_json, handle_errors, say, tree_options
+from .params import source_date_epoch_option
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
 
@@ -23,22 +24,25 @@ def ota() -> None:
 @click.option("--type", "kind", type=click.Choice(KEY_TYPES), default="ecdsa-p256", show_default=True)
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Private key file (PEM, mode 0600).")
 @click.option(
-    "--passphrase-file", type=click.Path(dir_okay=False), help="Encrypt the private key with this file's content."
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Encrypt the private key with this passphrase (the file minus one final newline, mode 0600) "
+    "[default: $HCDF_TRUST_PASSPHRASE, else not encrypted].",
 )
 @click.option("--force", is_flag=True, help="Replace an existing key file.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_json: bool) -> None:
     """Generate a signing key with imgtool; the public key goes beside it (KEY.pub.pem)."""
-    from ..ota.keys import generate, key_type, private_pem, public_path, public_pem, read_passphrase
+    from ..ota.keys import generate, key_type, private_pem, public_path, public_pem
     from ..outputs import NEW_ONLY, PRIVATE_KEY, PUBLIC_KEY, OutputPlan
+    from ..passphrase import read_passphrase
 
     pub = public_path(out)
     plan = OutputPlan()
-    passphrase = None
     if passphrase_file:
         plan.protect(passphrase_file, what="the passphrase file")
-        passphrase = read_passphrase(passphrase_file)
+    passphrase = read_passphrase(passphrase_file, required=False)
     # an existing key is replaced only with --force, and only by a key: never a document, never a passphrase file
     plan.check(out, flag="--out", replaces=(PRIVATE_KEY,) if force else NEW_ONLY)
     plan.check(pub, flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
@@ -52,8 +56,8 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     if as_json:
         emit_json({"ok": True, **result, "errors": []})
     else:
-        click.echo(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)", err=True)
-        click.echo(f"wrote {pub}", err=True)
+        say(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)")
+        say(f"wrote {pub}")
 
 
 @ota.command()
@@ -62,7 +66,11 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 @click.option(
     "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
 )
-@click.option("--passphrase-file", type=click.Path(dir_okay=False), help="Passphrase of an encrypted key file.")
+@click.option(
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
+)
 @click.option(
     "--pin-file",
     type=click.Path(dir_okay=False),
@@ -90,6 +98,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 )
 @tree_options
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
+@source_date_epoch_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def build(
@@ -107,6 +116,7 @@ def build(
     update_hcdf: bool,
     tree: Any,
     jobs: int,
+    source_date: Any,
     as_json: bool,
 ) -> None:
     """Build a signed release from DOC's verified tree: one MCUboot image per <comp> with
@@ -114,7 +124,7 @@ def build(
 
     Nothing is written unless every step succeeds.
     """
-    from ..ota.release import BuildOptions, build_release
+    from ..ota.release import BuildOptions, build_release, format_date
 
     signer, inputs = _signer(key, passphrase_file, pin_file)
     try:
@@ -130,6 +140,7 @@ def build(
                 config=config,
                 changelog=changelog,
                 update_hcdf=update_hcdf,
+                date=format_date(source_date.timestamp()) if source_date is not None else None,
                 tree=tree,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
@@ -153,15 +164,14 @@ def build(
         )
         return
     for n in report.notices:
-        click.echo(f"warning: {n}", err=True)
+        say(f"warning: {n}")
     for ch in report.hcdf_changes:
-        click.echo(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}", err=True)
+        say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
-        click.echo(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}", err=True)
-    click.echo(
+        say(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}")
+    say(
         f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
-        f"{len(report.wrote)} file(s) written to {out_dir}",
-        err=True,
+        f"{len(report.wrote)} file(s) written to {out_dir}"
     )
 
 
@@ -200,16 +210,16 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str 
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
     else:
-        click.echo(
+        say(
             f"release {release.sequence_number}: {len(release.components)} component(s) verified "
-            f"(signatures, digests, latest.json{', rollback' if before else ''})",
-            err=True,
+            f"(signatures, digests, latest.json{', rollback' if before else ''})"
         )
 
 
 def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
-    from ..ota.keys import load_private, read_passphrase
+    from ..ota.keys import load_private
     from ..ota.signer import FileSigner
+    from ..passphrase import read_passphrase
 
     if key.startswith("pkcs11:"):
         from ..ota.hsm import HsmSigner, parse_uri, read_pin

@@ -6,33 +6,20 @@ tuf and securesystemslib are imported inside the commands, so ``hcdf-trust --hel
 from __future__ import annotations
 
 import datetime as dt
-import re
 from pathlib import Path
 from typing import Any
 
 import click
 
 from ..outputs import OutputPlan
-from . import JSON_OPTION, emit_json, handle_errors
-
-_DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
-_UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
-
-
-def _duration(ctx: click.Context, param: click.Parameter, value: str) -> dt.timedelta:
-    m = _DURATION.fullmatch(value.strip())
-    if not m:
-        raise click.BadParameter(f"{value!r} is not a duration like 30m, 12h, 7d or 2w")
-    delta = dt.timedelta(**{_UNITS[m.group(2)]: int(m.group(1))})
-    if delta > dt.timedelta(days=3650):
-        raise click.BadParameter(f"{value!r} is longer than 10 years")
-    return delta
-
+from . import JSON_OPTION, emit_json, handle_errors, say
+from .params import TIMEOUT, Duration
 
 passphrase_option = click.option(
     "--passphrase-file",
     type=click.Path(dir_okay=False),
-    help="File whose first line is the keys' passphrase [default: $HCDF_TRUST_PASSPHRASE].",
+    help="File holding the keys' passphrase (the whole file minus one final newline, mode 0600) "
+    "[default: $HCDF_TRUST_PASSPHRASE].",
 )
 
 
@@ -95,8 +82,8 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None, as_json: boo
         emit_json({"ok": True, "source": source_dir, "keys": keydir, "roles": roles, "errors": []})
         return
     for role, t in root.roles.items():
-        click.echo(f"{role}: key {t.keyids[0]}", err=True)
-    click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
+        say(f"{role}: key {t.keyids[0]}")
+    say(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}")
 
 
 @registry.command()
@@ -118,7 +105,7 @@ def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None, as_j
     if as_json:
         emit_json({"ok": True, "keyid": key.keyid, "public": out, "private": private, "errors": []})
         return
-    click.echo(f"key {key.keyid}: public {out}, private {private}", err=True)
+    say(f"key {key.keyid}: public {out}, private {private}")
 
 
 @registry.command()
@@ -138,7 +125,7 @@ def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None, as_j
 )
 @click.option(
     "--threshold",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, 255),
     default=1,
     show_default=True,
     help="Owner signatures a version needs (a new domain).",
@@ -240,9 +227,9 @@ def add(
         recorded = str(plan.paths[0]) if done is not None else None
         emit_json({"ok": True, "entry": what, "recorded": recorded, "unchanged": done is None, "errors": []})
     elif done is None:
-        click.echo(f"{what}: already registered with the same content", err=True)
+        say(f"{what}: already registered with the same content")
     else:
-        click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+        say(f"{what}: recorded in {plan.paths[0]}")
 
 
 @registry.command()
@@ -277,7 +264,7 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
         emit_json({"ok": True, "domain": domain, "version": version, "wrote": [out], "errors": []})
         return
     if out != "-":
-        click.echo(f"statement for {domain} {version} written to {out}", err=True)
+        say(f"statement for {domain} {version} written to {out}")
 
 
 @registry.command()
@@ -325,7 +312,7 @@ def rotate(
     if as_json:
         emit_json({"ok": True, "role": role, "domain": domain, "keyid": key.keyid, "errors": []})
         return
-    click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
+    say(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change")
 
 
 @registry.command()
@@ -358,7 +345,7 @@ def rotate(
     "lifetime",
     default="7d",
     show_default=True,
-    callback=_duration,
+    type=Duration(min=dt.timedelta(minutes=1), max=dt.timedelta(days=3650)),
     help="Timestamp lifetime (30m, 12h, 7d, 2w): clients stop trusting a site not re-published within it.",
 )
 @sigstore_root_option
@@ -407,7 +394,7 @@ def publish(
         )
     else:
         versions = ", ".join(f"{k} v{v}" for k, v in result.versions.items())
-        click.echo(f"published {site}: {versions}; {len(result.written)} file(s) written", err=True)
+        say(f"published {site}: {versions}; {len(result.written)} file(s) written")
 
 
 def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
@@ -416,19 +403,12 @@ def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float 
     return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
 
 
-def _timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    if not 0 < value <= 3600:
-        raise click.BadParameter(f"{value} is not a number of seconds in (0, 3600]")
-    return value
-
-
 client_options = [
     click.option(
         "--timeout",
-        type=float,
+        type=TIMEOUT,
         default=30.0,
         show_default=True,
-        callback=_timeout,
         help="Seconds to wait for a connection or between bytes (http(s) sites).",
     ),
     click.option(
@@ -477,9 +457,8 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
     else:
-        click.echo(
+        say(
             f"{site}: verified (root v{report.root_version}, {report.roles} domain role(s), {report.targets} file(s))",
-            err=True,
         )
 
 
@@ -538,7 +517,7 @@ def fetch(
         result = {"kind": kind, "name": name, "version": version, "size": len(data), "wrote": [out]}
         emit_json({"ok": True, **result, "errors": []})
         return
-    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {'stdout' if out == '-' else out}", err=True)
+    say(f"{name} {version}: {len(data)} bytes verified, written to {'stdout' if out == '-' else out}")
 
 
 def validate_with_registry(

@@ -5,11 +5,13 @@ The SBOM libraries are imported inside the command only (start-up stays light).
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_options
+from . import emit_json, handle_errors, say, tree_options
+from .params import source_date_epoch_option
 
 
 @click.command()
@@ -34,6 +36,7 @@ from . import emit_json, handle_errors, tree_options
     is_flag=True,
     help="Print one JSON object on stdout: ok, format, warnings, wrote, and the SBOM itself (as `sbom`) without -o.",
 )
+@source_date_epoch_option
 @handle_errors
 def sbom(
     doc: str,
@@ -42,6 +45,7 @@ def sbom(
     release_dir: str | None,
     key: str | None,
     tree: Any,
+    source_date: datetime | None,
     as_json: bool,
 ) -> None:
     """Write a bill of materials of DOC's verified tree: sub-assemblies with their author and
@@ -64,11 +68,11 @@ def sbom(
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:
-            click.echo(f"warning: {w}", err=True)
+            say(f"warning: {w}")
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
-    facts = collect(res, release=release, fmt=fmt)
+    facts = collect(res, release=release, fmt=fmt, created=source_date)
     if fmt == "cyclonedx":
         from ..sbom.cyclonedx import render
     else:
@@ -77,7 +81,7 @@ def sbom(
     warnings = [*res.warnings, *facts.notices]
     if not as_json:
         for n in facts.notices:
-            click.echo(f"warning: {n}", err=True)
+            say(f"warning: {n}")
     if out is None or out == "-":
         if as_json:
             import json
@@ -102,7 +106,7 @@ def sbom(
         emit_json(_payload(fmt, warnings, wrote=wrote))
         return
     for path in wrote:
-        click.echo(f"wrote {path}", err=True)
+        say(f"wrote {path}")
 
 
 def _payload(fmt: str, warnings: list[Any], *, wrote: list[str], document: Any = None) -> dict[str, Any]:

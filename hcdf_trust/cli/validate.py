@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_location_options
+from . import emit_json, handle_errors, say, tree_location_options
 
 
 @click.command()
@@ -58,11 +58,11 @@ def validate(
         )
     else:
         for f in report.findings:
-            click.echo(str(f), err=True)
+            say(str(f))
         for n in report.notes:
-            click.echo(f"note: {n}", err=True)
+            say(f"note: {n}")
         if report.schema is None:
-            click.echo("note: no --schema given: only the semantic rules were checked", err=True)
+            say("note: no --schema given: only the semantic rules were checked")
         errors = sum(1 for f in report.findings if f.severity == "error")
-        click.echo(f"{errors} error(s), {len(report.findings) - errors} warning(s)", err=True)
+        say(f"{errors} error(s), {len(report.findings) - errors} warning(s)")
     sys.exit(0 if report.ok else 1)

@@ -28,7 +28,7 @@ from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
 from ..document import Kind, single, single_text, software_elements
-from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
+from ..errors import ErrorGroup, HcdfTrustError, InputError, NotFoundError, Notice
 from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
 from ..outputs import DOCUMENT, ORDINARY, OutputPlan
@@ -580,9 +580,23 @@ def _join(base: str | None, rel: str) -> str:
 
 
 def _now() -> str:
-    epoch = os.environ.get("SOURCE_DATE_EPOCH")
-    t = int(epoch) if epoch and epoch.isdigit() else int(time.time())
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+    """``SOURCE_DATE_EPOCH`` (checked by :func:`hcdf_trust.clock.parse_epoch`), else the clock.
+
+    Raises:
+        InputError: ``SOURCE_DATE_EPOCH`` is refused (the CLI refuses it first, as a usage error).
+    """
+    from ..clock import source_date_epoch
+
+    try:
+        epoch = source_date_epoch()
+    except ValueError as exc:
+        raise InputError(f"SOURCE_DATE_EPOCH: {exc}", file="SOURCE_DATE_EPOCH") from None
+    return format_date(epoch.timestamp() if epoch is not None else time.time())
+
+
+def format_date(seconds: float) -> str:
+    """How a release is dated (``latest.json``'s ``date``): UTC, to the second."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(int(seconds)))
 
 
 def read_release(folder: str, public_key: Any) -> tuple[suit.Release, Any]:

@@ -27,7 +27,7 @@ import uuid
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
@@ -209,27 +209,20 @@ def created_time() -> datetime:
     """``SOURCE_DATE_EPOCH`` when set (reproducible builds), else the Unix epoch: never the clock.
 
     Raises:
-        InputError: ``SOURCE_DATE_EPOCH`` is not a non-negative integer.
+        InputError: ``SOURCE_DATE_EPOCH`` is refused by :func:`hcdf_trust.clock.parse_epoch`
+            (the CLI refuses it first, as a usage error).
     """
-    value = os.environ.get("SOURCE_DATE_EPOCH")
-    if value is None or value == "":
-        return datetime.fromtimestamp(0, UTC)
-    if not value.isascii() or not value.isdigit():
-        raise InputError(
-            "SOURCE_DATE_EPOCH is not a number of seconds",
-            file="SOURCE_DATE_EPOCH",
-            expected="a non-negative integer",
-            actual=value,
-        )
+    from ..clock import EARLIEST, source_date_epoch
+
     try:
-        return datetime.fromtimestamp(int(value), UTC)
-    except (OverflowError, OSError, ValueError):
-        raise InputError(
-            "SOURCE_DATE_EPOCH is out of range", file="SOURCE_DATE_EPOCH", expected="a date", actual=value
-        ) from None
+        return source_date_epoch() or EARLIEST
+    except ValueError as exc:
+        raise InputError(f"SOURCE_DATE_EPOCH: {exc}", file="SOURCE_DATE_EPOCH") from None
 
 
-def collect(res: Resolution, *, release: ReleaseFacts | None = None, fmt: str = "") -> Facts:
+def collect(
+    res: Resolution, *, release: ReleaseFacts | None = None, fmt: str = "", created: datetime | None = None
+) -> Facts:
     """The facts of ``res`` (which must be clean: ``res.ok``), with ``release``'s signatures.
 
     Raises:
@@ -237,7 +230,7 @@ def collect(res: Resolution, *, release: ReleaseFacts | None = None, fmt: str = 
         InputError: the lock cannot be read, a ``<software>`` has no name, or the tree
             multiplies past :data:`MAX_COMPONENTS`.
     """
-    return _Collector(res, release).run(fmt)
+    return _Collector(res, release).run(fmt, created)
 
 
 class _Collector:
@@ -261,7 +254,7 @@ class _Collector:
         self.assemblies: list[AssemblyFact] = []
         self._doc_parts: dict[str, tuple[list[tuple[Any, list[str]]], list[str]]] = {}
 
-    def run(self, fmt: str) -> Facts:
+    def run(self, fmt: str, created: datetime | None = None) -> Facts:
         res = self.res
         lock_data = read_input(str(res.lock_path), limit=MAX_LOCK_BYTES, what="lock file")
         lock_sha = hashlib.sha256(lock_data).hexdigest()
@@ -282,7 +275,7 @@ class _Collector:
             files=tuple(sorted(self.files.values(), key=lambda f: f.ref)),
             lock_sha256=lock_sha,
             identity=seed.hexdigest(),
-            created=created_time(),
+            created=created or created_time(),
             release_sequence=self.release.sequence_number if self.release else None,
             release_key_sha256=self.release.key_sha256 if self.release else None,
             notices=tuple(self.notices),
