@@ -110,7 +110,9 @@ def networkd_log(files: list[Path]) -> str:
             dst.chmod(0o640)
         os.chmod(stage, 0o755)
         script = (
-            'mount -t tmpfs tmpfs /run/systemd && mkdir -p /run/systemd/network && cp -p "$1"/* /run/systemd/network/ '
+            # networkd reads as systemd-network: the folders must not follow a 077 umask of the test process
+            "umask 022 && mount -t tmpfs -o mode=0755 tmpfs /run/systemd && mkdir -p /run/systemd/network "
+            '&& cp -p "$1"/* /run/systemd/network/ '
             f"&& exec env SYSTEMD_LOG_LEVEL=debug SYSTEMD_LOG_TARGET=console {NETWORKD}"
         )
         proc = subprocess.Popen(
