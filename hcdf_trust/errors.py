@@ -205,6 +205,13 @@ class NotHcdfError(XmlError):
     code = "not-hcdf"
 
 
+class StreamSelectionError(InputError):
+    """Which ``<stream-profile>`` a document selects cannot be read one way (a verb that must
+    name it refuses; validate and audit report the same code as a finding)."""
+
+    code = "stream-profile-selection"
+
+
 class AmbiguousError(InputError):
     """An element the schema allows once (``maxOccurs="1"``), written twice where a verb reads it
     (``<software><hash>``, ``<version>``, ``<comp><board>``, a link's ``<macsec>``, a port's

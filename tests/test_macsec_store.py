@@ -513,6 +513,7 @@ def test_a_passphrase_wrapper_runs_scrypt_once_per_salt(tmp_path, monkeypatch):
     maker = PassphraseWrapper(PASS)
     for name in ("a", "b"):
         store = KeyStore.create(tmp_path / name, maker)
+        store.bind("t", document="robot.hcdf")  # a store is written only once bound to its robot
         out = OutputPlan()
         store.plan_write(out, now=datetime(2026, 1, 1, tzinfo=UTC))
         (tmp_path / name).mkdir()

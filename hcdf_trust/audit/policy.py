@@ -47,6 +47,12 @@ CHECKS: dict[str, Check] = {
     "plain-http": Check("references", "error", "a reference fetched over plain http"),
     "not-locked": Check("references", "warning", "no lock file, or a reference the lock file does not hold"),
     "lock-drift": Check("references", "error", "content that differs from its lock entry, or a stale entry"),
+    "foreign-major-version": Check(
+        "references", "warning", 'a document whose version is not 1.x ("2.0"): upstream\'s reader refuses it'
+    ),
+    "stream-profile-selection": Check(
+        "stream-profiles", "error", "more than one stream profile selected, or a selection that reads two ways"
+    ),
     "firmware-no-hash": Check("firmware", "error", "a <software> without a <hash>"),
     "firmware-hash": Check("firmware", "error", "a <hash> that is not a full SHA-256"),
     "firmware-version": Check("firmware", "warning", "a <version> that is not semantic (SemVer 2.0.0)"),

@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, keep_until_exit, say, tree_options
+from . import emit_json, fail, handle_errors, keep_until_exit, say, tree_options
 from .params import UTC_TIME, Duration
 
 
@@ -33,14 +33,14 @@ def _plan_lines(p: Any) -> None:
             if d["rekey_interval_sec"] is not None:
                 head += f" rekey {d['rekey_interval_sec']} s"
             store = d["key_store"]
-            if store["type"]:
-                head += f" key-store {store['type']}" + (f":{store['ref']}" if store["ref"] else "")
+            if store["type"] or store["ref"]:
+                head += f" key-store {store['type'] or 'ref'}" + (f":{store['ref']}" if store["ref"] else "")
             if not ca.keyed:
                 head += " (no key)"
         say(head, err=False)
         for el in ca.elements:
             scope = f" scope {el.scope}" if el.scope else ""
-            say(f"  {el.kind} {el.network}/{el.name} ({el.file}:{el.line}{scope})", err=False)
+            say(f"  {el.kind} {el.label.partition(':')[2]} ({el.file}:{el.line}{scope})", err=False)
         if ca.shared:
             say(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s", err=False)
         members = ", ".join(f"{m.device}[{' '.join(m.ports)}]" for m in ca.members.values())
@@ -313,15 +313,20 @@ def status(
     keep_until_exit(store)
     st = run(store, p, now=now)
     if as_json:
+        if not st.ok:  # an association without a usable key: exit 1, the status beside the errors
+            fail(st.problems, as_json=True, payload=st.to_dict())
         emit_json({"ok": True, **st.to_dict()})
         return
     for row in st.rows:
         gens = " ".join(f"g{g['generation']}:{g['state']}:kcv={g['kcv']}" for g in row["generations"])
         age = f" age {row['age_sec']} s" if row["age_sec"] is not None else ""
         flags = (" DUE" if row["due"] else "") + ("" if row["described"] else " (no longer described)")
-        say(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}", err=False)
+        active = f"active g{row['active_generation']}" if row["active_generation"] is not None else "NO ACTIVE KEY"
+        say(f"{row['id']}: {active}{age}{flags}  {gens}", err=False)
     for ca_id in st.missing:
         say(f"{ca_id}: no key (run generate)", err=False)
+    if not st.ok:
+        fail(st.problems, as_json=False)
 
 
 @macsec.command()
@@ -373,6 +378,7 @@ def rotate(
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
+        store.bind(p.robot, document=p.document)
         selected = select(p, network=network, key_ref=key_ref)
         done = run(store, selected, now=now, overlap=int(overlap.total_seconds()), due_only=due)
         _save(store, now, doc=_indexed(doc, tree), p=p, passphrase_file=passphrase_file, backend=backend)

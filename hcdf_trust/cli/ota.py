@@ -233,3 +233,172 @@ def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tupl
         inputs.append((passphrase_file, "the passphrase file"))
         passphrase = read_passphrase(passphrase_file)
     return FileSigner(load_private(key, passphrase)), tuple(inputs)
+
+
+def _registry_options(func: Any) -> Any:
+    """``--ca-bundle`` and ``--insecure-registry``, the same for push and pull."""
+    func = click.option(
+        "--insecure-registry",
+        "insecure_registries",
+        multiple=True,
+        metavar="HOST[:PORT]",
+        help="Talk plain http to this registry (loopback hosts need no flag). Repeatable.",
+    )(func)
+    return click.option(
+        "--ca-bundle",
+        type=click.Path(dir_okay=False, exists=True),
+        envvar="HCDF_TRUST_CA_BUNDLE",
+        help="PEM CA certificates for the registry's TLS (a loopback registry then speaks https too) "
+        "[env: HCDF_TRUST_CA_BUNDLE].",
+    )(func)
+
+
+def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], push: bool, need_tag: bool) -> Any:
+    from ..oci.auth import find_credentials
+    from ..oci.client import RegistryClient
+    from ..oci.reference import parse_reference
+
+    ref = parse_reference(target, need_tag=need_tag)
+    creds = find_credentials(ref.netloc)
+    return ref, RegistryClient(ref, credentials=creds, ca_bundle=ca_bundle, insecure_registries=insecure, push=push)
+
+
+@ota.command()
+@click.argument("release_dir", type=click.Path(file_okay=False))
+@click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
+@click.option("--key", type=click.Path(dir_okay=False), help="Public key: run `ota verify` before pushing.")
+@_registry_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def push(
+    release_dir: str,
+    target: str,
+    key: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Push RELEASE_DIR to an OCI registry as one artifact (one layer per file) and attach its
+    SUIT envelope as a referrer. Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
+    from ..oci.release import push_release
+    from ..ota.release import MANIFEST_NAME
+    from . import fail
+
+    ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
+    with client:
+        if key is not None:
+            from ..ota.keys import load_public
+            from ..ota.release import read_release
+            from ..ota.verify import check_release
+
+            public = load_public(key)
+            release, files = read_release(release_dir, public)
+            errors = check_release(release, files, public)
+            if errors:
+                fail(errors, as_json=as_json)
+        else:
+            import os
+
+            from ..localfile import read_input
+            from ..ota import suit
+
+            path = os.path.join(release_dir, MANIFEST_NAME)
+            data = read_input(path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
+            release = suit.parse_manifest(suit.parse_envelope(data, source=path).manifest, source=path)
+        result = push_release(release_dir, ref, client, release)
+    warnings = []
+    if key is None:
+        from ..errors import Notice
+
+        warnings.append(
+            Notice("unverified-push", "pushed without --key: the release was not verified first (every pull verifies)")
+        )
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "reference": str(ref),
+                "verified": key is not None,
+                **result,
+                "warnings": [n.to_dict() for n in warnings],
+                "errors": [],
+            }
+        )
+    else:
+        for n in warnings:
+            say(f"warning: {n}")
+        say(f"pushed {len(result['layers'])} file(s) to {ref} ({result['digest']})")
+        say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
+
+
+@ota.command()
+@click.argument("source", metavar="oci://HOST[:PORT]/REPO:TAG|@sha256:HEX")
+@click.option("--key", required=True, type=click.Path(dir_okay=False), help="Public key (PEM).")
+@click.option(
+    "-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write."
+)
+@click.option(
+    "--previous", help="The previous release (folder or https URL): sequence number and counters must not go back."
+)
+@click.option(
+    "--cache-dir",
+    type=click.Path(file_okay=False),
+    help="Content store of verified blobs (a resumed pull fetches only what is missing) "
+    "[default: $XDG_CACHE_HOME/hcdf-trust].",
+)
+@_registry_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def pull(
+    source: str,
+    key: str,
+    out_dir: str,
+    previous: str | None,
+    cache_dir: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Pull a release from an OCI registry: every blob hashed against the manifest, `ota verify`
+    run on the result in a staging folder, and only then written to --out (all or nothing)."""
+    from ..oci.release import pull_release
+    from ..ota.keys import load_public
+    from ..ota.release import previous_manifest
+    from ..store import default_cache_dir
+
+    public = load_public(key)
+    before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
+    ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
+    with client:
+        report = pull_release(
+            ref,
+            client,
+            public_key=public,
+            out_dir=out_dir,
+            cache_dir=cache_dir or str(default_cache_dir()),
+            key_path=key,
+            previous=before,
+        )
+    release = report.release
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "reference": report.reference,
+                "digest": report.digest,
+                "sequence_number": release.sequence_number,
+                "files": report.files,
+                "from_cache": report.from_cache,
+                "referrers": report.referrers,
+                "warnings": [n.to_dict() for n in report.notices],
+                "wrote": report.wrote,
+                "errors": [],
+            }
+        )
+        return
+    for n in report.notices:
+        say(f"warning: {n}")
+    say(
+        f"release {release.sequence_number} from {report.reference} ({report.digest}): "
+        f"{len(report.files)} file(s) verified ({report.from_cache} from the cache), written to {out_dir}"
+    )

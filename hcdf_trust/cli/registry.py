@@ -350,6 +350,13 @@ def rotate(
 )
 @sigstore_root_option
 @passphrase_option
+@click.option(
+    "--oci",
+    "oci_target",
+    metavar="oci://HOST[:PORT]/REPO:TAG",
+    help="Also push the site to this OCI registry (one layer per file; credentials as for `ota push`; "
+    "plain http to loopback only; TLS CAs from $HCDF_TRUST_CA_BUNDLE).",
+)
 @JSON_OPTION
 @handle_errors
 def publish(
@@ -360,9 +367,11 @@ def publish(
     lifetime: dt.timedelta,
     sigstore_root: str | None,
     passphrase_file: str | None,
+    oci_target: str | None,
     as_json: bool,
 ) -> None:
-    """Write a static TUF repository (consistent snapshots) for DIR into --out."""
+    """Write a static TUF repository (consistent snapshots) for DIR into --out (and, with --oci,
+    push it to an OCI registry, where `registry verify|fetch oci://…` read it)."""
     from ..registry.publish import publish as do_publish
     from ..registry.source import load_source
 
@@ -381,7 +390,25 @@ def publish(
         timestamp_lifetime=lifetime,
         sigstore_root=sigstore_root,
     )
+    ref = None
+    if oci_target is not None:
+        from ..oci.reference import parse_reference
+
+        ref = parse_reference(oci_target, need_tag=True)  # refused before anything is written
     plan.commit()
+    pushed = None
+    if ref is not None:
+        import os
+
+        from ..oci.auth import find_credentials
+        from ..oci.client import RegistryClient
+        from ..oci.site import push_site
+
+        creds = find_credentials(ref.netloc)
+        with RegistryClient(
+            ref, credentials=creds, ca_bundle=os.environ.get("HCDF_TRUST_CA_BUNDLE") or None, push=True
+        ) as client:
+            pushed = push_site(site, ref, client)
     if as_json:
         emit_json(
             {
@@ -389,12 +416,15 @@ def publish(
                 "versions": result.versions,
                 "signed": result.signed,
                 "written": [str(p) for p in result.written],
+                **({"oci": {"reference": str(ref), **pushed}} if pushed is not None else {}),
                 "errors": [],
             }
         )
     else:
         versions = ", ".join(f"{k} v{v}" for k, v in result.versions.items())
         say(f"published {site}: {versions}; {len(result.written)} file(s) written")
+        if pushed is not None:
+            say(f"pushed {pushed['files']} file(s) to {ref} ({pushed['digest']})")
 
 
 def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
@@ -523,7 +553,7 @@ def fetch(
 def validate_with_registry(
     doc: str,
     *,
-    schema: str | None,
+    schema: tuple[str, ...] | str | None,
     site: str,
     trusted_root: str | None,
     strict: bool,

@@ -144,7 +144,11 @@ class RegistryClient:
         self.metadata_dir.mkdir(parents=True, exist_ok=True)
         (self.cache_dir / "targets").mkdir(exist_ok=True)
         self._previous = self._cached_roles()
-        if local:
+        if site.startswith("oci://"):  # an OCI artifact (registry publish --oci): transport only
+            from ..oci.site import BASE, oci_fetcher
+
+            base, fetcher = BASE.rstrip("/"), oci_fetcher(site)
+        elif local:
             folder = Path(site).resolve()
             if not folder.is_dir():
                 raise NotFoundError(f"{site}: no such registry site folder", file=site)

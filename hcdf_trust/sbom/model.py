@@ -26,15 +26,15 @@ import os
 import uuid
 from collections import Counter
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
 from lxml import etree
 
-from ..document import Document, Kind, single, single_text, software_elements
-from ..errors import InputError, Notice
+from ..document import Document, Kind, single, single_text, software_elements, stream_profile_selection
+from ..errors import InputError, Notice, StreamSelectionError
 from ..localfile import read_input
 from ..xml import sourceline
 
@@ -57,6 +57,7 @@ class FileFact:
     name: str  # the lock file's url (relative to the lock's folder, or the URL)
     sha256: str
     size: int
+    selected: bool | None = None  # a stream profile: the one its document selects (None: not a profile)
 
 
 @dataclass(frozen=True)
@@ -396,6 +397,11 @@ class _Collector:
                     continue
                 d = self.drivers.setdefault(name, DriverFact(ref=f"driver/{_q(name)}", name=name))
                 deps[comp].append(d.ref)
+        streams = stream_profile_selection(doc)
+        if streams.problems:
+            text, line = streams.problems[0]
+            raise StreamSelectionError(text, file=doc.source, line=line)
+        chosen = {id(r) for r in streams.selected}
         for ref in doc.references():
             if ref.kind not in FILE_KINDS:
                 continue
@@ -403,10 +409,20 @@ class _Collector:
             if art is None or art.sha256 is None or art.size is None:
                 continue
             name = self.res.lock_url(art.url)
+            selected = (id(ref) in chosen) if ref.kind is Kind.STREAM_PROFILE else None
             f = self.files.setdefault(
                 name,
-                FileFact(ref=f"file/{quote(name)}", kind=art.kind.value, name=name, sha256=art.sha256, size=art.size),
+                FileFact(
+                    ref=f"file/{quote(name)}",
+                    kind=art.kind.value,
+                    name=name,
+                    sha256=art.sha256,
+                    size=art.size,
+                    selected=selected,
+                ),
             )
+            if selected and not f.selected:  # one document selects what another only lists
+                f = self.files[name] = replace(f, selected=True)
             owner = _owner(ref.element, deps)
             holder = ref.element.getparent() if ref.kind is Kind.FIRMWARE_MANIFEST else None
             if holder is not None and holder in software:
@@ -484,8 +500,6 @@ class _Collector:
 
 
 def _replace(fw: FirmwareFact, **kw: Any) -> FirmwareFact:
-    from dataclasses import replace
-
     return replace(fw, **kw)
 
 
@@ -560,6 +574,11 @@ def comp_properties(c: CompFact) -> list[tuple[str, str]]:
             ("hcdf:file", f"{c.file}:{c.line}" if c.line else c.file),
         ]
     )
+
+
+def file_properties(f: FileFact) -> list[tuple[str, str]]:
+    selected = None if f.selected is None else str(f.selected).lower()
+    return properties([("hcdf:kind", f.kind), ("hcdf:size", f.size), ("hcdf:stream-profile-selected", selected)])
 
 
 def firmware_properties(f: FirmwareFact) -> list[tuple[str, str]]:
