@@ -28,8 +28,8 @@ demo: $(STAMP)
 	$(BIN)/hcdf-trust resolve examples/out/scout2.flat.hcdf --root examples
 	$(BIN)/hcdf-trust verify examples/out/scout2.flat.hcdf --root examples
 	$(BIN)/hcdf-trust ota keygen --type ecdsa-p256 -o examples/out/ota-demo-key.pem
-	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware --key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2
-	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem
+	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware --key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2 --provenance
+	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem --provenance
 	umask 077 && head -c 24 /dev/urandom | base64 > examples/out/registry.pass && head -c 24 /dev/urandom | base64 > examples/out/macsec.pass
 	$(BIN)/hcdf-trust registry init examples/out/registry --keys examples/out/registry-keys --passphrase-file examples/out/registry.pass
 	$(BIN)/hcdf-trust registry keygen --keys examples/out/ros2-keys -o examples/out/ros2.pub --passphrase-file examples/out/registry.pass

@@ -279,6 +279,17 @@ class OutputPlan:
     def paths(self) -> list[Path]:
         return [o.path for o in self._outputs.values()]
 
+    def planned(self, under: str | os.PathLike[str]) -> dict[str, bytes]:
+        """The outputs planned so far inside the folder ``under``: relative POSIX path -> bytes
+        (what a release's provenance lists as its subjects, whoever added them)."""
+        root = os.path.realpath(under)
+        found = {}
+        for o in self._outputs.values():
+            rel = os.path.relpath(o.path, root)
+            if rel != ".." and not rel.startswith("../"):
+                found[rel.replace(os.sep, "/")] = o.data
+        return found
+
     def commit(self) -> list[Path]:
         """Write every planned output; rename them into place only when all are written.
         Returns the paths written (not those found :attr:`unchanged`, nor standard output).
