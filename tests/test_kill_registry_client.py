@@ -1,0 +1,164 @@
+"""Mutation killers for hcdf_trust/registry/client.py (see tests/MUTATION.md).
+
+Each test pins behaviour a surviving mutant changed: where a client keeps its state when no
+``--cache-dir`` is given, the order of versions, and the messages of the failures the
+attack table does not name. Through the CLI, or the module's public functions.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from hcdf_trust.registry.client import latest
+from tests._registry import PASSPHRASE, Registry, build
+from tests.servers import LoopbackServer
+
+
+@pytest.fixture(autouse=True)
+def _passphrase(monkeypatch):
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+
+
+@pytest.fixture
+def reg(tmp_path, cli) -> Registry:
+    return build(tmp_path / "reg", cli)
+
+
+def _verify(reg: Registry, site: str | Path, *extra: object) -> object:
+    """``registry verify SITE`` with the registry's root and no ``--cache-dir``: the default folder."""
+    res = reg.cli("registry", "verify", site, "--trusted-root", reg.root_json, *extra)
+    assert res.exit_code == 0, res.stderr
+    return res
+
+
+def _client_folders(cache: Path) -> list[Path]:
+    """The per-site client folders under a cache home (each holds the trusted metadata)."""
+    top = cache / "hcdf-trust" / "registry"
+    found = sorted(top.iterdir()) if top.is_dir() else []
+    for folder in found:
+        assert (folder / "metadata" / "timestamp.json").is_file(), folder
+    return found
+
+
+# --- default_cache_dir: one folder per site and trusted root, under the user's cache --------
+
+
+def test_without_cache_dir_the_client_keeps_its_state_under_xdg_cache_home(reg, tmp_path, monkeypatch):
+    home, xdg = tmp_path / "home", tmp_path / "xdg"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(xdg))
+    _verify(reg, reg.site)
+    assert len(_client_folders(xdg)) == 1
+    assert list(home.iterdir()) == []  # nothing in ~/.cache when XDG_CACHE_HOME is set
+
+
+def test_without_xdg_cache_home_the_client_keeps_its_state_in_home_cache(reg, tmp_path, monkeypatch):
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    _verify(reg, reg.site)
+    assert len(_client_folders(home / ".cache")) == 1
+    assert [p.name for p in home.iterdir()] == [".cache"]
+
+
+def test_a_site_folder_named_three_ways_shares_one_client_folder(reg, tmp_path, monkeypatch):
+    xdg = tmp_path / "xdg"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(xdg))
+    link = tmp_path / "site-link"
+    link.symlink_to(reg.site)
+    _verify(reg, reg.site)
+    _verify(reg, link)
+    monkeypatch.chdir(reg.base)
+    _verify(reg, "site")
+    assert len(_client_folders(xdg)) == 1
+
+
+def test_another_site_or_another_trusted_root_gets_its_own_client_folder(reg, tmp_path, monkeypatch):
+    xdg = tmp_path / "xdg"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(xdg))
+    _verify(reg, reg.site)
+    copy = tmp_path / "copy"
+    shutil.copytree(reg.site, copy)
+    _verify(reg, copy)
+    assert len(_client_folders(xdg)) == 2
+    # the same site trusted from a copy of its root with other bytes (same signatures, one more newline)
+    other_root = tmp_path / "root.json"
+    other_root.write_bytes(reg.root_json.read_bytes() + b"\n")
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", other_root)
+    assert res.exit_code == 0, res.stderr
+    assert len(_client_folders(xdg)) == 3
+
+
+def test_a_registry_url_is_one_client_folder_whatever_the_working_folder(reg, tmp_path, monkeypatch):
+    xdg = tmp_path / "xdg"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(xdg))
+    with LoopbackServer(root=reg.site) as srv:
+        for cwd in (tmp_path, reg.base):
+            monkeypatch.chdir(cwd)
+            _verify(reg, srv.base)
+    assert len(_client_folders(xdg)) == 1
+    assert not (tmp_path / "http:").exists() and not (reg.base / "http:").exists()
+
+
+def test_a_client_without_cache_dir_remembers_what_it_trusted(reg, tmp_path, monkeypatch):
+    """The default folder is the client's memory: a rollback to a timestamp it saw replaced is refused."""
+    from tests._registry import IEEE_XSD
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    meta = reg.site / "metadata"
+    old_ts = (meta / "timestamp.json").read_bytes()
+    reg.add_domain("org.ros2", "1.1", IEEE_XSD)
+    reg.publish()
+    _verify(reg, reg.site)
+    (meta / "timestamp.json").write_bytes(old_ts)
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json)
+    assert res.exit_code == 1 and "rollback attack" in res.stderr, res.stderr
+
+
+# --- latest: numeric order of dotted versions ---------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("versions", "want"),
+    [
+        (["1.0"], "1.0"),
+        (["1.2", "1.10", "1.9"], "1.10"),  # text order would pick 1.9
+        (["10.0", "2.0", "9.9"], "10.0"),
+        (["1.0.1", "1.0", "0.99"], "1.0.1"),
+    ],
+)
+def test_latest_is_the_highest_version_in_numeric_order(versions, want):
+    assert latest(dict.fromkeys(versions, object())) == want
+
+
+# --- messages of the failures the attack table does not name ------------------------------
+
+
+def test_a_site_folder_without_timestamp_is_exit_3_naming_the_missing_file(reg):
+    (reg.site / "metadata" / "timestamp.json").unlink()
+    res = reg.verify()
+    assert res.exit_code == 3, res.stderr
+    assert "top-level metadata: HTTP 404" in res.stderr, res.stderr
+    assert f"{reg.site / 'metadata' / 'timestamp.json'}: not found" in res.stderr, res.stderr
+
+
+def test_a_site_url_without_timestamp_is_exit_3_naming_the_status(reg):
+    (reg.site / "metadata" / "timestamp.json").unlink()
+    with LoopbackServer(root=reg.site) as srv:
+        res = reg.verify(srv.base)
+    assert res.exit_code == 3, res.stderr
+    assert "top-level metadata: HTTP 404" in res.stderr, res.stderr
+
+
+def test_metadata_that_is_not_tuf_metadata_is_exit_1_naming_the_role_set(reg):
+    (reg.site / "metadata" / "timestamp.json").write_bytes(b"{}")
+    res = reg.verify()
+    assert res.exit_code == 1, res.stderr
+    assert "the registry's metadata does not verify: top-level metadata:" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+
