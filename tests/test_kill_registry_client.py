@@ -161,4 +161,3 @@ def test_metadata_that_is_not_tuf_metadata_is_exit_1_naming_the_role_set(reg):
     assert res.exit_code == 1, res.stderr
     assert "the registry's metadata does not verify: top-level metadata:" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr
-
