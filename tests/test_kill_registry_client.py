@@ -161,3 +161,77 @@ def test_metadata_that_is_not_tuf_metadata_is_exit_1_naming_the_role_set(reg):
     assert res.exit_code == 1, res.stderr
     assert "the registry's metadata does not verify: top-level metadata:" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr
+
+
+# --- what the client reads from the signed roles: domains, versions, profiles and schemas --
+
+
+def _versions_json(reg: Registry, tmp_path: Path, *what: str) -> object:
+    return reg.cli("registry", "fetch", *what, "--from", reg.site, "--trusted-root", reg.root_json,
+                   "--cache-dir", reg.base / "client", "-o", tmp_path / "out", "--json")  # fmt: skip
+
+
+def test_an_unregistered_domain_is_not_found_naming_the_site(reg, tmp_path):
+    res = _versions_json(reg, tmp_path, "org.nope")
+    assert res.exit_code == 3, res.stdout
+    [err] = res.json["errors"]
+    assert (err["message"], err["url"]) == ("org.nope is not a registered domain", str(reg.site))
+
+
+def test_a_domain_role_listing_paths_outside_its_folder_does_not_gain_versions(reg, tmp_path):
+    """A bare ``2.0.xsd`` and a nested ``extensions/org.ros2/x/3.0.xsd`` are not versions of org.ros2."""
+
+    def add(signed):
+        for path in ("2.0.xsd", "extensions/org.ros2/x/3.0.xsd"):
+            signed.targets[path] = reg.put_target(path, b"<evil/>")
+
+    reg.forge("org.ros2", add, signer=reg.owner_signer("org.ros2"))
+    res = _versions_json(reg, tmp_path, "org.ros2")
+    assert res.exit_code == 0, res.stderr
+    assert res.json["version"] == "1.0"
+    assert (tmp_path / "out").read_bytes() == reg.target_file("extensions/org.ros2/1.0.xsd").read_bytes()
+
+
+def test_top_level_paths_outside_profiles_and_schemas_are_not_artifacts(reg, tmp_path):
+    """``stray/evil/1.0.xsd`` and a two-part ``schemas/evil.xsd`` name no core schema."""
+
+    def add(signed):
+        for path in ("stray/evil/1.0.xsd", "schemas/evil.xsd", "profiles/evil.streams.xml"):
+            signed.targets[path] = reg.put_target(path, b"<evil/>")
+
+    reg.forge("targets", add, signer=reg.top_signer("targets"))
+    for kind in ("schema", "profile"):
+        res = _versions_json(reg, tmp_path, kind, "evil")
+        assert res.exit_code == 3 and res.json["errors"][0]["message"] == f"no {kind} evil in the registry", res.stdout
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--json")
+    assert res.exit_code == 0, res.stderr
+    assert (res.json["roles"], res.json["targets"]) == (2, 3)  # two domain schemas and the profile
+
+
+def test_only_extensions_domain_patterns_of_top_level_targets_are_domains(reg, tmp_path):
+    """A delegation for ``profiles/evil/*`` or ``profiles/*`` registers no domain."""
+    from tuf.api.metadata import DelegatedRole
+
+    def add(signed):
+        for name, pattern in (("evil", "profiles/evil/*"), ("evil2", "profiles/*")):
+            signed.delegations.roles[name] = DelegatedRole(name, [], 1, False, paths=[pattern])
+
+    reg.forge("targets", add, signer=reg.top_signer("targets"))
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--json")
+    assert res.exit_code == 0, res.stderr
+    assert res.json["roles"] == 2
+    res = _versions_json(reg, tmp_path, "evil")
+    assert res.exit_code == 3 and res.json["errors"][0]["message"] == "evil is not a registered domain", res.stdout
+
+
+def test_top_level_targets_without_delegations_has_no_domains(reg, tmp_path):
+    def drop(signed):
+        signed.delegations = None
+
+    reg.forge("targets", drop, signer=reg.top_signer("targets"))
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--json")
+    assert res.exit_code == 0, res.stderr
+    assert (res.json["roles"], res.json["targets"]) == (0, 1)  # the profile only
+    res = _versions_json(reg, tmp_path, "org.ros2")
+    assert res.exit_code == 3, res.stdout
+    assert res.json["errors"][0]["message"] == "org.ros2 is not a registered domain"
