@@ -235,3 +235,42 @@ def test_top_level_targets_without_delegations_has_no_domains(reg, tmp_path):
     res = _versions_json(reg, tmp_path, "org.ros2")
     assert res.exit_code == 3, res.stdout
     assert res.json["errors"][0]["message"] == "org.ros2 is not a registered domain"
+
+
+def test_a_replaced_version_names_both_contents_and_the_site(reg, tmp_path):
+    import hashlib
+
+    from tests._registry import IEEE_XSD
+
+    assert reg.verify().exit_code == 0  # the client has seen org.ros2 1.0
+    was = reg.target_file("extensions/org.ros2/1.0.xsd").read_bytes()
+    evil = IEEE_XSD.read_bytes()
+
+    def replace(signed):
+        signed.targets["extensions/org.ros2/1.0.xsd"] = reg.put_target("extensions/org.ros2/1.0.xsd", evil)
+
+    reg.forge("org.ros2", replace, signer=reg.owner_signer("org.ros2"))
+    res = _versions_json(reg, tmp_path, "org.ros2@1.0")
+    assert res.exit_code == 1, res.stdout
+    [err] = res.json["errors"]
+    assert err["message"] == (
+        "replaced published version: extensions/org.ros2/1.0.xsd (org.ros2) changed content since this client last saw it"
+    )
+    assert err["expected"] == f"sha256:{hashlib.sha256(was).hexdigest()} ({len(was)} bytes)"
+    assert err["actual"] == f"sha256:{hashlib.sha256(evil).hexdigest()} ({len(evil)} bytes)"
+    assert err["url"] == str(reg.site)
+
+
+def test_verify_downloads_and_checks_core_schemas_too(reg):
+    from tests.conftest import HCDFORMAT
+
+    reg.run("add", reg.src, "--core", "hcdf", "--version", "1.0", "--schema", HCDFORMAT / "hcdf.xsd",
+            "--content", reg.content)  # fmt: skip
+    reg.publish()
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--json")
+    assert res.exit_code == 0, res.stdout
+    assert (res.json["roles"], res.json["targets"]) == (2, 4)
+    target = reg.target_file("schemas/hcdf/1.0.xsd")
+    target.write_bytes(target.read_bytes().replace(b"<", b"[", 1))
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--cache-dir", reg.base / "c2")
+    assert res.exit_code == 1 and "arbitrary content: target schemas/hcdf/1.0.xsd" in res.stderr, res.stderr
