@@ -274,3 +274,15 @@ def test_verify_downloads_and_checks_core_schemas_too(reg):
     target.write_bytes(target.read_bytes().replace(b"<", b"[", 1))
     res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--cache-dir", reg.base / "c2")
     assert res.exit_code == 1 and "arbitrary content: target schemas/hcdf/1.0.xsd" in res.stderr, res.stderr
+
+
+def test_top_level_targets_listing_a_domain_file_is_reported_by_name(reg):
+    def shadow(signed):
+        signed.targets["extensions/org.ros2/9.0.xsd"] = reg.put_target("extensions/org.ros2/9.0.xsd", b"<x/>")
+
+    reg.forge("targets", shadow, signer=reg.top_signer("targets"))
+    res = reg.cli("registry", "verify", reg.site, "--trusted-root", reg.root_json, "--json")
+    assert res.exit_code == 1, res.stdout
+    assert [e["message"] for e in res.json["errors"]] == [
+        "targets lists extensions/org.ros2/9.0.xsd: only a domain's own role may list its files (it would shadow them)"
+    ]
