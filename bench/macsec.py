@@ -96,7 +96,7 @@ def main() -> None:
     WORK.mkdir(parents=True)
     doc = WORK / "robot.hcdf"
     doc.write_text(robot(a.networks, a.links))
-    env = dict(os.environ, HCDF_TRUST_MACSEC_PASSPHRASE=PASSPHRASE, XDG_CACHE_HOME=str(WORK / "cache"))
+    env = dict(os.environ, HCDF_TRUST_PASSPHRASE=PASSPHRASE, XDG_CACHE_HOME=str(WORK / "cache"))
     timed(["resolve", str(doc), "--offline"], env)  # writes the lock under its default name
 
     plan_t, gen_t, export_t = [], [], []

@@ -91,6 +91,38 @@ def parse_pin(
     return Pin(value)
 
 
+PREFIX = "sha256:"
+
+
+def prefixed_style(pins: Iterable[str | None]) -> bool:
+    """Whether new pins of a document are written ``sha256:<hex>`` (else bare hex).
+
+    The rule of ``pin --write``: a document whose existing pins (``sha`` attributes, blank
+    ones ignored) are *all* ``sha256:``-prefixed gets prefixed new pins, as upstream's
+    ``hcdf`` writes them; a document with no pin, or with some bare ones, gets bare hex,
+    the form the 1.0 schema documents and every reader accepts. A replaced pin keeps its
+    own style.
+    """
+    written = [p.strip().lower() for p in pins if p is not None and p.strip()]
+    return bool(written) and all(p.startswith(PREFIX) for p in written)
+
+
+def include_mismatch_hint(uri: str) -> str:
+    """What an ``<include sha>`` mismatch may mean, and how to re-pin the bytes.
+
+    Upstream's ``hcdf`` (hcdformat 05d27b58, ``content_sha_of_module``) accepts as an
+    include pin either the SHA-256 of the file's bytes or that of its own canonical
+    re-serialization of the module, and may write the latter. hcdf-trust pins bytes only:
+    a canonical-form pin is a mismatch here, on purpose (the re-serialization is not a
+    stable function of the bytes).
+    """
+    return (
+        f"upstream `hcdf` may have written a canonical-form pin (the SHA-256 of its re-serialization of the "
+        f"included file, not of its bytes); hcdf-trust pins bytes: if {redact(uri)} is the file you expect, "
+        f"re-pin its bytes with `hcdf-trust pin --write --update {redact(uri)} ROBOT.hcdf` (the tree's root)"
+    )
+
+
 def is_full_sha256(text: str) -> bool:
     return len(text) == FULL_HEX and set(text) <= _HEX
 

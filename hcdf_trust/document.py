@@ -40,13 +40,14 @@ exit 3); nothing that another XML reader would take for a reference is skipped:
 from __future__ import annotations
 
 import unicodedata
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, redact
+from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, Notice, redact
 from .xml import parse_bytes, sourceline
 
 
@@ -75,7 +76,7 @@ class Reference:
     uri_attr: str | None = None  # "uri" or "href" ("uri" when both, equal, are written); None for text
     name: str | None = None  # include name prefix, software name
     pose: str | None = None  # include pose "x y z roll pitch yaw"
-    active: bool = True  # stream-profile
+    selected: bool | None = None  # stream-profile: marked selected / not (see stream_profile_selection)
     domain: str | None = None  # extension
     version: str | None = None  # extension / software version
     element: Any = field(default=None, compare=False, repr=False, hash=False)
@@ -89,7 +90,7 @@ class Reference:
         uri_attr: str | None = None,
         name: str | None = None,
         pose: str | None = None,
-        active: bool = True,
+        selected: bool | None = None,
         domain: str | None = None,
         version: str | None = None,
         element: Any = None,
@@ -105,16 +106,25 @@ class Reference:
         d["uri_attr"] = uri_attr
         d["name"] = name
         d["pose"] = pose
-        d["active"] = active
+        d["selected"] = selected
         d["domain"] = domain
         d["version"] = version
         d["element"] = element
 
 
-def _bool(value: str | None, default: bool = True) -> bool:
-    if value is None:
-        return default
-    return value.strip().lower() in ("true", "1")
+_XS_BOOLEAN = {"true": True, "1": True, "false": False, "0": False}  # xs:boolean, whitespace collapsed
+SELECTION_ROLES = ("default",)  # upstream's StreamProfileSelectionRole (hcdformat-rs, 05d27b58)
+
+
+def _marked(el: etree._Element) -> bool | None:
+    """How a ``<stream-profile>`` marks itself: True (``selection-role="default"``, upstream's
+    newer form, or 1.0's ``active="true"``), False (``active="false"``), None (neither, or a
+    value that is not understood: :func:`stream_profile_selection` reports those)."""
+    role = el.get("selection-role")
+    if role is not None and role.strip() in SELECTION_ROLES:
+        return True
+    active = el.get("active")
+    return None if active is None else _XS_BOOLEAN.get(active.strip())
 
 
 ROOT = "hcdf"
@@ -181,6 +191,15 @@ class Document:
     @property
     def version(self) -> str:
         return self.root.get("version", "1.0")
+
+    @property
+    def foreign_major(self) -> bool:
+        """Whether ``version`` names a major other than 1 (``"2.0"``, as hcdf_models writes).
+
+        Upstream keeps ``version="1.0"`` and its own reader (hcdformat-rs ``version.rs``)
+        refuses any other major; this walker reads such a document as it reads 1.0.
+        """
+        return self.version.strip().split(".")[0] != "1"
 
     @property
     def body_frame(self) -> str | None:
@@ -483,7 +502,7 @@ def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
             uri=uri,
             sha=el.get("sha"),
             uri_attr=attr,
-            active=_bool(el.get("active")),
+            selected=_marked(el),
             element=el,
         )
     if tag == "hash":
@@ -511,6 +530,89 @@ def _reference(el: etree._Element, tag: str, source: str) -> Reference | None:
 
 def _has_location(el: etree._Element) -> bool:
     return any(el.get(a) is not None for a in URI_ATTRS)
+
+
+STREAM_SELECTION = "stream-profile-selection"
+
+
+@dataclass(frozen=True)
+class StreamSelection:
+    """Which of a document's ``<stream-profile>`` references are the ones a robot runs.
+
+    Both dialects are read, with one meaning: 1.0's ``active`` (an ``xs:boolean``, default
+    true: "one is active at a time", per ``<network>``) and upstream's ``selection-role="default"``
+    (05d27b58, top-level profiles: "the root document may identify one profile as the default
+    selection"). One selection per scope (a 1.0 ``<network>``, or the document's top level): in
+    a scope where no profile carries ``selection-role`` an unmarked profile is selected (1.0's
+    default); once one does, only marked profiles are. ``problems`` (message, line) are what
+    cannot be read one way: a value neither dialect defines, ``selection-role="default"`` with
+    ``active="false"``, or more than one profile selected in one scope.
+    """
+
+    profiles: tuple[Reference, ...]
+    selected: tuple[Reference, ...]
+    problems: tuple[tuple[str, int | None], ...]
+
+
+def stream_profile_selection(doc: Document) -> StreamSelection:
+    """The :class:`StreamSelection` of one document (validate, audit and sbom read it)."""
+    profiles = tuple(r for r in doc.references() if r.kind is Kind.STREAM_PROFILE)
+    problems: list[tuple[str, int | None]] = []
+    for r in profiles:
+        role, active = r.element.get("selection-role"), r.element.get("active")
+        what = f"<stream-profile uri={redact(r.uri or '')!r}>"
+        if role is not None and role.strip() not in SELECTION_ROLES:
+            problems.append((f'{what}: selection-role="{redact(role)}" is not one HCDF defines ("default")', r.line))
+        if active is not None and active.strip() not in _XS_BOOLEAN:
+            problems.append((f'{what}: active="{redact(active)}" is not a boolean (true, false, 1, 0)', r.line))
+        elif role is not None and r.selected and active is not None and not _XS_BOOLEAN[active.strip()]:
+            problems.append((f'{what}: selection-role="default" and active="{active}" say opposite things', r.line))
+    # One selection per scope: a 1.0 <network> holds its own profiles; upstream's newer model
+    # lists them at the top level. 1.0's default applies to a profile that writes neither
+    # attribute, in a scope where no profile uses selection-role.
+    scopes: dict[Any, list[Reference]] = {}  # keyed by the parent element (lxml keeps one proxy while held)
+    for r in profiles:
+        scopes.setdefault(r.element.getparent(), []).append(r)
+    selected: list[Reference] = []
+    for group in scopes.values():
+        newer = any(r.element.get("selection-role") is not None for r in group)
+        chosen = [r for r in group if r.selected or (not newer and r.element.get("active") is None)]
+        selected += chosen
+        if len(chosen) > 1:
+            lines = ", ".join(str(r.line) for r in chosen)
+            parent = chosen[0].element.getparent()
+            where = f"<{parent.tag} name={parent.get('name')!r}>" if parent.tag == "network" else "this document"
+            problems.append(
+                (
+                    f"{len(chosen)} stream profiles are selected in {where} (lines {lines}): a robot runs one at a "
+                    'time; mark one selection-role="default" (or active="true"), the others active="false"',
+                    chosen[1].line,
+                )
+            )
+    return StreamSelection(profiles, tuple(selected), tuple(problems))
+
+
+FOREIGN_MAJOR = "foreign-major-version"
+
+
+def foreign_major_notice(docs: Iterable[Document]) -> Notice | None:
+    """One notice for every document of a run whose version has a major other than 1.
+
+    Said once per run, at the first such document, naming the others: a tree of
+    hcdf_models boards is one fact to know, not one warning per file.
+    """
+    foreign = [d for d in docs if d.foreign_major]
+    if not foreign:
+        return None
+    first = foreign[0]
+    others = f" (and {len(foreign) - 1} more document(s) of this tree)" if len(foreign) > 1 else ""
+    return Notice(
+        FOREIGN_MAJOR,
+        f'version="{first.version}"{others}: read here as HCDF 1.0, but upstream\'s own reader '
+        '(hcdformat-rs) accepts only 1.x and refuses this document; upstream keeps version="1.0"',
+        file=first.source,
+        line=sourceline(first.root),
+    )
 
 
 def software_elements(doc: Document) -> list[etree._Element]:

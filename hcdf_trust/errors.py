@@ -56,13 +56,28 @@ def userinfo_end(text: str) -> int:
 
 
 def redact(text: str) -> str:
-    """``text`` with the ``user:password@`` of its URL (if any) shown as ``***@``."""
-    end = userinfo_end(text)
-    if end < 0:
-        return text
+    """``text`` (a URL) as messages show it: its ``user:password@`` as ``***@`` and its query
+    string as ``?***`` (``?token=…`` is a credential too). The fragment is kept.
+
+    Only for what is printed: the lock file keeps URLs as the document writes them.
+    """
     lax = _LAX_SCHEME.match(text)
-    start = lax.end() if lax is not None else text.find("//") + 2
-    return text[:start] + "***@" + text[end:]
+    if lax is not None:
+        start = lax.end()
+    elif "//" in text:
+        start = text.find("//") + 2
+    else:
+        return text
+    end = userinfo_end(text)
+    if end >= 0:
+        text = text[:start] + "***@" + text[end:]
+    query = text.find("?", start)
+    if query >= 0:
+        fragment = text.find("#", query)
+        fragment = len(text) if fragment < 0 else fragment
+        if fragment > query + 1:
+            text = text[: query + 1] + "***" + text[fragment:]
+    return text
 
 
 class HcdfTrustError(Exception):
@@ -108,7 +123,12 @@ class HcdfTrustError(Exception):
             out["actual"] = self.actual
         return out
 
-    def __str__(self) -> str:
+    def lines(self) -> list[str]:
+        """The message's lines: where and what, then ``expected`` and ``actual`` when set.
+
+        The CLI prints each line through the secret filter, which escapes control characters
+        in it: a newline inside a name or value cannot start a line of its own.
+        """
         where = ""
         if self.file:
             shown = display_place(self.file)
@@ -118,11 +138,15 @@ class HcdfTrustError(Exception):
             url = display_place(self.url)
             if url not in self.message and self.url not in self.message:
                 text += f" [{url}]"
+        out = [text]
         if self.expected is not None:
-            text += f"\n  expected: {self.expected}"
+            out.append(f"  expected: {self.expected}")
         if self.actual is not None:
-            text += f"\n  actual:   {self.actual}"
-        return text
+            out.append(f"  actual:   {self.actual}")
+        return out
+
+    def __str__(self) -> str:
+        return "\n".join(self.lines())
 
 
 # --- exit 1: the content is wrong -------------------------------------------------
@@ -181,6 +205,13 @@ class NotHcdfError(XmlError):
     code = "not-hcdf"
 
 
+class StreamSelectionError(InputError):
+    """Which ``<stream-profile>`` a document selects cannot be read one way (a verb that must
+    name it refuses; validate and audit report the same code as a finding)."""
+
+    code = "stream-profile-selection"
+
+
 class AmbiguousError(InputError):
     """An element the schema allows once (``maxOccurs="1"``), written twice where a verb reads it
     (``<software><hash>``, ``<version>``, ``<comp><board>``, a link's ``<macsec>``, a port's
@@ -211,6 +242,13 @@ class CredentialsError(InputError):
     """A URL carries ``user:password@``: refused, so the secret reaches no lock, output or message."""
 
     code = "url-credentials"
+
+
+class SecretFileError(InputError):
+    """A key, passphrase or PIN cannot be used as given: its file is readable by others (ssh's
+    rule), it is empty or holds several lines, or none was given."""
+
+    code = "secret"
 
 
 class FetchError(InputError):

@@ -13,13 +13,15 @@ import contextlib
 import functools
 import hashlib
 import os
+import re
 import stat
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from .digest import CHUNK, SMALL_FILE, Hashed, hash_fd, read_small
-from .errors import InputError, NotFoundError, PathEscapeError, display_path
+from .errors import InputError, NotFoundError, PathEscapeError, SecretFileError, display_path
 
 # O_NONBLOCK: opening a FIFO must not wait for a writer. It has no effect on
 # reads from a regular file, the only kind we go on to read.
@@ -283,6 +285,138 @@ def read_input(path: Path | str, *, limit: int, what: str = "file", source: str 
         raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
     finally:
         os.close(fd)
+
+
+def read_secret(path: Path | str, *, limit: int, what: str, public_ok: bool = False) -> bytes:
+    """The whole content of a private key, passphrase or PIN file (:func:`read_input`), refused
+    when its group or others have any access to it, the way ssh refuses an unprotected private
+    key: a secret others could read is no longer a secret, and one they could write is not ours.
+    ``public_ok``: a PEM public key given in its place is returned as it is, for the caller to
+    say that it is not the private key.
+
+    Raises:
+        SecretFileError: group or others have access (the message gives the ``chmod`` to run).
+        NotFoundError / InputError: as :func:`read_input`.
+    """
+    name = str(path)
+    fd, st = open_regular(path, file=name, what=what)
+    try:
+        data = read_bounded(fd, limit, source=name, what=what)
+        mode = stat.S_IMODE(st.st_mode)
+        if mode & 0o077 and not (public_ok and b"PUBLIC KEY-----" in data and b"PRIVATE KEY" not in data):
+            import shlex
+
+            raise SecretFileError(
+                f"permissions {mode:04o} are too open: a {what} must be accessible by its owner only "
+                f"(as ssh requires of a private key); run: chmod 600 {shlex.quote(display_path(name))}",
+                file=name,
+                expected="mode 0600 or 0400",
+                actual=f"mode {mode:04o}",
+            )
+        return data
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
+    finally:
+        os.close(fd)
+
+
+class TomlError(InputError):
+    """A TOML input is not UTF-8, not TOML, or nested deeper than :data:`MAX_TOML_DEPTH`."""
+
+    code = "toml"
+
+
+# Deepest nesting of tables and arrays accepted in a TOML input. Ours need 4; tomllib parses
+# inline tables and arrays recursively with no limit of its own (a few KB of "[[[[" exhaust
+# Python's stack), so the text is measured before it is parsed.
+MAX_TOML_DEPTH = 32
+# Comments and strings (whose brackets do not nest), and the brackets that do.
+_TOML_TOKEN = re.compile(
+    r"#[^\n]*"
+    r'|"""(?:\\.|[^\\])*?"""(?:"{1,2}(?!"))?'
+    r"|'''.*?'''(?:'{1,2}(?!'))?"
+    r'|"(?:\\.|[^"\\\n])*"'
+    r"|'[^'\n]*'"
+    r"|[\[\]{}]",
+    re.S,
+)
+
+
+def read_toml(
+    path: Path | str,
+    *,
+    limit: int,
+    what: str,
+    source: str | None = None,
+    error: type[InputError] = TomlError,
+) -> dict[str, Any]:
+    """The one TOML reader: a local file read by :func:`read_input` (at most ``limit`` bytes),
+    UTF-8, nested at most :data:`MAX_TOML_DEPTH` deep (checked before ``tomllib`` parses it,
+    and again on the result, which dotted keys can nest without brackets).
+
+    Raises:
+        ``error`` (an :class:`InputError`, exit 3; :class:`TomlError` by default): not UTF-8,
+            not TOML (with its line), too deep.
+        NotFoundError / InputError: as :func:`read_input`.
+    """
+    import tomllib
+
+    name = source or str(path)
+    data = read_input(path, limit=limit, what=what, source=name)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{what} is not UTF-8 text ({exc.reason} at byte {exc.start})", file=name) from None
+    depth, line = _toml_nesting(text)
+    if depth > MAX_TOML_DEPTH:
+        raise _too_deep(error, what, name, line)
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        found = re.search(r"at line (\d+)", str(exc))
+        raise error(
+            f"{what} is not valid TOML: {exc}", file=name, line=int(found.group(1)) if found else None
+        ) from None
+    if _depth(doc) > MAX_TOML_DEPTH:
+        raise _too_deep(error, what, name, None)
+    return doc
+
+
+def _too_deep(error: type[InputError], what: str, name: str, line: int | None) -> InputError:
+    return error(f"{what} nests tables or arrays more than {MAX_TOML_DEPTH} levels deep", file=name, line=line)
+
+
+def _toml_nesting(text: str) -> tuple[int, int | None]:
+    """The deepest bracket nesting of a TOML text outside strings and comments, and the line
+    where it first goes past :data:`MAX_TOML_DEPTH` (None when it does not)."""
+    depth = deepest = 0
+    for m in _TOML_TOKEN.finditer(text):
+        token = m.group()
+        if token in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if depth > MAX_TOML_DEPTH:
+                    return depth, text.count("\n", 0, m.start()) + 1
+        elif token in "]}":
+            depth -= 1
+    return deepest, None
+
+
+def _depth(value: object) -> int:
+    """How deep tables and arrays nest in a parsed document (iteratively: no recursion)."""
+    deepest = 0
+    stack: list[tuple[object, int]] = [(value, 0)]  # the document itself is no nesting
+    while stack:
+        item, level = stack.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else None
+        if children is None:
+            continue
+        deepest = max(deepest, level)
+        if deepest > MAX_TOML_DEPTH:
+            return deepest
+        stack.extend((child, level + 1) for child in children)
+    return deepest
 
 
 def read_chunks(fd: int) -> Iterator[bytes]:

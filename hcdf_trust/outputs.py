@@ -16,15 +16,32 @@ its outputs here first:
    failure before the renames leaves every destination as it was; a rename that
    fails puts back the files already replaced. An output added with ``if_changed``
    that is already in place, byte for byte, is not written at all.
+
+What no output may replace, whoever writes it:
+
+- an input of the run (step 1), and a file that is a private or public key, a MACsec key
+  store, a registry source file or an HCDF document (:func:`kind_of` reads its first bytes)
+  unless the output says it ``replaces`` that kind (``--force`` of a keygen, a store
+  rewriting itself, a flattened document replacing the previous one);
+- a file reached through a symlinked folder inside an output tree: an output added
+  ``under`` a tree root is written by opening each folder below the root relative to its
+  parent's descriptor with ``O_NOFOLLOW | O_DIRECTORY`` (checked when planned, and again
+  when committed), so ``rel/<board>`` pointing elsewhere is refused, never followed.
+
+A killed run leaves its staged (``.NAME.<hex>.tmp``) and backup (``.NAME.<hex>.old``) files
+behind: a commit holds a shared ``flock`` on every folder it writes to, and the next commit
+that can take that folder's lock exclusively (no run is writing there) removes them first.
+``-`` as a destination (where a verb allows it: ``stdout=True``) is standard output.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import stat
 from collections.abc import Callable, Sequence
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 from .errors import InputError, display_path, display_place
@@ -40,6 +57,39 @@ class OutputError(InputError):
     code = "output"
 
 
+ORDINARY = "an ordinary file"  # none of the kinds below
+PRIVATE_KEY = "a private key"
+PUBLIC_KEY = "a public key"
+KEY_STORE = "a MACsec key store"
+DOCUMENT = "an HCDF document"
+REGISTRY_SOURCE = "a registry source file"
+NEW_ONLY: tuple[str, ...] = ()  # ``replaces=NEW_ONLY``: an existing destination is never replaced
+
+# What a file that no output may replace by default holds within its first 4 KiB (the first
+# mark found names it). Our own formats are named by the first line their writer puts there
+# (registry/source.py ``dump``, registry/edit.py ``keygen``): tests check the two agree.
+_MARKS = (
+    (b"PRIVATE KEY-----", PRIVATE_KEY),  # PEM: PKCS#8, encrypted, EC, RSA, OpenSSH
+    (b"AGE-SECRET-KEY-1", PRIVATE_KEY),
+    (b'"hcdf-trust-macsec-store"', KEY_STORE),
+    (b"-----BEGIN PUBLIC KEY-----", PUBLIC_KEY),
+    (b"# hcdf-trust registry owner public key", PUBLIC_KEY),
+    (b"# An HCDF extension domain: only its owner's keys", REGISTRY_SOURCE),
+    (b"# Signed by the registry's targets key;", REGISTRY_SOURCE),
+    (b"# The registry's root of trust:", REGISTRY_SOURCE),
+    (b"<hcdf ", DOCUMENT),
+    (b"<hcdf>", DOCUMENT),
+    (b"<hcdf\n", DOCUMENT),
+    (b"<hcdf\t", DOCUMENT),
+    (b"<hcdf\r", DOCUMENT),
+)
+_SNIFF_BYTES = 4096
+
+# The names of OutputPlan's staged files and backups: the sweep removes nothing else.
+_LEFTOVER = None  # compiled on first use (re costs start-up)
+_LEFTOVER_PATTERN = r"\..+\.[0-9a-f]{12}\.(?:tmp|old)"
+
+
 class _Output(NamedTuple):  # a tuple: a frozen dataclass costs ~1 ms of start-up to define
     path: Path  # the real folder + the name as given (a symlink at the destination is replaced, not followed)
     data: bytes
@@ -47,6 +97,9 @@ class _Output(NamedTuple):  # a tuple: a frozen dataclass costs ~1 ms of start-u
     flag: str  # how the user named it, for messages: "--lock", "--out", ...
     shown: str  # the path as the user gave it
     if_changed: bool = False  # left as it is when it already holds exactly ``data`` with ``mode``
+    base: str = ""  # an existing real folder, opened as named (symlinks the user chose are followed)
+    parts: tuple[str, ...] = ()  # the folders below ``base``, each opened with O_NOFOLLOW, made when missing
+    folder_mode: int = 0o777  # for the folders made (before the umask)
 
 
 class _Input(NamedTuple):  # a tuple: 10,000 of them per run
@@ -74,6 +127,7 @@ class OutputPlan:
         self._statted = 0  # how many of _inputs are in _inodes
         self._trees: list[_Input] = []
         self._outputs: dict[str, _Output] = {}  # realpath -> output
+        self._stdout: list[bytes] = []  # outputs added as "-": written to standard output by commit()
         self.unchanged: list[Path] = []  # outputs added with if_changed that commit() found already in place
 
     # -- inputs ----------------------------------------------------------------------
@@ -129,6 +183,10 @@ class OutputPlan:
         mode: int = 0o644,
         edit: bool = False,
         if_changed: bool = False,
+        under: str | os.PathLike[str] | None = None,
+        replaces: tuple[str, ...] | None = None,
+        stdout: bool = False,
+        folder_mode: int = 0o777,
     ) -> None:
         """Plan to write ``data`` to ``path``, refusing at once a destination that is an input.
 
@@ -137,27 +195,58 @@ class OutputPlan:
         ``if_changed``: a destination that already is a regular file (not a symlink)
         holding exactly ``data`` with ``mode`` is left as it is, inode and mtime
         untouched (a build system then sees no change); :attr:`unchanged` lists it.
+        ``under``: the root of the output tree ``path`` lies in (as the caller spelled
+        it: ``path`` must start with it); no folder below it may be a symlink.
+        ``replaces``: the kinds (:func:`kind_of`) of existing file this output may replace:
+        None is ``(ORDINARY,)`` (never a key, key store, registry source or document);
+        ``NEW_ONLY`` is nothing (the destination must not exist).
+        ``stdout``: ``path`` ``-`` means standard output. ``folder_mode``: of folders made.
 
         Raises:
             OutputError: ``path`` is an input, inside a protected folder, another
-                output of this run, a directory or other non-regular file, or under
-                a regular file.
+                output of this run, a directory or other non-regular file, under
+                a regular file or a symlinked folder of its tree, or key material.
         """
-        dest, real, shown = self._check(path, flag=flag, edit=edit)
-        self._outputs[real] = _Output(dest, data, mode, flag, shown, if_changed)
+        if stdout and os.fspath(path) == "-":
+            self._stdout.append(data)
+            return
+        dest, real, shown, base, parts = self._check(path, flag=flag, edit=edit, under=under, replaces=replaces)
+        self._outputs[real] = _Output(dest, data, mode, flag, shown, if_changed, base, parts, folder_mode)
 
-    def check(self, path: str | os.PathLike[str], *, flag: str) -> None:
+    def check(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        flag: str,
+        under: str | os.PathLike[str] | None = None,
+        replaces: tuple[str, ...] | None = None,
+    ) -> None:
         """Refuse now what :meth:`add` would refuse, before the work of making the data.
 
         Raises:
             OutputError: as :meth:`add`.
         """
-        self._check(path, flag=flag, edit=False)
+        self._check(path, flag=flag, edit=False, under=under, replaces=replaces)
 
-    def _check(self, path: str | os.PathLike[str], *, flag: str, edit: bool) -> tuple[Path, str, str]:
-        """The destination, its real path and how messages show it, or an OutputError."""
-        dest = _destination(os.fspath(path), flag=flag)
+    def _check(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        flag: str,
+        edit: bool,
+        under: str | os.PathLike[str] | None,
+        replaces: tuple[str, ...] | None,
+    ) -> tuple[Path, str, str, str, tuple[str, ...]]:
+        """The destination, its real path, how messages show it, and the existing folder and
+        the folders below it that commit opens one by one; or an OutputError."""
         shown = display_place(os.fspath(path))  # an absolute path inside the working folder shown relative
+        below: tuple[str, ...] = ()
+        if under is None:
+            dest = _destination(os.fspath(path), flag=flag)
+            top = dest.parent
+        else:
+            top, below = _in_tree(os.fspath(path), os.fspath(under), flag=flag, shown=shown)
+            dest = top.joinpath(*below, os.path.basename(path))
         real = os.path.realpath(dest)
         try:
             st: os.stat_result | None = os.stat(real)
@@ -174,6 +263,8 @@ class OutputPlan:
             raise OutputError(f"{flag} {shown} is {hit.what}{also}: refusing to overwrite an input", file=shown)
         if st is not None and not stat.S_ISREG(st.st_mode):
             raise OutputError(f"{flag} {shown} exists and is not a regular file ({_kind(st.st_mode)})", file=shown)
+        if st is not None and not edit:
+            _check_replace(real, replaces, flag=flag, shown=shown)
         for tree in self._trees:
             if real == tree.path or real.startswith(tree.path.rstrip("/") + "/"):
                 raise OutputError(f"{flag} {shown} is inside {tree.what} ({display_path(tree.path)})", file=shown)
@@ -181,7 +272,8 @@ class OutputPlan:
             other = self._outputs[real]
             raise OutputError(f"{flag} {shown} is also the destination of {other.flag}", file=shown)
         _check_parent(dest, flag=flag, shown=shown)
-        return dest, real, shown
+        base, missing = _existing(top)  # the tree's root (or its deepest existing folder), then every folder below
+        return dest, real, shown, base, (*missing, *below)
 
     @property
     def paths(self) -> list[Path]:
@@ -189,16 +281,24 @@ class OutputPlan:
 
     def commit(self) -> list[Path]:
         """Write every planned output; rename them into place only when all are written.
-        Returns the paths written (not those found :attr:`unchanged`).
+        Returns the paths written (not those found :attr:`unchanged`, nor standard output).
 
-        Every file is written to a temporary file beside its destination first, then the
-        temporary files are fsynced together (a few threads: fsync releases the GIL and
-        the filesystem can commit them in one journal transaction); only then is each
-        renamed into place, and each folder that changed is fsynced once.
+        Each destination folder is opened from its existing real folder down, one folder
+        at a time with ``O_NOFOLLOW`` (made when missing), and held open: every file is
+        staged, renamed and backed up relative to that descriptor, so a folder swapped
+        for a symlink meanwhile is never written through. Every folder is held with a
+        shared ``flock`` during the commit; a folder whose lock can be taken exclusively
+        first loses the staged files and backups a killed commit left there. Every file
+        is written to a temporary file beside its destination, then the temporary files
+        are fsynced together (a few threads: fsync releases the GIL and the filesystem
+        can commit them in one journal transaction); only then is each renamed into
+        place, and each folder that changed is fsynced once. Outputs added as ``-`` are
+        written to standard output last.
 
         Raises:
-            OutputError: a folder could not be made or written (read-only, full disk...);
-                then no destination has changed and no temporary file or new folder is left.
+            OutputError: a folder could not be made or written (read-only, full disk...),
+                or is a symlink below a tree's root; then no destination has changed and no
+                temporary file or new folder is left. Standard output cannot be written.
         """
         outputs = []
         for out in self._outputs.values():
@@ -206,53 +306,203 @@ class OutputPlan:
                 self.unchanged.append(out.path)
             else:
                 outputs.append(out)
-        made: list[Path] = []  # folders this commit created, outermost first
-        staged: list[tuple[str, _Output]] = []
-        done: list[tuple[_Output, str | None]] = []  # renamed so far, with a link to the file they replaced
+        # a folder whose outputs are all in place already is still swept (the lock beside a
+        # document, after a resolve killed while rewriting it)
+        for folder in {path.parent for path in self.unchanged} - {out.path.parent for out in outputs}:
+            sweep_folder(folder)
+        folders = _Folders()
+        staged: list[tuple[int, str, _Output]] = []  # (folder descriptor, temporary name, output)
+        done: list[tuple[int, _Output, str | None]] = []  # renamed so far, with a link to the file they replaced
         current: _Output | None = None
         try:
-            folders: set[Path] = set()
-            for current in outputs:
-                if current.path.parent not in folders:
-                    made += _make_folders(current.path.parent)
-                    folders.add(current.path.parent)
-            for start in range(0, len(outputs), _OPEN_AT_ONCE):
-                batch = outputs[start : start + _OPEN_AT_ONCE]
-                fds: list[int] = []
-                try:
-                    for current in batch:
-                        fd, tmp = _stage(current)
-                        fds.append(fd)
-                        staged.append((tmp, current))
-                    failed = _in_parallel(_fsync, fds)
-                finally:
-                    for fd in fds:
-                        os.close(fd)
-                for i, err in enumerate(failed):
-                    if err is not None:
-                        current = batch[i]  # the message names the file whose fsync failed
-                        raise err
-            for tmp, current in staged:
-                backup = _keep_previous(current.path)
-                try:
-                    os.replace(tmp, current.path)
-                except OSError:
-                    _discard(backup)
+            try:
+                dirs = []
+                for current in outputs:
+                    dirs.append(folders.open(current))
+                for start in range(0, len(outputs), _OPEN_AT_ONCE):
+                    batch = outputs[start : start + _OPEN_AT_ONCE]
+                    fds: list[int] = []
+                    try:
+                        for i, current in enumerate(batch):
+                            dfd = dirs[start + i]
+                            fd, tmp = _stage(current, dfd)
+                            fds.append(fd)
+                            staged.append((dfd, tmp, current))
+                        failed = _in_parallel(_fsync, fds)
+                    finally:
+                        for fd in fds:
+                            os.close(fd)
+                    for i, err in enumerate(failed):
+                        if err is not None:
+                            current = batch[i]  # the message names the file whose fsync failed
+                            raise err
+                for dfd, tmp, current in staged:
+                    name = current.path.name
+                    backup = _keep_previous(dfd, name)
+                    try:
+                        os.replace(tmp, name, src_dir_fd=dfd, dst_dir_fd=dfd)
+                    except OSError:
+                        _discard(dfd, backup)
+                        raise
+                    done.append((dfd, current, backup))
+            except BaseException as exc:  # an interrupt (Ctrl-C) is rolled back like a full disk
+                _roll_back(done, staged, folders.made)
+                if isinstance(exc, _SymlinkedFolder):
+                    raise OutputError(str(exc), file=exc.file) from None
+                if not isinstance(exc, OSError):
                     raise
-                done.append((current, backup))
-        except BaseException as exc:  # an interrupt (Ctrl-C) is rolled back like a full disk
-            _roll_back(done, staged, made)
-            if not isinstance(exc, OSError):
-                raise
-            assert current is not None
-            raise OutputError(
-                f"cannot write {current.flag} {current.shown}: {exc.strerror or exc}", file=current.shown
-            ) from None
-        for _, backup in done:
-            _discard(backup)
+                assert current is not None
+                raise OutputError(
+                    f"cannot write {current.flag} {current.shown}: {exc.strerror or exc}", file=current.shown
+                ) from None
+            for dfd, _, backup in done:
+                _discard(dfd, backup)
+        finally:
+            folders.close()
         # the renamed files' folders, and the folders that hold a folder this commit made
-        _in_parallel(fsync_dir, sorted(folders | {folder.parent for folder in made}))
+        changed = {out.path.parent for out in outputs} | {path.parent for _, _, path in folders.made}
+        _in_parallel(fsync_dir, sorted(changed))
+        for data in self._stdout:
+            write_stdout(data)
         return [out.path for out in outputs]
+
+
+def write_stdout(data: bytes) -> None:
+    """``data`` on standard output, flushed.
+
+    Raises:
+        OutputError: standard output is closed, full, or a closed pipe.
+    """
+    import sys
+
+    stream = sys.stdout
+    try:
+        if stream is None:
+            raise OSError(errno.EBADF, "standard output is closed")
+        stream.flush()
+        stream.buffer.write(data)
+        stream.buffer.flush()
+    except (OSError, ValueError) as exc:  # ValueError: the stream object was closed
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise OutputError(f"cannot write to standard output: {why}") from None
+
+
+class _SymlinkedFolder(Exception):
+    """A folder below a tree's root turned out to be a symlink (or no folder) when opened."""
+
+    def __init__(self, message: str, file: str) -> None:
+        super().__init__(message)
+        self.file = file
+
+
+class _Folders:
+    """The destination folders of one commit, opened one component at a time and held open
+    (with a shared ``flock``) until the commit ends."""
+
+    def __init__(self) -> None:
+        self._fds: dict[tuple[str, tuple[str, ...]], int] = {}
+        self.made: list[tuple[int, str, Path]] = []  # (parent descriptor, name, path), outermost first
+        self._locked: set[int] = set()
+
+    def open(self, out: _Output) -> int:
+        """The descriptor of ``out``'s folder, locked and swept of a killed commit's leftovers."""
+        fd = self._open(out, len(out.parts))
+        if fd not in self._locked:
+            self._locked.add(fd)
+            _claim(fd)
+        return fd
+
+    def _open(self, out: _Output, depth: int) -> int:
+        key = (out.base, out.parts[:depth])
+        fd = self._fds.get(key)
+        if fd is not None:
+            return fd
+        if depth == 0:
+            fd = os.open(out.base, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        else:
+            parent = self._open(out, depth - 1)
+            name = out.parts[depth - 1]
+            flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+            try:
+                fd = os.open(name, flags, dir_fd=parent)
+            except FileNotFoundError:
+                os.mkdir(name, out.folder_mode, dir_fd=parent)
+                self.made.append((parent, name, Path(out.base, *out.parts[:depth])))
+                fd = os.open(name, flags, dir_fd=parent)
+            except OSError as exc:
+                if exc.errno not in (errno.ELOOP, errno.ENOTDIR):
+                    raise
+                real = Path(out.base, *out.parts[:depth])
+                folder = display_path(real)
+                what = "a symlink" if os.path.islink(real) else "not a folder"
+                raise _SymlinkedFolder(
+                    f"cannot write {out.flag} {out.shown}: {folder} is {what}: refusing to write through it",
+                    out.shown,
+                ) from None
+        self._fds[key] = fd
+        return fd
+
+    def close(self) -> None:
+        for fd in self._fds.values():
+            os.close(fd)  # releases its flock
+        self._fds.clear()
+
+
+def _claim(dfd: int) -> None:
+    """Hold a shared ``flock`` on the folder ``dfd`` for this commit. When no other commit
+    holds one (the exclusive lock is free), first remove the staged files and backups
+    (``.NAME.<12 hex>.tmp|.old``, regular files only) that a killed commit left there."""
+    import fcntl
+
+    try:
+        fcntl.flock(dfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # EWOULDBLOCK: a live commit in this folder; else a filesystem without flock
+        with contextlib.suppress(OSError):
+            fcntl.flock(dfd, fcntl.LOCK_SH)
+        return
+    sweep_leftovers(dfd)
+    fcntl.flock(dfd, fcntl.LOCK_SH)  # not atomic: another commit may sweep in between; nothing of ours is there yet
+
+
+def sweep_folder(folder: str | os.PathLike[str]) -> int:
+    """Remove the staged files and backups a killed commit left in ``folder``, unless a commit
+    is writing there now (its folder lock is held). Returns how many; never raises."""
+    import fcntl
+
+    try:
+        dfd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    except OSError:
+        return 0
+    try:
+        fcntl.flock(dfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return sweep_leftovers(dfd)
+    except OSError:
+        return 0
+    finally:
+        os.close(dfd)
+
+
+def sweep_leftovers(dfd: int) -> int:
+    """Remove OutputPlan's staged files and backups from the folder ``dfd`` (the caller holds its
+    exclusive lock: no commit is writing there). Returns how many; never raises."""
+    global _LEFTOVER
+    if _LEFTOVER is None:
+        import re
+
+        _LEFTOVER = re.compile(_LEFTOVER_PATTERN)
+    removed = 0
+    try:
+        names = os.listdir(dfd)
+    except OSError:
+        return 0
+    for name in names:
+        if name[:1] != "." or not _LEFTOVER.fullmatch(name):
+            continue
+        with contextlib.suppress(OSError):
+            if stat.S_ISREG(os.lstat(name, dir_fd=dfd).st_mode):
+                os.unlink(name, dir_fd=dfd)
+                removed += 1
+    return removed
 
 
 def protect_inputs(
@@ -307,6 +557,83 @@ def _destination(text: str, *, flag: str) -> Path:
     return Path(os.path.realpath(folder)) / name
 
 
+def _in_tree(text: str, root: str, *, flag: str, shown: str) -> tuple[Path, tuple[str, ...]]:
+    """The real folder of the tree root ``root`` and the folders from it to ``text``'s folder.
+
+    The root is the user's: a symlink there is followed. Below it, every existing folder
+    must be a real folder, not a symlink (``rel/<board>`` -> elsewhere would write outside).
+
+    Raises:
+        OutputError: ``text`` does not lie below ``root`` by name, passes ``..``, or
+            a folder below the root is a symlink or not a folder.
+    """
+    cwd = os.getcwd()
+    parts, top = PurePath(os.path.join(cwd, text)).parts, PurePath(os.path.join(cwd, root)).parts
+    if parts[: len(top)] != top or len(parts) <= len(top) or ".." in parts[len(top) :]:
+        raise OutputError(f"{flag} {shown} is not inside the output folder {display_place(root)}", file=shown)
+    below = parts[len(top) : -1]
+    real_root = Path(os.path.realpath(os.path.join(cwd, root)))
+    folder = real_root
+    for name in below:
+        folder = folder / name
+        try:
+            st = os.lstat(folder)
+        except (FileNotFoundError, NotADirectoryError):
+            break  # made by commit (which opens each with O_NOFOLLOW, in case one appears meanwhile)
+        except OSError as exc:
+            raise OutputError(f"{flag} {shown}: {exc.strerror}", file=shown) from None
+        if stat.S_ISLNK(st.st_mode):
+            raise OutputError(
+                f"{flag} {shown}: {display_place(os.path.join(root, *folder.relative_to(real_root).parts))} "
+                "is a symlink inside the output folder: refusing to write through it",
+                file=shown,
+            )
+    return real_root, below
+
+
+def _existing(folder: Path) -> tuple[str, tuple[str, ...]]:
+    """The deepest existing ancestor of the real path ``folder`` (itself if it exists), and the
+    names of the folders below it that do not exist yet."""
+    missing: list[str] = []
+    while not os.path.isdir(folder) and folder.parent != folder:
+        missing.append(folder.name)
+        folder = folder.parent
+    return os.fspath(folder), tuple(reversed(missing))
+
+
+def kind_of(data: bytes) -> str:
+    """What ``data`` (a file's first bytes) is, for the replace rule: :data:`PRIVATE_KEY`,
+    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, :data:`REGISTRY_SOURCE`, :data:`DOCUMENT`, else
+    :data:`ORDINARY`."""
+    head = data[:_SNIFF_BYTES]
+    for mark, kind in _MARKS:
+        if mark in head:
+            return kind
+    return ORDINARY
+
+
+def _check_replace(real: str, replaces: tuple[str, ...] | None, *, flag: str, shown: str) -> None:
+    """Refuse to replace the existing regular file ``real`` unless the output may (see :meth:`OutputPlan.add`)."""
+    if replaces == NEW_ONLY:
+        raise OutputError(f"{flag} {shown} exists: refusing to replace it (use --force)", file=shown)
+    try:
+        fd = os.open(real, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        head = None  # unreadable: it cannot be told apart from what it must not be
+    else:
+        try:
+            head = os.read(fd, _SNIFF_BYTES)
+        except OSError:
+            head = None
+        finally:
+            os.close(fd)
+    kind = kind_of(head) if head is not None else "a file that cannot be read"
+    allowed = (ORDINARY,) if replaces is None else replaces
+    if kind not in allowed:
+        what = f"is not {' or '.join(allowed)}" if kind == ORDINARY else f"is {kind}"
+        raise OutputError(f"{flag} {shown} {what}: refusing to replace it", file=shown)
+
+
 def _kind(mode: int) -> str:
     if stat.S_ISFIFO(mode):
         return "a FIFO"
@@ -329,26 +656,6 @@ def _check_parent(dest: Path, *, flag: str, shown: str) -> None:
         if not stat.S_ISDIR(st.st_mode):
             raise OutputError(f"{flag} {shown}: {display_path(parent)} is not a folder", file=shown)
         return
-
-
-def _make_folders(folder: Path) -> list[Path]:
-    """Create ``folder`` and its missing parents; return those created, outermost first."""
-    missing = []
-    for candidate in (folder, *folder.parents):
-        if candidate.is_dir():
-            break
-        missing.append(candidate)
-    made = []
-    try:
-        for candidate in reversed(missing):
-            candidate.mkdir()
-            made.append(candidate)
-    except OSError:
-        for candidate in reversed(made):
-            with contextlib.suppress(OSError):
-                candidate.rmdir()
-        raise
-    return made
 
 
 _OPEN_AT_ONCE = 256  # temporary files held open while their fsyncs run (bounded: RLIMIT_NOFILE)
@@ -402,10 +709,10 @@ def _holds(out: _Output) -> bool:
         os.close(fd)
 
 
-def _stage(out: _Output) -> tuple[int, str]:
-    """Write ``out`` to a temporary file beside its destination, with its mode from the first
-    byte; return the open descriptor (to fsync) and the path."""
-    fd, tmp = create_temp(out.path.parent, f".{out.path.name}.", ".tmp")  # 0600
+def _stage(out: _Output, dfd: int) -> tuple[int, str]:
+    """Write ``out`` to a temporary file in the folder ``dfd``, with its mode from the first
+    byte; return the open descriptor (to fsync) and the temporary file's name."""
+    fd, tmp = create_temp(out.path.parent, f".{out.path.name}.", ".tmp", dir_fd=dfd)  # 0600
     try:
         os.fchmod(fd, out.mode)
         view = memoryview(out.data)
@@ -414,21 +721,22 @@ def _stage(out: _Output) -> tuple[int, str]:
     except BaseException:
         os.close(fd)
         with contextlib.suppress(OSError):
-            os.unlink(tmp)
+            os.unlink(tmp, dir_fd=dfd)
         raise
     return fd, tmp
 
 
-def _keep_previous(dest: Path) -> str | None:
-    """A hard link to the file ``dest`` names now, so a failed commit can put it back.
+def _keep_previous(dfd: int, name: str) -> str | None:
+    """A hard link to the file ``name`` in the folder ``dfd`` names now, so a failed commit can
+    put it back.
 
     None when there is no such file, or the filesystem cannot link it (then that one
     destination cannot be restored; the others still are).
     """
     for _ in range(8):
-        backup = os.fspath(dest.parent / f".{dest.name}.{os.urandom(6).hex()}.old")
+        backup = f".{name}.{os.urandom(6).hex()}.old"
         try:
-            os.link(dest, backup, follow_symlinks=False)
+            os.link(name, backup, src_dir_fd=dfd, dst_dir_fd=dfd, follow_symlinks=False)
         except FileExistsError:
             continue
         except OSError:
@@ -437,25 +745,29 @@ def _keep_previous(dest: Path) -> str | None:
     return None
 
 
-def _discard(backup: str | None) -> None:
+def _discard(dfd: int, backup: str | None) -> None:
     if backup is not None:
         with contextlib.suppress(OSError):
-            os.unlink(backup)
+            os.unlink(backup, dir_fd=dfd)
 
 
-def _roll_back(done: list[tuple[_Output, str | None]], staged: list[tuple[str, _Output]], made: list[Path]) -> None:
+def _roll_back(
+    done: list[tuple[int, _Output, str | None]],
+    staged: list[tuple[int, str, _Output]],
+    made: list[tuple[int, str, Path]],
+) -> None:
     """Undo a failed commit: restore replaced files, drop new ones, temporaries and new folders."""
-    for out, backup in reversed(done):
+    for dfd, out, backup in reversed(done):
         with contextlib.suppress(OSError):
             if backup is not None:
-                os.replace(backup, out.path)
+                os.replace(backup, out.path.name, src_dir_fd=dfd, dst_dir_fd=dfd)
             else:
-                os.unlink(out.path)
-    renamed = {id(out) for out, _ in done}
-    for tmp, out in staged:
+                os.unlink(out.path.name, dir_fd=dfd)
+    renamed = {id(out) for _, out, _ in done}
+    for dfd, tmp, out in staged:
         if id(out) not in renamed:
             with contextlib.suppress(OSError):
-                os.unlink(tmp)
-    for folder in reversed(made):
+                os.unlink(tmp, dir_fd=dfd)
+    for parent, name, _ in reversed(made):
         with contextlib.suppress(OSError):
-            folder.rmdir()
+            os.rmdir(name, dir_fd=parent)

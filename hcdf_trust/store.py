@@ -23,9 +23,12 @@ from .errors import FetchError, InputError
 _NEW_FILE = os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 
 
-def create_temp(folder: str | os.PathLike[str], prefix: str, suffix: str = "") -> tuple[int, str]:
+def create_temp(
+    folder: str | os.PathLike[str], prefix: str, suffix: str = "", *, dir_fd: int | None = None
+) -> tuple[int, str]:
     """A new empty file ``folder/prefix<random>suffix``, mode 0600: its descriptor (read-write,
-    close-on-exec) and absolute path.
+    close-on-exec) and absolute path. With ``dir_fd`` (an open descriptor of ``folder``), the
+    file is made in that very folder, whatever ``folder`` names by now, and the name alone is returned.
 
     What ``tempfile.mkstemp`` guarantees (``O_CREAT | O_EXCL | O_NOFOLLOW``: never an
     existing file, never through a symlink planted at the name; another random name on a
@@ -37,8 +40,11 @@ def create_temp(folder: str | os.PathLike[str], prefix: str, suffix: str = "") -
     """
     folder = os.path.abspath(folder)
     for _ in range(100):
-        path = os.path.join(folder, f"{prefix}{os.urandom(6).hex()}{suffix}")
+        name = f"{prefix}{os.urandom(6).hex()}{suffix}"
         try:
+            if dir_fd is not None:
+                return os.open(name, _NEW_FILE, 0o600, dir_fd=dir_fd), name
+            path = os.path.join(folder, name)
             return os.open(path, _NEW_FILE, 0o600), path
         except FileExistsError:
             continue

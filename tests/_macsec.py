@@ -88,10 +88,10 @@ KILLER = """
 import os, signal, sys
 when, name = sys.argv[1], sys.argv[2]
 real = os.replace
-def replace(src, dst):
+def replace(src, dst, **kw):
     if when == "before" and str(dst).endswith(name):
         os.kill(os.getpid(), signal.SIGKILL)
-    real(src, dst)
+    real(src, dst, **kw)
     if when == "after" and str(dst).endswith(name):
         os.kill(os.getpid(), signal.SIGKILL)
 os.replace = replace

@@ -26,6 +26,15 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("xdg-cache")))
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _private_umask():
+    """Files the tests write are their owner's only, as a key handler's are: key, passphrase and
+    PIN files are refused when others can read them (tests of that check chmod explicitly)."""
+    old = os.umask(0o077)
+    yield
+    os.umask(old)
+
+
 @dataclass
 class CliResult:
     exit_code: int

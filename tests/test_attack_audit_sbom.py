@@ -339,7 +339,7 @@ def test_macsec_keys_for_the_flattened_document_with_root_and_no_index_for_it(cl
 
     shutil.copytree(PROJECT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("out"))
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setenv("HCDF_TRUST_MACSEC_PASSPHRASE", "not a secret, a test")
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", "not a secret, a test")
     flat = "examples/out/scout2.flat.hcdf"
     r = cli("resolve", "examples/robot/robot.hcdf", "--root", "examples", "--out", flat, "--cache-dir", "c")
     assert r.exit_code == 0, r.stderr

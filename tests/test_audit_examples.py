@@ -61,7 +61,7 @@ def test_humanoid_findings(cli):
     assert _found(r) == expected
     assert len(r.json["findings"]) == len(expected)
     assert {f["code"] for f in r.json["errors"]} == {"unpinned"}
-    assert r.json["checked"] == ["references", "firmware", "macsec"]
+    assert r.json["checked"] == ["references", "stream-profiles", "firmware", "macsec"]
 
 
 def test_humanoid_minimum_cipher(cli, tmp_path):

@@ -261,6 +261,7 @@ def test_systemd_networkd_parses_our_netdev(provisioned, netns, tmp_path):
         shutil.chown(f, "root", "systemd-network")
         f.chmod(0o640)
     script = (
+        "umask 022 && "  # the tests' umask is 077 (conftest): networkd's own user must read the folder
         f"mount -t tmpfs tmpfs /run/systemd && mkdir -p /run/systemd/network && cp -p {stage}/* /run/systemd/network/ "
         f"&& ip netns exec {netns} timeout 3 env SYSTEMD_LOG_LEVEL=debug SYSTEMD_LOG_TARGET=console {NETWORKD}"
     )

@@ -34,7 +34,7 @@ def hsm(tmp_path, monkeypatch):
     conf = tmp_path / "softhsm2.conf"
     conf.write_text(f"directories.tokendir = {tokens}\nobjectstore.backend = file\nlog.level = ERROR\n")
     monkeypatch.setenv("SOFTHSM2_CONF", str(conf))
-    monkeypatch.delenv("HCDF_TRUST_MACSEC_PASSPHRASE", raising=False)
+    monkeypatch.delenv("HCDF_TRUST_PASSPHRASE", raising=False)
     _init_token("hcdf")
     _init_token("other")
     pin = tmp_path / "pin"

@@ -319,7 +319,7 @@ def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]] | None
 
     from lxml import etree
 
-    from hcdf_trust.macsec.plan import _mbps
+    from hcdf_trust.units import UnitError, bit_rate
 
     out: dict[str, tuple[object, ...]] = {}
     for el in comp_el.iter("{*}port"):
@@ -328,6 +328,7 @@ def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]] | None
             continue
         ciphers: list[str] = []
         speeds: list[float] = []
+        bad = None
         if len(list(el.iterchildren("{*}capabilities"))) > 1:
             return None
         for caps in el.iterchildren("{*}capabilities"):
@@ -339,12 +340,13 @@ def _reference_ports(comp_el, file: str) -> dict[str, tuple[object, ...]] | None
                 if local == "macsec":
                     ciphers += [(c.text or "").strip() for c in item.iterchildren("{*}cipher")]
                 elif local in ("speed", "speed-tx", "speed-rx"):
-                    mbps = _mbps(item.text, item.get("unit"))
-                    if mbps is not None:
-                        speeds.append(mbps)
+                    try:
+                        speeds.append(bit_rate(item.text, item.get("unit"), default_unit="Mb/s") / 1e6)
+                    except UnitError as exc:  # unreadable: kept, an error on a secured link (issue 16 §6)
+                        bad = bad or (item.sourceline, f"<{local}>: {exc}")
         kind = (el.get("type") or "").strip().lower()
         iface = (el.get("iface") or "").strip() or name
-        out[name] = (file, el.sourceline, kind, iface, max(speeds, default=None), tuple(ciphers))
+        out[name] = (file, el.sourceline, kind, iface, max(speeds, default=None), tuple(ciphers), bad)
     return out
 
 

@@ -151,11 +151,11 @@ def test_generate_for_a_failing_description_makes_no_store(env, tmp_path):
 
 def test_passphrase_sources(env, cli, monkeypatch):
     doc, store, _run = env
-    monkeypatch.delenv("HCDF_TRUST_MACSEC_PASSPHRASE", raising=False)
+    monkeypatch.delenv("HCDF_TRUST_PASSPHRASE", raising=False)
     r = cli("macsec", "generate", doc, "--store", store)
     assert r.exit_code == 3 and "never taken on the command line" in r.stderr
     assert not store.exists()
-    monkeypatch.setenv("HCDF_TRUST_MACSEC_PASSPHRASE", PASS.decode())
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASS.decode())
     assert cli("macsec", "generate", doc, "--store", store).exit_code == 0
     assert _open(store).entries  # same passphrase, from the environment
     # no --passphrase option exists: a secret on the command line is a usage error
@@ -513,6 +513,7 @@ def test_a_passphrase_wrapper_runs_scrypt_once_per_salt(tmp_path, monkeypatch):
     maker = PassphraseWrapper(PASS)
     for name in ("a", "b"):
         store = KeyStore.create(tmp_path / name, maker)
+        store.bind("t", document="robot.hcdf")  # a store is written only once bound to its robot
         out = OutputPlan()
         store.plan_write(out, now=datetime(2026, 1, 1, tzinfo=UTC))
         (tmp_path / name).mkdir()

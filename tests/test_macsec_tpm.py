@@ -77,7 +77,7 @@ def doc(tmp_path: Path) -> Path:
 
 
 def test_store_sealed_to_a_tpm(swtpm, doc, tmp_path, cli, monkeypatch):
-    monkeypatch.delenv("HCDF_TRUST_MACSEC_PASSPHRASE", raising=False)
+    monkeypatch.delenv("HCDF_TRUST_PASSPHRASE", raising=False)
     tcti = swtpm()
     store = tmp_path / "keys"
     r = cli("macsec", "generate", doc, "--store", store, "--tpm", tcti, "--json")

@@ -349,17 +349,17 @@ def test_an_interrupt_between_two_renames_puts_back_the_first(tmp_path, monkeypa
     before = contents(tmp_path)
     real_replace, calls = os.replace, []
 
-    def replace(src, dst):
+    def replace(src, dst, **kw):  # names relative to the folder's descriptor (dst_dir_fd)
         calls.append(dst)
-        if os.fspath(dst) == os.fspath(second):
+        if os.fspath(dst) == second.name:
             raise KeyboardInterrupt
-        return real_replace(src, dst)
+        return real_replace(src, dst, **kw)
 
     monkeypatch.setattr(os, "replace", replace)
     with pytest.raises(KeyboardInterrupt):
         plan.commit()
     monkeypatch.undo()
-    assert [os.fspath(c) for c in calls[:2]] == [os.fspath(first), os.fspath(second)]  # first renamed, then ^C
+    assert [os.fspath(c) for c in calls[:2]] == [first.name, second.name]  # first renamed, then ^C
     assert contents(tmp_path) == before  # put back; no temporary file, no new folder left
 
 

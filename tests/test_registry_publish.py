@@ -189,7 +189,7 @@ def test_cross_domain_path_is_refused_at_publish_time(reg):
     """A gazebosim entry (owner-signed) naming a path under org.ros2: refused before signing."""
     from dataclasses import replace
 
-    from hcdf_trust.outputs import OutputPlan
+    from hcdf_trust.outputs import REGISTRY_SOURCE, OutputPlan
     from hcdf_trust.registry.edit import dump
     from hcdf_trust.registry.source import Release
 
@@ -206,7 +206,7 @@ def test_cross_domain_path_is_refused_at_publish_time(reg):
     sig = reg.owner_signer("org.gazebosim").sign(gz.statement(rel))
     gz = replace(gz, versions={**gz.versions, "9.0": replace(rel, signatures={sig.keyid: sig.signature})})
     plan = OutputPlan()
-    plan.add(reg.src / "domains" / "org.gazebosim.toml", dump(gz), flag="test")
+    plan.add(reg.src / "domains" / "org.gazebosim.toml", dump(gz), flag="test", replaces=(REGISTRY_SOURCE,))
     plan.commit()
     res = reg.publish(ok=False)
     assert res.exit_code == 1
@@ -249,7 +249,7 @@ def test_replaced_published_version_is_refused_by_add_and_by_publish(reg):
     # the owner edits the entry by hand and re-signs it: publish compares with the site
     from dataclasses import replace
 
-    from hcdf_trust.outputs import OutputPlan
+    from hcdf_trust.outputs import REGISTRY_SOURCE, OutputPlan
     from hcdf_trust.registry.edit import dump
 
     src = reg.source()
@@ -264,7 +264,7 @@ def test_replaced_published_version_is_refused_by_add_and_by_publish(reg):
     sig = reg.owner_signer("org.ros2").sign(ros.statement(rel))
     ros = replace(ros, versions={"1.0": replace(rel, signatures={sig.keyid: sig.signature})})
     plan = OutputPlan()
-    plan.add(reg.src / "domains" / "org.ros2.toml", dump(ros), flag="test")
+    plan.add(reg.src / "domains" / "org.ros2.toml", dump(ros), flag="test", replaces=(REGISTRY_SOURCE,))
     plan.commit()
     res = reg.publish(ok=False)
     assert res.exit_code == 1

@@ -6,6 +6,7 @@ import re
 import shlex
 import shutil
 
+from tests._oci import running_registry
 from tests._registry import PASSPHRASE
 from tests.conftest import HCDFORMAT, PROJECT
 from tests.servers import LoopbackServer
@@ -25,9 +26,15 @@ def test_readme_registry_example_runs(cli, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "hcdformat").symlink_to(HCDFORMAT)
     ran = 0
-    with LoopbackServer(root=tmp_path / "site") as srv:
+    # the CNCF distribution server on 127.0.0.1 stands for oci://registry.example/
+    with running_registry(tmp_path / "oci-registry") as oci, LoopbackServer(root=tmp_path / "site") as srv:
         for argv in _block():
-            argv = [a.replace("~/", f"{tmp_path}/").replace("https://registry.example/", srv.base) for a in argv]
+            argv = [
+                a.replace("~/", f"{tmp_path}/")
+                .replace("https://registry.example/", srv.base)
+                .replace("oci://registry.example/", f"oci://{oci.netloc}/")
+                for a in argv
+            ]
             if argv[0] == "export":
                 continue
             if argv[0] == "cp":
@@ -37,6 +44,6 @@ def test_readme_registry_example_runs(cli, tmp_path, monkeypatch):
             res = cli(*argv[1:])
             assert res.exit_code == 0, (argv, res.stderr)
             ran += 1
-    assert ran == 8
+    assert ran == 9
     assert (tmp_path / "ros2.xsd").read_bytes() == (HCDFORMAT / "extensions" / "hcdf-ext-ros2.xsd").read_bytes()
     assert (tmp_path / "op.xml").read_bytes() == (HCDFORMAT / "examples/profiles/operational.streams.xml").read_bytes()

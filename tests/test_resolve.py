@@ -317,7 +317,7 @@ def test_walker_finds_every_kind_with_its_line():
         (Kind.INCLUDE, 12, "sub.hcdf"),
     ]
     assert refs[0].uri_attr == "href" and refs[2].sha == "ff" and refs[2].version == "1.2"
-    assert refs[4].domain == "org.ros2" and refs[5].active is False and refs[6].pose == "1 2 3 0 0 0"
+    assert refs[4].domain == "org.ros2" and refs[5].selected is False and refs[6].pose == "1 2 3 0 0 0"
 
 
 def test_not_hcdf_is_an_input_error(cli, tmp_path):

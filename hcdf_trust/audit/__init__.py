@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
+from ..document import STREAM_SELECTION, stream_profile_selection
 from ..errors import AmbiguousError, InputError, LockFileError
 from ..include import lockfile
 from ..include.resolver import TreeOptions, resolve
@@ -78,6 +79,10 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
         for error in errors:
             report.add_error(error)
         report.checked.append("release")
+    report.checked.append("stream-profiles")
+    for part in res.documents.values():
+        for text, line in stream_profile_selection(part).problems:
+            report.add(STREAM_SELECTION, text, file=part.source, line=line)
     report.checked.append("firmware")
     firmware.check(report, res, release)
 

@@ -71,6 +71,7 @@ def check(report: Report, res: Resolution, plan: Plan) -> None:
         if notice.code == "macsec-capability":
             report.add_notice("macsec-capability", notice)
     for doc in res.documents.values():
+        _new_model_file_stores(report, doc)
         for store in doc.root.iterfind("network/macsec/key-store"):
             if (store.get("type") or "").strip() == "file":
                 ref = store.get("ref")
@@ -83,6 +84,30 @@ def check(report: Report, res: Resolution, plan: Plan) -> None:
                 )
 
 
+def _new_model_networks(doc: Any) -> list[Any]:
+    """The top-level networks of upstream's newer connectivity model in ``doc``."""
+    from ..macsec.plan import NETWORK_KINDS
+
+    return list(doc.root.iterchildren(*NETWORK_KINDS))
+
+
+def _new_model_file_stores(report: Report, doc: Any) -> None:
+    """A ``<policy credential-store-ref>`` of the newer model that names a file store."""
+    from ..macsec.connectivity import store_kind
+
+    for net in _new_model_networks(doc):
+        for policy in net.iterfind("configuration/macsec/policy"):
+            ref = (policy.get("credential-store-ref") or "").strip()
+            if ref and store_kind(ref) == "file":
+                report.add(
+                    "macsec-file-key-store",
+                    f"<policy credential-store-ref={ref!r}> keeps keys in a file: development only "
+                    "(HCDF schema); use secure-element, hsm or tpm",
+                    file=doc.source,
+                    line=sourceline(policy),
+                )
+
+
 def _written(el: Element) -> str:
     """The network's name as written in its document (the plan prefixes included ones)."""
     prefix = el.scope + SEPARATOR if el.scope else ""
@@ -90,9 +115,22 @@ def _written(el: Element) -> str:
 
 
 def _control_networks(res: Resolution) -> dict[tuple[str, str], str]:
-    """(document, network name) -> why it carries control traffic: a chain, or a VLAN pcp >= 5."""
+    """(document, network name) -> why it carries control traffic: a chain, or a VLAN pcp >= 5;
+    in the newer model a top-level ``<chain>``, or a ``<traffic-class>`` of pcp >= 5."""
     out: dict[tuple[str, str], str] = {}
     for doc in res.documents.values():
+        for net in _new_model_networks(doc):
+            name = (net.get("name") or "").strip()
+            why = f"chain {name!r}" if net.tag == "chain" else None
+            for pcp_el in net.iterfind("configuration/traffic-class/pcp"):
+                pcp = (pcp_el.get("value") or "").strip()
+                if pcp.isdigit() and int(pcp) >= CONTROL_PCP:
+                    tc = pcp_el.getparent()
+                    name_tc = tc.get("name") if tc is not None else "?"
+                    why = f"traffic class {name_tc!r} pcp {pcp} at line {sourceline(pcp_el)}"
+                    break
+            if why:
+                out[(doc.source, name)] = why
         for net in doc.root.iterfind("network"):
             name = (net.get("name") or "").strip()
             why = None

@@ -17,12 +17,11 @@ naming the file and the key.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, cast
 
 from ..errors import InputError, display_path
-from ..localfile import read_input
+from ..localfile import read_toml
 from ..macsec.plan import CIPHERS
 
 Severity = Literal["info", "warning", "error"]
@@ -48,6 +47,12 @@ CHECKS: dict[str, Check] = {
     "plain-http": Check("references", "error", "a reference fetched over plain http"),
     "not-locked": Check("references", "warning", "no lock file, or a reference the lock file does not hold"),
     "lock-drift": Check("references", "error", "content that differs from its lock entry, or a stale entry"),
+    "foreign-major-version": Check(
+        "references", "warning", 'a document whose version is not 1.x ("2.0"): upstream\'s reader refuses it'
+    ),
+    "stream-profile-selection": Check(
+        "stream-profiles", "error", "more than one stream profile selected, or a selection that reads two ways"
+    ),
     "firmware-no-hash": Check("firmware", "error", "a <software> without a <hash>"),
     "firmware-hash": Check("firmware", "error", "a <hash> that is not a full SHA-256"),
     "firmware-version": Check("firmware", "warning", "a <version> that is not semantic (SemVer 2.0.0)"),
@@ -121,13 +126,7 @@ def load(path: str) -> Policy:
         PolicyError: not UTF-8 TOML, or an unknown key, a wrong type, an unknown value.
     """
     shown = display_path(path)
-    data = read_input(path, limit=MAX_POLICY_BYTES, what="audit policy")
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise PolicyError(f"audit policy is not UTF-8 (byte {exc.start})", file=shown) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PolicyError(f"audit policy is not valid TOML: {exc}", file=shown) from None
+    raw = read_toml(path, limit=MAX_POLICY_BYTES, what="audit policy", source=shown, error=PolicyError)
     return _policy(raw, shown)
 
 

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
+from ..document import FOREIGN_MAJOR
 from ..errors import LockDriftError, UnpinnedError
 from ..include import lockfile
 from ..include.locate import display_path
 from ..include.resolver import Resolution
 from .report import Report
 
-_NOTICES = {"unpinned": "unpinned", "weak-pin": "weak-pin"}  # resolver notice code -> check
+# resolver notice code -> check
+_NOTICES = {"unpinned": "unpinned", "weak-pin": "weak-pin", FOREIGN_MAJOR: "foreign-major-version"}
 
 
 def check(report: Report, res: Resolution, lock: lockfile.Lock | None) -> None:

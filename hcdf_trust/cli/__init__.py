@@ -6,10 +6,10 @@ need them, so ``--help`` and an offline ``verify`` start fast.
 
 from __future__ import annotations
 
+import errno
 import functools
 import gc
 import json
-import math
 import os
 import sys
 from collections.abc import Callable
@@ -19,16 +19,29 @@ import click
 
 from .. import __version__
 from ..errors import ErrorGroup, HcdfTrustError
+from .params import TIMEOUT
+
+
+def say(*lines: str, err: bool = True) -> None:
+    """Print a message, each argument one line, through the secret filter (:mod:`hcdf_trust.scrub`:
+    credentials, query strings, private keys and passphrases hidden, control characters escaped).
+    Every human message of every verb goes through here (stderr unless ``err=False``)."""
+    from ..scrub import scrub
+
+    click.echo("\n".join(scrub(line) for line in lines), err=err)  # noqa: TID251 -- the one place that prints messages
 
 
 def emit_json(payload: dict[str, Any]) -> None:
-    """The one JSON object of ``--json``: indented on a terminal, compact into a pipe or file
-    (where json's C encoder writes a 10,000-link macsec plan in 0.1 s instead of 0.4 s).
-    Every object has ``errors`` (the README's shape), empty when the verb gave none."""
+    """The one JSON object of ``--json``, through the secret filter: indented on a terminal,
+    compact into a pipe or file (where json's C encoder writes a 10,000-link macsec plan in
+    0.1 s instead of 0.4 s). Every object has ``errors`` (the README's shape), empty when the
+    verb gave none."""
+    from ..scrub import scrub_json
+
     if "errors" not in payload:
         payload = {**payload, "errors": []}
     indent = 2 if sys.stdout.isatty() else None
-    click.echo(json.dumps(payload, indent=indent, sort_keys=True))
+    click.echo(json.dumps(scrub_json(payload), indent=indent, sort_keys=True))  # noqa: TID251 -- filtered above
 
 
 def fail(errors: list[HcdfTrustError], *, as_json: bool, payload: dict[str, Any] | None = None) -> None:
@@ -41,7 +54,8 @@ def fail(errors: list[HcdfTrustError], *, as_json: bool, payload: dict[str, Any]
         emit_json(out)
     else:
         for e in errors:
-            click.echo(f"error: {e}", err=True)
+            first, *rest = e.lines()
+            say(f"error: {first}", *rest)
     sys.exit(group.exit_code)
 
 
@@ -115,12 +129,6 @@ def _base(ctx: click.Context, param: click.Parameter, value: str | None) -> str 
             _check_url(value, ctx, what="URL")
         else:
             _check_folder(value, what="folder")
-    return value
-
-
-def _seconds(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    if not math.isfinite(value) or value <= 0:
-        raise click.BadParameter(f"{value} is not a finite number of seconds > 0")
     return value
 
 
@@ -204,7 +212,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
         MIRROR_OPTION,
         click.option(
             "--max-depth",
-            type=click.IntRange(min=1),
+            type=click.IntRange(1, 1_000_000),
             default=16,
             show_default=True,
             help="Deepest include nesting accepted.",
@@ -276,16 +284,15 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
         ),
         click.option(
             "--timeout",
-            type=float,
+            type=TIMEOUT,
             default=30.0,
             show_default=True,
-            callback=_seconds,
             help="Seconds without data before a fetch fails.",
         ),
         click.option(
             "--max-size",
             "max_bytes",
-            type=click.IntRange(min=1),
+            type=click.IntRange(1, 1 << 40),
             default=4 << 30,
             show_default=True,
             help="Largest body accepted from a server, in bytes.",
@@ -294,6 +301,63 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
     for option in reversed(options):
         func = option(func)
     return func
+
+
+class _ClosedStdout:
+    """Standard output when the process was started with it closed (``>&-``): every write fails,
+    so a verb that prints its result exits 3 instead of printing nothing and succeeding."""
+
+    def write(self, data: object) -> int:
+        raise OSError(errno.EBADF, "standard output is closed")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    @property
+    def buffer(self) -> _ClosedStdout:  # sys.stdout.buffer.write(bytes) fails the same way
+        return self
+
+
+def _standard_streams() -> None:
+    """Keep descriptors 0-2 taken (/dev/null where the process was started with one closed), so
+    that no file this run opens becomes its stdout or stderr; a closed stdout then refuses writes."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+    if sys.stdout is None:  # Python found fd 1 closed at start (it may hold another file by now)
+        sys.stdout = _ClosedStdout()
+
+
+def _stdout_failed(exc: OSError) -> None:
+    """When standard output cannot be written (closed, full, a closed pipe), say so and exit 3;
+    otherwise return (``exc`` is someone else's to report)."""
+    stream: Any = sys.stdout
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    frame = tb.tb_frame if tb is not None else None
+    # every line a verb prints goes through click.echo (in say and emit_json; err=False: stdout), which flushes it
+    echoed = frame is not None and frame.f_code.co_name == "echo" and frame.f_globals.get("__name__") == "click.utils"
+    if not (isinstance(stream, _ClosedStdout) or (echoed and frame is not None and not frame.f_locals.get("err"))):
+        return
+    try:  # what is still buffered goes nowhere, so the exit's own flush does not fail again
+        fd = stream.fileno()
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, fd)
+        os.close(null)
+    except (AttributeError, OSError, ValueError):
+        pass
+    why = exc.strerror or str(exc)
+    say(f"error: cannot write to standard output: {why}")
+    raise click.exceptions.Exit(3)
 
 
 # Objects that a console-script run leaves for the kernel to reclaim (see _Main); None in-process.
@@ -318,12 +382,33 @@ class _Main(click.Group):
     An interrupt exits 130, as shells report SIGINT, not click's 1 ("Aborted!"), which a
     build script would read as an integrity failure."""
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        from ..scrub import forget_all
+
+        forget_all()  # an in-process caller's previous run: its passphrases are not this run's
+        _standard_streams()
+        return super().main(*args, **kwargs)
+
+    def make_context(self, *args: Any, **kwargs: Any) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except click.ClickException as exc:
+            raise _scrubbed(exc) from None
+        except OSError as exc:  # --help into a full or closed stdout
+            _stdout_failed(exc)
+            raise
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
-            click.echo("interrupted: nothing more was written", err=True)
+            say("interrupted: nothing more was written")
             ctx.exit(130)
+        except click.ClickException as exc:  # a usage error of a verb: click prints it, filtered
+            raise _scrubbed(exc) from None
+        except OSError as exc:
+            _stdout_failed(exc)
+            raise
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *_LAZY_COMMANDS})
@@ -346,6 +431,15 @@ class _Main(click.Group):
         except SystemExit as exc:
             _leave(exc.code)
             raise
+
+
+def _scrubbed(exc: click.ClickException) -> click.ClickException:
+    """Click's own error (a bad value, an unknown option) with its message through the secret
+    filter: a key given to the wrong option is not echoed back."""
+    from ..scrub import scrub
+
+    exc.message = scrub(exc.message)  # type: ignore[misc]  # Final in click's stubs; rewritten once, here
+    return exc
 
 
 def _leave(code: object) -> None:
@@ -443,7 +537,7 @@ class _OptionalValueCommand(click.Command):
 )
 @click.option(
     "--max-elements",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, 1_000_000_000),
     default=250_000,
     show_default=True,
     help="Most elements the --out document may have once every include is expanded.",
@@ -505,13 +599,16 @@ def resolve(
         plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
+        from ..outputs import DOCUMENT, ORDINARY
 
-        plan.check(out, flag="--out")  # an input is named as such, before flattening
+        flat = (ORDINARY, DOCUMENT)  # the previous flattened document; never one of the tree (an input)
+        plan.check(out, flag="--out", replaces=flat)  # an input is named as such, before flattening
         plan.add(
             out,
             flatten(res, out_path=out, root=options.root, base=options.base, max_elements=max_elements),
             flag="--out",
             if_changed=True,
+            replaces=flat,
         )
     wrote = plan.commit()
     _report(
@@ -642,7 +739,7 @@ def _payload(res: Any) -> dict[str, Any]:
 
 def _warn(warnings: list[Any]) -> None:
     for w in warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
 
 
 def _summary(res: Any) -> dict[str, int]:
@@ -672,16 +769,15 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
         return
     _warn(res.warnings)
     s = _summary(res)
-    click.echo(
+    say(
         f"{s['references']} references to {s['files']} files: {s['pinned']} pinned, {s['weak']} weak, "
         f"{s['unpinned']} unpinned; {s['bytes_verified']} bytes verified "
-        f"({s['local']} local, {s['from_cache']} from cache, {s['fetched']} fetched)",
-        err=True,
+        f"({s['local']} local, {s['from_cache']} from cache, {s['fetched']} fetched)"
     )
     for path in wrote:
-        click.echo(f"wrote {path}", err=True)
+        say(f"wrote {path}")
     for path in unchanged or ():
-        click.echo(f"unchanged {path}", err=True)
+        say(f"unchanged {path}")
 
 
 # The verb groups and the verbs other than resolve and verify, each imported when it

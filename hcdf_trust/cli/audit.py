@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import functools
 import sys
+from datetime import datetime
 from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_options
+from . import emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 
 
@@ -35,7 +36,7 @@ def audit_cmd(
     trusted_root: str | None,
     store_dir: str | None,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     as_json: bool,
     **backend: Any,
 ) -> None:
@@ -54,14 +55,14 @@ def audit_cmd(
         raise click.UsageError("--registry needs --trusted-root")
     if registry_site is not None and "://" in registry_site and tree.offline:
         raise click.UsageError(f"--registry {registry_site} is on the network: add --online (or give a folder)")
-    if store_dir is None and (passphrase_file or now_text or any(backend.values())):
+    if store_dir is None and (passphrase_file or now_given or any(backend.values())):
         raise click.UsageError("the key store options need --store")
     policy = load(policy_file) if policy_file is not None else DEFAULT
     wrapper = now = schemas = None
     if store_dir is not None:
         from .macsec import _now, _wrapper
 
-        now = _now(now_text)
+        now = _now(now_given)
         wrapper = _wrapper(passphrase_file, backend)
     if registry_site is not None:
         from ..registry.validation import RegistrySchemaSource
@@ -86,11 +87,10 @@ def audit_cmd(
         emit_json(report.to_dict())
     else:
         for f in report.sorted():
-            click.echo(str(f), err=True)
+            say(str(f))
         counts = report.to_dict()["counts"]
-        click.echo(
+        say(
             f"audit: {counts['error']} error(s), {counts['warning']} warning(s), {counts['info']} info "
             f"({', '.join(report.checked)}); {len(report.failing)} at or above {policy.threshold}",
-            err=True,
         )
     sys.exit(0 if report.ok else 1)

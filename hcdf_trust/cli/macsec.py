@@ -7,12 +7,13 @@ times and key check values only.
 
 from __future__ import annotations
 
+from datetime import datetime, timedelta
 from typing import Any
 
 import click
 
-from ..errors import HcdfTrustError
-from . import emit_json, handle_errors, keep_until_exit, tree_options
+from . import emit_json, fail, handle_errors, keep_until_exit, say, tree_options
+from .params import UTC_TIME, Duration
 
 
 @click.group()
@@ -32,24 +33,24 @@ def _plan_lines(p: Any) -> None:
             if d["rekey_interval_sec"] is not None:
                 head += f" rekey {d['rekey_interval_sec']} s"
             store = d["key_store"]
-            if store["type"]:
-                head += f" key-store {store['type']}" + (f":{store['ref']}" if store["ref"] else "")
+            if store["type"] or store["ref"]:
+                head += f" key-store {store['type'] or 'ref'}" + (f":{store['ref']}" if store["ref"] else "")
             if not ca.keyed:
                 head += " (no key)"
-        click.echo(head)
+        say(head, err=False)
         for el in ca.elements:
             scope = f" scope {el.scope}" if el.scope else ""
-            click.echo(f"  {el.kind} {el.network}/{el.name} ({el.file}:{el.line}{scope})")
+            say(f"  {el.kind} {el.label.partition(':')[2]} ({el.file}:{el.line}{scope})", err=False)
         if ca.shared:
-            click.echo(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s")
+            say(f"  shared: one CAK on {len(ca.elements)} {ca.elements[0].kind}s", err=False)
         members = ", ".join(f"{m.device}[{' '.join(m.ports)}]" for m in ca.members.values())
-        click.echo(f"  members: {members}")
+        say(f"  members: {members}", err=False)
     for el in p.unprotected:
-        click.echo(f"unprotected: {el.label} ({el.file}:{el.line})")
+        say(f"unprotected: {el.label} ({el.file}:{el.line})", err=False)
     for el, reason in p.skipped:
-        click.echo(f"skipped: {el.label}: {reason}")
+        say(f"skipped: {el.label}: {reason}", err=False)
     for w in p.warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
 
 
 @macsec.command("plan")
@@ -74,7 +75,7 @@ def plan_cmd(doc: str, tree: Any, as_json: bool) -> None:
         return
     _plan_lines(p)
     keyed = p.keyed()
-    click.echo(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled", err=True)
+    say(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled")
 
 
 # --- the key store ---------------------------------------------------------------------------
@@ -87,7 +88,11 @@ def store_options(func: Any, *, required: bool = True) -> Any:
         metavar="TCTI",
         help="Seal the store's data key to a TPM 2.0 (e.g. device:/dev/tpmrm0, swtpm:host=127.0.0.1,port=2321).",
     )(func)
-    func = click.option("--pin-file", type=click.Path(dir_okay=False), help="File holding the PKCS#11 user PIN.")(func)
+    func = click.option(
+        "--pin-file",
+        type=click.Path(dir_okay=False),
+        help="File holding the PKCS#11 user PIN (mode 0600) [default: $HCDF_TRUST_PKCS11_PIN].",
+    )(func)
     func = click.option("--token-label", help="PKCS#11 token label (with --pkcs11-module).")(func)
     func = click.option(
         "--pkcs11-module",
@@ -96,14 +101,16 @@ def store_options(func: Any, *, required: bool = True) -> Any:
     )(func)
     func = click.option(
         "--now",
-        "now_text",
+        "now_given",
+        type=UTC_TIME,
         metavar="TIME",
         help="Act as if the time were TIME (ISO 8601 UTC), e.g. to plan a rotation or in tests.",
     )(func)
     func = click.option(
         "--passphrase-file",
         type=click.Path(dir_okay=False),
-        help="File holding the store passphrase (else $HCDF_TRUST_MACSEC_PASSPHRASE; never an argument).",
+        help="File holding the store passphrase (the whole file minus one final newline, mode 0600) "
+        "[default: $HCDF_TRUST_PASSPHRASE]; never an argument.",
     )(func)
     func = click.option(
         "--store", "store_dir", required=required, type=click.Path(file_okay=False), help="Key store folder."
@@ -111,16 +118,11 @@ def store_options(func: Any, *, required: bool = True) -> Any:
     return func
 
 
-def _now(text: str | None) -> Any:
-    from ..macsec.store import now_utc, parse_time
+def _now(given: datetime | None) -> datetime:
+    """``--now`` (already checked by its click type), else the clock."""
+    from ..macsec.store import now_utc
 
-    if text is None:
-        return now_utc()
-    try:
-        return parse_time(text, what="--now", source="--now")
-    except HcdfTrustError as exc:
-        example = "2026-01-01T00:00:00Z"
-        raise click.BadParameter(f"{exc.actual!r} is not an ISO 8601 time with a zone (e.g. {example})") from None
+    return now_utc() if given is None else given
 
 
 def _is_passphrase(backend: dict[str, Any]) -> bool:
@@ -142,8 +144,8 @@ def _wrapper(passphrase_file: str | None, backend: dict[str, Any]) -> Any:
         if label or pin_file:
             raise click.UsageError("--token-label and --pin-file need --pkcs11-module")
         return PassphraseWrapper(passphrase_from(passphrase_file))
-    if not label or not pin_file:
-        raise click.UsageError("--pkcs11-module needs --token-label and --pin-file")
+    if not label:
+        raise click.UsageError("--pkcs11-module needs --token-label")
     if passphrase_file:
         raise click.UsageError("--passphrase-file and --pkcs11-module are two different backends: give one")
     return Pkcs11Wrapper(module, label, pin_from(pin_file))
@@ -241,7 +243,7 @@ def generate(
     doc: str,
     store_dir: str,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     tree: Any,
     as_json: bool,
     **backend: Any,
@@ -249,7 +251,7 @@ def generate(
     """Create every missing key DOC's associations need (running it again changes nothing)."""
     from ..macsec.store import KeyStore, locked
 
-    now = _now(now_text)
+    now = _now(now_given)
     fresh = None
     if not KeyStore.exists(store_dir) and _is_passphrase(backend):
         # A new store's data key is wrapped (scrypt, a pure computation) while the description
@@ -276,10 +278,10 @@ def generate(
         )
         return
     for w in warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
     if created:  # one write for 10,000 lines
-        click.echo("\n".join(f"created {ca_id} generation 1" for ca_id in created))
-    click.echo(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do", err=True)
+        say(*(f"created {ca_id} generation 1" for ca_id in created), err=False)
+    say(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do")
 
 
 @macsec.command()
@@ -292,7 +294,7 @@ def status(
     doc: str,
     store_dir: str,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     tree: Any,
     as_json: bool,
     **backend: Any,
@@ -300,7 +302,7 @@ def status(
     """Per association: active generation, age, due under rekey-interval-sec, key check values."""
     from ..macsec.store import KeyStore
 
-    now = _now(now_text)
+    now = _now(now_given)
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
     from ..macsec.plan import plan
     from ..macsec.rotation import status as run
@@ -311,15 +313,20 @@ def status(
     keep_until_exit(store)
     st = run(store, p, now=now)
     if as_json:
+        if not st.ok:  # an association without a usable key: exit 1, the status beside the errors
+            fail(st.problems, as_json=True, payload=st.to_dict())
         emit_json({"ok": True, **st.to_dict()})
         return
     for row in st.rows:
         gens = " ".join(f"g{g['generation']}:{g['state']}:kcv={g['kcv']}" for g in row["generations"])
         age = f" age {row['age_sec']} s" if row["age_sec"] is not None else ""
         flags = (" DUE" if row["due"] else "") + ("" if row["described"] else " (no longer described)")
-        click.echo(f"{row['id']}: active g{row['active_generation']}{age}{flags}  {gens}")
+        active = f"active g{row['active_generation']}" if row["active_generation"] is not None else "NO ACTIVE KEY"
+        say(f"{row['id']}: {active}{age}{flags}  {gens}", err=False)
     for ca_id in st.missing:
-        click.echo(f"{ca_id}: no key (run generate)")
+        say(f"{ca_id}: no key (run generate)", err=False)
+    if not st.ok:
+        fail(st.problems, as_json=False)
 
 
 @macsec.command()
@@ -331,10 +338,11 @@ def status(
 @click.option("--due", is_flag=True, help="Only associations due under rekey-interval-sec.")
 @click.option(
     "--overlap",
-    type=click.IntRange(min=0),
-    default=3600,
+    type=Duration(),
+    default="1h",
     show_default=True,
-    help="Seconds until the new generation sends, and again until the old one stops being accepted.",
+    help="Time until the new generation sends, and again until the old one stops being accepted "
+    "(seconds, or 30m, 12h, 7d, 2w).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
@@ -342,19 +350,19 @@ def rotate(
     doc: str,
     store_dir: str,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     tree: Any,
     network: str | None,
     key_ref: str | None,
     due: bool,
-    overlap: int,
+    overlap: timedelta,
     as_json: bool,
     **backend: Any,
 ) -> None:
     """Add generation N+1 (pending, with an activation time) to the selected associations."""
     from ..macsec.store import KeyStore, fmt_time, locked
 
-    now = _now(now_text)
+    now = _now(now_given)
     warm = None
     if _is_passphrase(backend):
         # scrypt runs while the description is verified; the store is read again under the lock
@@ -370,28 +378,32 @@ def rotate(
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
         keep_until_exit(store)
-        done = run(store, select(p, network=network, key_ref=key_ref), now=now, overlap=overlap, due_only=due)
+        store.bind(p.robot, document=p.document)
+        selected = select(p, network=network, key_ref=key_ref)
+        done = run(store, selected, now=now, overlap=int(overlap.total_seconds()), due_only=due)
         _save(store, now, doc=_indexed(doc, tree), p=p, passphrase_file=passphrase_file, backend=backend)
     rows = [{"id": i, "generation": g, "activation": fmt_time(a)} for i, g, a in done]
     if as_json:
         emit_json({"ok": True, "rotated": rows})
         return
     for r in rows:
-        click.echo(f"{r['id']}: generation {r['generation']} pending, sends from {r['activation']}")
+        say(f"{r['id']}: generation {r['generation']} pending, sends from {r['activation']}", err=False)
     if not rows:
-        click.echo("nothing to rotate", err=True)
+        say("nothing to rotate")
 
 
 @macsec.command()
 @store_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (no key material).")
 @handle_errors
-def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as_json: bool, **backend: Any) -> None:
+def retire(
+    store_dir: str, passphrase_file: str | None, now_given: datetime | None, as_json: bool, **backend: Any
+) -> None:
     """Remove generations past their overlap (and only those)."""
     from ..macsec.rotation import retire as run
     from ..macsec.store import KeyStore, locked
 
-    now = _now(now_text)
+    now = _now(now_given)
     wrapper = _wrapper(passphrase_file, backend)
     with locked(store_dir):
         store = KeyStore.open(store_dir, wrapper)
@@ -402,9 +414,9 @@ def retire(store_dir: str, passphrase_file: str | None, now_text: str | None, as
         emit_json({"ok": True, "retired": [{"id": i, "generation": g} for i, g in removed]})
         return
     for ca_id, g in removed:
-        click.echo(f"{ca_id}: generation {g} retired")
+        say(f"{ca_id}: generation {g} retired", err=False)
     if not removed:
-        click.echo("nothing to retire", err=True)
+        say("nothing to retire")
 
 
 def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
@@ -452,7 +464,7 @@ def export(
     doc: str,
     store_dir: str,
     passphrase_file: str | None,
-    now_text: str | None,
+    now_given: datetime | None,
     tree: Any,
     device: str,
     fmt: str,
@@ -466,8 +478,9 @@ def export(
     import os
 
     from ..macsec.store import KeyStore
+    from ..outputs import ORDINARY, kind_of
 
-    now = _now(now_text)
+    now = _now(now_given)
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
     # the description verified and planned.
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
@@ -507,9 +520,19 @@ def export(
         found.protect(out)
     out.protect(store.path, what="the key store")
     out.protect(index.path_in(store_dir), what="the export index")
+    out.protect_tree(store.path.parent, what="the key store's folder")
     for name in sorted(files):
-        out.add(os.path.join(out_dir, name), files[name], flag="--out", mode=0o600)
-    os.makedirs(out_dir, mode=0o700, exist_ok=True)
+        # a re-export replaces the previous one's EAP-TLS device key: key material of the same kind
+        kind = kind_of(files[name])
+        out.add(
+            os.path.join(out_dir, name),
+            files[name],
+            flag="--out",
+            mode=0o600,
+            under=out_dir,
+            folder_mode=0o700,
+            replaces=(ORDINARY, kind),
+        )
     written = out.commit()
     if as_json:
         emit_json(
@@ -525,6 +548,6 @@ def export(
         )
         return
     for n in notices:
-        click.echo(f"warning: {n}", err=True)
+        say(f"warning: {n}")
     for w in written:
-        click.echo(f"wrote {w}", err=True)
+        say(f"wrote {w}")

@@ -5,12 +5,12 @@ imgtool, cbor2 and the COSE library are imported inside the commands only.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_options
+from . import emit_json, handle_errors, say, tree_options
+from .params import source_date_epoch_option
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
 
@@ -24,37 +24,40 @@ def ota() -> None:
 @click.option("--type", "kind", type=click.Choice(KEY_TYPES), default="ecdsa-p256", show_default=True)
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Private key file (PEM, mode 0600).")
 @click.option(
-    "--passphrase-file", type=click.Path(dir_okay=False), help="Encrypt the private key with this file's content."
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Encrypt the private key with this passphrase (the file minus one final newline, mode 0600) "
+    "[default: $HCDF_TRUST_PASSPHRASE, else not encrypted].",
 )
 @click.option("--force", is_flag=True, help="Replace an existing key file.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_json: bool) -> None:
     """Generate a signing key with imgtool; the public key goes beside it (KEY.pub.pem)."""
-    from ..ota.errors import KeyFileError
-    from ..ota.keys import generate, key_type, private_pem, public_path, public_pem, read_passphrase
-    from ..outputs import OutputPlan
+    from ..ota.keys import generate, key_type, private_pem, public_path, public_pem
+    from ..outputs import NEW_ONLY, PRIVATE_KEY, PUBLIC_KEY, OutputPlan
+    from ..passphrase import read_passphrase
 
     pub = public_path(out)
     plan = OutputPlan()
-    passphrase = None
     if passphrase_file:
         plan.protect(passphrase_file, what="the passphrase file")
-        passphrase = read_passphrase(passphrase_file)
-    if not force:
-        for path in (out, pub):
-            if os.path.lexists(path):
-                raise KeyFileError("exists: refusing to replace a key (use --force)", file=str(path))
+    passphrase = read_passphrase(passphrase_file, required=False)
+    # an existing key is replaced only with --force, and only by a key: never a document, never a passphrase file
+    plan.check(out, flag="--out", replaces=(PRIVATE_KEY,) if force else NEW_ONLY)
+    plan.check(pub, flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
     key = generate(kind)
-    plan.add(out, private_pem(key, passphrase), flag="--out", mode=0o600)
-    plan.add(pub, public_pem(key), flag="public key")
+    plan.add(
+        out, private_pem(key, passphrase), flag="--out", mode=0o600, replaces=(PRIVATE_KEY,) if force else NEW_ONLY
+    )
+    plan.add(pub, public_pem(key), flag="public key", replaces=(PUBLIC_KEY,) if force else NEW_ONLY)
     plan.commit()
     result = {"type": key_type(key), "private": out, "public": str(pub), "encrypted": passphrase is not None}
     if as_json:
         emit_json({"ok": True, **result, "errors": []})
     else:
-        click.echo(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)", err=True)
-        click.echo(f"wrote {pub}", err=True)
+        say(f"wrote {out} ({kind}, {'encrypted' if passphrase else 'not encrypted'}, mode 0600)")
+        say(f"wrote {pub}")
 
 
 @ota.command()
@@ -63,7 +66,11 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 @click.option(
     "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
 )
-@click.option("--passphrase-file", type=click.Path(dir_okay=False), help="Passphrase of an encrypted key file.")
+@click.option(
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
+)
 @click.option(
     "--pin-file",
     type=click.Path(dir_okay=False),
@@ -91,6 +98,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 )
 @tree_options
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
+@source_date_epoch_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def build(
@@ -108,6 +116,7 @@ def build(
     update_hcdf: bool,
     tree: Any,
     jobs: int,
+    source_date: Any,
     as_json: bool,
 ) -> None:
     """Build a signed release from DOC's verified tree: one MCUboot image per <comp> with
@@ -115,7 +124,7 @@ def build(
 
     Nothing is written unless every step succeeds.
     """
-    from ..ota.release import BuildOptions, build_release
+    from ..ota.release import BuildOptions, build_release, format_date
 
     signer, inputs = _signer(key, passphrase_file, pin_file)
     try:
@@ -131,6 +140,7 @@ def build(
                 config=config,
                 changelog=changelog,
                 update_hcdf=update_hcdf,
+                date=format_date(source_date.timestamp()) if source_date is not None else None,
                 tree=tree,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
@@ -154,15 +164,14 @@ def build(
         )
         return
     for n in report.notices:
-        click.echo(f"warning: {n}", err=True)
+        say(f"warning: {n}")
     for ch in report.hcdf_changes:
-        click.echo(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}", err=True)
+        say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
-        click.echo(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}", err=True)
-    click.echo(
+        say(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}")
+    say(
         f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
-        f"{len(report.wrote)} file(s) written to {out_dir}",
-        err=True,
+        f"{len(report.wrote)} file(s) written to {out_dir}"
     )
 
 
@@ -201,16 +210,16 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str 
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
     else:
-        click.echo(
+        say(
             f"release {release.sequence_number}: {len(release.components)} component(s) verified "
-            f"(signatures, digests, latest.json{', rollback' if before else ''})",
-            err=True,
+            f"(signatures, digests, latest.json{', rollback' if before else ''})"
         )
 
 
 def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
-    from ..ota.keys import load_private, read_passphrase
+    from ..ota.keys import load_private
     from ..ota.signer import FileSigner
+    from ..passphrase import read_passphrase
 
     if key.startswith("pkcs11:"):
         from ..ota.hsm import HsmSigner, parse_uri, read_pin
@@ -224,3 +233,172 @@ def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tupl
         inputs.append((passphrase_file, "the passphrase file"))
         passphrase = read_passphrase(passphrase_file)
     return FileSigner(load_private(key, passphrase)), tuple(inputs)
+
+
+def _registry_options(func: Any) -> Any:
+    """``--ca-bundle`` and ``--insecure-registry``, the same for push and pull."""
+    func = click.option(
+        "--insecure-registry",
+        "insecure_registries",
+        multiple=True,
+        metavar="HOST[:PORT]",
+        help="Talk plain http to this registry (loopback hosts need no flag). Repeatable.",
+    )(func)
+    return click.option(
+        "--ca-bundle",
+        type=click.Path(dir_okay=False, exists=True),
+        envvar="HCDF_TRUST_CA_BUNDLE",
+        help="PEM CA certificates for the registry's TLS (a loopback registry then speaks https too) "
+        "[env: HCDF_TRUST_CA_BUNDLE].",
+    )(func)
+
+
+def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], push: bool, need_tag: bool) -> Any:
+    from ..oci.auth import find_credentials
+    from ..oci.client import RegistryClient
+    from ..oci.reference import parse_reference
+
+    ref = parse_reference(target, need_tag=need_tag)
+    creds = find_credentials(ref.netloc)
+    return ref, RegistryClient(ref, credentials=creds, ca_bundle=ca_bundle, insecure_registries=insecure, push=push)
+
+
+@ota.command()
+@click.argument("release_dir", type=click.Path(file_okay=False))
+@click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
+@click.option("--key", type=click.Path(dir_okay=False), help="Public key: run `ota verify` before pushing.")
+@_registry_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def push(
+    release_dir: str,
+    target: str,
+    key: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Push RELEASE_DIR to an OCI registry as one artifact (one layer per file) and attach its
+    SUIT envelope as a referrer. Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
+    from ..oci.release import push_release
+    from ..ota.release import MANIFEST_NAME
+    from . import fail
+
+    ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
+    with client:
+        if key is not None:
+            from ..ota.keys import load_public
+            from ..ota.release import read_release
+            from ..ota.verify import check_release
+
+            public = load_public(key)
+            release, files = read_release(release_dir, public)
+            errors = check_release(release, files, public)
+            if errors:
+                fail(errors, as_json=as_json)
+        else:
+            import os
+
+            from ..localfile import read_input
+            from ..ota import suit
+
+            path = os.path.join(release_dir, MANIFEST_NAME)
+            data = read_input(path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
+            release = suit.parse_manifest(suit.parse_envelope(data, source=path).manifest, source=path)
+        result = push_release(release_dir, ref, client, release)
+    warnings = []
+    if key is None:
+        from ..errors import Notice
+
+        warnings.append(
+            Notice("unverified-push", "pushed without --key: the release was not verified first (every pull verifies)")
+        )
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "reference": str(ref),
+                "verified": key is not None,
+                **result,
+                "warnings": [n.to_dict() for n in warnings],
+                "errors": [],
+            }
+        )
+    else:
+        for n in warnings:
+            say(f"warning: {n}")
+        say(f"pushed {len(result['layers'])} file(s) to {ref} ({result['digest']})")
+        say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
+
+
+@ota.command()
+@click.argument("source", metavar="oci://HOST[:PORT]/REPO:TAG|@sha256:HEX")
+@click.option("--key", required=True, type=click.Path(dir_okay=False), help="Public key (PEM).")
+@click.option(
+    "-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write."
+)
+@click.option(
+    "--previous", help="The previous release (folder or https URL): sequence number and counters must not go back."
+)
+@click.option(
+    "--cache-dir",
+    type=click.Path(file_okay=False),
+    help="Content store of verified blobs (a resumed pull fetches only what is missing) "
+    "[default: $XDG_CACHE_HOME/hcdf-trust].",
+)
+@_registry_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def pull(
+    source: str,
+    key: str,
+    out_dir: str,
+    previous: str | None,
+    cache_dir: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Pull a release from an OCI registry: every blob hashed against the manifest, `ota verify`
+    run on the result in a staging folder, and only then written to --out (all or nothing)."""
+    from ..oci.release import pull_release
+    from ..ota.keys import load_public
+    from ..ota.release import previous_manifest
+    from ..store import default_cache_dir
+
+    public = load_public(key)
+    before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
+    ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
+    with client:
+        report = pull_release(
+            ref,
+            client,
+            public_key=public,
+            out_dir=out_dir,
+            cache_dir=cache_dir or str(default_cache_dir()),
+            key_path=key,
+            previous=before,
+        )
+    release = report.release
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "reference": report.reference,
+                "digest": report.digest,
+                "sequence_number": release.sequence_number,
+                "files": report.files,
+                "from_cache": report.from_cache,
+                "referrers": report.referrers,
+                "warnings": [n.to_dict() for n in report.notices],
+                "wrote": report.wrote,
+                "errors": [],
+            }
+        )
+        return
+    for n in report.notices:
+        say(f"warning: {n}")
+    say(
+        f"release {release.sequence_number} from {report.reference} ({report.digest}): "
+        f"{len(report.files)} file(s) verified ({report.from_cache} from the cache), written to {out_dir}"
+    )

@@ -6,7 +6,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, fail, fetch_options, handle_errors, resolve_options
+from . import emit_json, fail, fetch_options, handle_errors, resolve_options, say
 
 
 @click.command()
@@ -53,27 +53,24 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     if report.errors:
         if not as_json:
             for w in report.warnings:
-                click.echo(f"warning: {w}", err=True)
+                say(f"warning: {w}")
         fail(report.errors, as_json=as_json, payload=payload)
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
         return
     for w in report.warnings:
-        click.echo(f"warning: {w}", err=True)
+        say(f"warning: {w}")
     verb = "pinned" if write else "would pin"
     for c in report.changes:
-        click.echo(
-            f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new} [lock: {c.lock}]", err=True
-        )
+        say(f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new} [lock: {c.lock}]")
     added = sum(1 for lc in report.lock_changes if lc.old is None)
     for lc in report.lock_changes:
         if lc.old is not None:  # new entries are counted, not listed
-            click.echo(f"{'' if write else 'would '}lock {lc.url}: {lc.old} -> {lc.new or '(dropped)'}", err=True)
+            say(f"{'' if write else 'would '}lock {lc.url}: {lc.old} -> {lc.new or '(dropped)'}")
     for path in report.written:
-        click.echo(f"wrote {path}", err=True)
+        say(f"wrote {path}")
     tail = "" if write or not report.planned else f" (dry run: --write writes {', '.join(report.planned)})"
-    click.echo(
+    say(
         f"{len(report.changes)} sha change(s), {len(report.lock_changes) - added} lock entr(ies) changed, "
-        f"{added} new{tail}",
-        err=True,
+        f"{added} new{tail}"
     )

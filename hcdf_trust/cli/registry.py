@@ -6,33 +6,20 @@ tuf and securesystemslib are imported inside the commands, so ``hcdf-trust --hel
 from __future__ import annotations
 
 import datetime as dt
-import re
 from pathlib import Path
 from typing import Any
 
 import click
 
 from ..outputs import OutputPlan
-from . import JSON_OPTION, emit_json, handle_errors
-
-_DURATION = re.compile(r"([1-9][0-9]{0,5})([mhdw])")
-_UNITS = {"m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
-
-
-def _duration(ctx: click.Context, param: click.Parameter, value: str) -> dt.timedelta:
-    m = _DURATION.fullmatch(value.strip())
-    if not m:
-        raise click.BadParameter(f"{value!r} is not a duration like 30m, 12h, 7d or 2w")
-    delta = dt.timedelta(**{_UNITS[m.group(2)]: int(m.group(1))})
-    if delta > dt.timedelta(days=3650):
-        raise click.BadParameter(f"{value!r} is longer than 10 years")
-    return delta
-
+from . import JSON_OPTION, emit_json, handle_errors, say
+from .params import TIMEOUT, Duration
 
 passphrase_option = click.option(
     "--passphrase-file",
     type=click.Path(dir_okay=False),
-    help="File whose first line is the keys' passphrase [default: $HCDF_TRUST_PASSPHRASE].",
+    help="File holding the keys' passphrase (the whole file minus one final newline, mode 0600) "
+    "[default: $HCDF_TRUST_PASSPHRASE].",
 )
 
 
@@ -43,17 +30,12 @@ def _ring(keys: tuple[str, ...], passphrase_file: str | None) -> Any:
     return KeyRing(keys, lambda: read_passphrase(passphrase_file))
 
 
-def _commit(plan: OutputPlan, keydir: Path) -> None:
-    """Commit ``plan``, creating the keys folder 0700 first (and removing it again if the commit fails)."""
-    from ..registry.keys import prepare_keydir
-
-    created = prepare_keydir(keydir)
-    try:
-        plan.commit()
-    except BaseException:
-        if created and not any(keydir.iterdir()):
-            keydir.rmdir()
-        raise
+def _plan(passphrase_file: str | None) -> OutputPlan:
+    """The run's OutputPlan, with the passphrase file (an input of every verb that signs) protected."""
+    plan = OutputPlan()
+    if passphrase_file is not None:
+        plan.protect(passphrase_file, what="the passphrase file")
+    return plan
 
 
 sigstore_root_option = click.option(
@@ -92,37 +74,38 @@ def init(source_dir: str, keydir: str, passphrase_file: str | None, as_json: boo
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     root = edit.init(Path(source_dir), Path(keydir), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
+    plan.commit()
     if as_json:
         roles = {role: t.keyids[0] for role, t in root.roles.items()}
         emit_json({"ok": True, "source": source_dir, "keys": keydir, "roles": roles, "errors": []})
         return
     for role, t in root.roles.items():
-        click.echo(f"{role}: key {t.keyids[0]}", err=True)
-    click.echo(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}", err=True)
+        say(f"{role}: key {t.keyids[0]}")
+    say(f"wrote {source_dir}/root.toml; private keys (0600) in {keydir}")
 
 
 @registry.command()
 @click.option("--keys", "keydir", required=True, type=click.Path(file_okay=False), help="Folder for the private key.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Public key file to write.")
+@click.option("--force", is_flag=True, help="Replace an existing public key file at --out.")
 @passphrase_option
 @JSON_OPTION
 @handle_errors
-def keygen(keydir: str, out: str, passphrase_file: str | None, as_json: bool) -> None:
+def keygen(keydir: str, out: str, force: bool, passphrase_file: str | None, as_json: bool) -> None:
     """Make an owner key: the private half in --keys, the public half in --out."""
     from ..registry import edit
     from ..registry.keys import read_passphrase
 
-    plan = OutputPlan()
-    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan)
-    _commit(plan, Path(keydir))
+    plan = _plan(passphrase_file)
+    key = edit.keygen(Path(keydir), Path(out), read_passphrase(passphrase_file), plan=plan, force=force)
+    plan.commit()
     private = f"{keydir}/{key.keyid}.key"
     if as_json:
         emit_json({"ok": True, "keyid": key.keyid, "public": out, "private": private, "errors": []})
         return
-    click.echo(f"key {key.keyid}: public {out}, private {private}", err=True)
+    say(f"key {key.keyid}: public {out}, private {private}")
 
 
 @registry.command()
@@ -142,7 +125,7 @@ def keygen(keydir: str, out: str, passphrase_file: str | None, as_json: bool) ->
 )
 @click.option(
     "--threshold",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, 255),
     default=1,
     show_default=True,
     help="Owner signatures a version needs (a new domain).",
@@ -202,7 +185,7 @@ def add(
     if len(chosen) != 1:
         raise click.UsageError("give exactly one of --domain, --profile or --core")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     content = Path(content_dir)
     if profile:
         name, ver = edit.profile_identity(profile)
@@ -244,9 +227,9 @@ def add(
         recorded = str(plan.paths[0]) if done is not None else None
         emit_json({"ok": True, "entry": what, "recorded": recorded, "unchanged": done is None, "errors": []})
     elif done is None:
-        click.echo(f"{what}: already registered with the same content", err=True)
+        say(f"{what}: already registered with the same content")
     else:
-        click.echo(f"{what}: recorded in {plan.paths[0]}", err=True)
+        say(f"{what}: recorded in {plan.paths[0]}")
 
 
 @registry.command()
@@ -261,7 +244,9 @@ def add(
     show_default=True,
     help="Content folder the schema lies in.",
 )
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement.")
+@click.option(
+    "-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the statement (- for stdout)."
+)
 @JSON_OPTION
 @handle_errors
 def statement(domain: str, version: str, schema: str, content_dir: str, out: str, as_json: bool) -> None:
@@ -270,12 +255,16 @@ def statement(domain: str, version: str, schema: str, content_dir: str, out: str
 
     plan = OutputPlan()
     plan.protect(schema, what="the schema")
-    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out")
+    plan.protect_tree(content_dir, what="the content folder")
+    if out == "-" and as_json:
+        raise click.UsageError("-o - and --json would both write to stdout")
+    plan.add(out, edit.statement(domain, version, schema, content_dir=Path(content_dir)), flag="--out", stdout=True)
     plan.commit()
     if as_json:
         emit_json({"ok": True, "domain": domain, "version": version, "wrote": [out], "errors": []})
         return
-    click.echo(f"statement for {domain} {version} written to {out}", err=True)
+    if out != "-":
+        say(f"statement for {domain} {version} written to {out}")
 
 
 @registry.command()
@@ -311,7 +300,7 @@ def rotate(
     if (role is None) == (domain is None):
         raise click.UsageError("give exactly one of --role or --domain")
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     keydir = Path(keydirs[0])
     passphrase = read_passphrase(passphrase_file)
     if role:
@@ -319,11 +308,11 @@ def rotate(
     else:
         assert domain is not None
         key = edit.rotate_owner(source, domain, keydir, _ring(keydirs, passphrase_file), passphrase, plan=plan)
-    _commit(plan, keydir)
+    plan.commit()
     if as_json:
         emit_json({"ok": True, "role": role, "domain": domain, "keyid": key.keyid, "errors": []})
         return
-    click.echo(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change", err=True)
+    say(f"{role or domain}: new key {key.keyid}; run `registry publish` to sign the change")
 
 
 @registry.command()
@@ -356,11 +345,18 @@ def rotate(
     "lifetime",
     default="7d",
     show_default=True,
-    callback=_duration,
+    type=Duration(min=dt.timedelta(minutes=1), max=dt.timedelta(days=3650)),
     help="Timestamp lifetime (30m, 12h, 7d, 2w): clients stop trusting a site not re-published within it.",
 )
 @sigstore_root_option
 @passphrase_option
+@click.option(
+    "--oci",
+    "oci_target",
+    metavar="oci://HOST[:PORT]/REPO:TAG",
+    help="Also push the site to this OCI registry (one layer per file; credentials as for `ota push`; "
+    "plain http to loopback only; TLS CAs from $HCDF_TRUST_CA_BUNDLE).",
+)
 @JSON_OPTION
 @handle_errors
 def publish(
@@ -371,14 +367,16 @@ def publish(
     lifetime: dt.timedelta,
     sigstore_root: str | None,
     passphrase_file: str | None,
+    oci_target: str | None,
     as_json: bool,
 ) -> None:
-    """Write a static TUF repository (consistent snapshots) for DIR into --out."""
+    """Write a static TUF repository (consistent snapshots) for DIR into --out (and, with --oci,
+    push it to an OCI registry, where `registry verify|fetch oci://…` read it)."""
     from ..registry.publish import publish as do_publish
     from ..registry.source import load_source
 
     source = load_source(source_dir)
-    plan = OutputPlan()
+    plan = _plan(passphrase_file)
     plan.protect_tree(source_dir, what="the registry source")
     plan.protect_tree(content_dir, what="the content folder")
     for k in keydirs:
@@ -392,7 +390,25 @@ def publish(
         timestamp_lifetime=lifetime,
         sigstore_root=sigstore_root,
     )
+    ref = None
+    if oci_target is not None:
+        from ..oci.reference import parse_reference
+
+        ref = parse_reference(oci_target, need_tag=True)  # refused before anything is written
     plan.commit()
+    pushed = None
+    if ref is not None:
+        import os
+
+        from ..oci.auth import find_credentials
+        from ..oci.client import RegistryClient
+        from ..oci.site import push_site
+
+        creds = find_credentials(ref.netloc)
+        with RegistryClient(
+            ref, credentials=creds, ca_bundle=os.environ.get("HCDF_TRUST_CA_BUNDLE") or None, push=True
+        ) as client:
+            pushed = push_site(site, ref, client)
     if as_json:
         emit_json(
             {
@@ -400,12 +416,15 @@ def publish(
                 "versions": result.versions,
                 "signed": result.signed,
                 "written": [str(p) for p in result.written],
+                **({"oci": {"reference": str(ref), **pushed}} if pushed is not None else {}),
                 "errors": [],
             }
         )
     else:
         versions = ", ".join(f"{k} v{v}" for k, v in result.versions.items())
-        click.echo(f"published {site}: {versions}; {len(result.written)} file(s) written", err=True)
+        say(f"published {site}: {versions}; {len(result.written)} file(s) written")
+        if pushed is not None:
+            say(f"pushed {pushed['files']} file(s) to {ref} ({pushed['digest']})")
 
 
 def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
@@ -414,19 +433,12 @@ def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float 
     return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
 
 
-def _timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    if not 0 < value <= 3600:
-        raise click.BadParameter(f"{value} is not a number of seconds in (0, 3600]")
-    return value
-
-
 client_options = [
     click.option(
         "--timeout",
-        type=float,
+        type=TIMEOUT,
         default=30.0,
         show_default=True,
-        callback=_timeout,
         help="Seconds to wait for a connection or between bytes (http(s) sites).",
     ),
     click.option(
@@ -475,9 +487,8 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
     else:
-        click.echo(
+        say(
             f"{site}: verified (root v{report.root_version}, {report.roles} domain role(s), {report.targets} file(s))",
-            err=True,
         )
 
 
@@ -487,7 +498,13 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 )
 @click.option("--from", "site", required=True, help="Registry site: an http(s) URL or a folder.")
 @_with_client_options
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Where to write the verified file.")
+@click.option(
+    "-o",
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Where to write the verified file (- for stdout).",
+)
 @JSON_OPTION
 @handle_errors
 def fetch(
@@ -522,19 +539,21 @@ def fetch(
     plan.protect_tree(client.cache_dir, what="the registry cache")
     if "://" not in site:
         plan.protect_tree(site, what="the registry site")
-    plan.add(out, data, flag="--out")
+    if out == "-" and as_json:
+        raise click.UsageError("-o - and --json would both write to stdout")
+    plan.add(out, data, flag="--out", stdout=True)
     plan.commit()
     if as_json:
         result = {"kind": kind, "name": name, "version": version, "size": len(data), "wrote": [out]}
         emit_json({"ok": True, **result, "errors": []})
         return
-    click.echo(f"{name} {version}: {len(data)} bytes verified, written to {out}", err=True)
+    say(f"{name} {version}: {len(data)} bytes verified, written to {'stdout' if out == '-' else out}")
 
 
 def validate_with_registry(
     doc: str,
     *,
-    schema: str | None,
+    schema: tuple[str, ...] | str | None,
     site: str,
     trusted_root: str | None,
     strict: bool,

@@ -5,12 +5,13 @@ The SBOM libraries are imported inside the command only (start-up stays light).
 
 from __future__ import annotations
 
-import sys
+from datetime import datetime
 from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_options
+from . import emit_json, handle_errors, say, tree_options
+from .params import source_date_epoch_option
 
 
 @click.command()
@@ -18,7 +19,7 @@ from . import emit_json, handle_errors, tree_options
 @click.option(
     "--format", "fmt", required=True, type=click.Choice(["cyclonedx", "spdx"]), help="CycloneDX 1.6 or SPDX 3.0.1 JSON."
 )
-@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout].")
+@click.option("-o", "--out", type=click.Path(dir_okay=False), help="Write the SBOM here [default: stdout, also -].")
 @click.option(
     "--release",
     "release_dir",
@@ -35,6 +36,7 @@ from . import emit_json, handle_errors, tree_options
     is_flag=True,
     help="Print one JSON object on stdout: ok, format, warnings, wrote, and the SBOM itself (as `sbom`) without -o.",
 )
+@source_date_epoch_option
 @handle_errors
 def sbom(
     doc: str,
@@ -43,6 +45,7 @@ def sbom(
     release_dir: str | None,
     key: str | None,
     tree: Any,
+    source_date: datetime | None,
     as_json: bool,
 ) -> None:
     """Write a bill of materials of DOC's verified tree: sub-assemblies with their author and
@@ -65,11 +68,11 @@ def sbom(
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:
-            click.echo(f"warning: {w}", err=True)
+            say(f"warning: {w}")
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
-    facts = collect(res, release=release, fmt=fmt)
+    facts = collect(res, release=release, fmt=fmt, created=source_date)
     if fmt == "cyclonedx":
         from ..sbom.cyclonedx import render
     else:
@@ -78,15 +81,16 @@ def sbom(
     warnings = [*res.warnings, *facts.notices]
     if not as_json:
         for n in facts.notices:
-            click.echo(f"warning: {n}", err=True)
-    if out is None:
+            say(f"warning: {n}")
+    if out is None or out == "-":
         if as_json:
             import json
 
             emit_json(_payload(fmt, warnings, wrote=[], document=json.loads(data)))
             return
-        sys.stdout.buffer.write(data)
-        sys.stdout.buffer.flush()
+        from ..outputs import write_stdout
+
+        write_stdout(data)  # a full or closed stdout: exit 3, with a message
         return
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)
@@ -102,7 +106,7 @@ def sbom(
         emit_json(_payload(fmt, warnings, wrote=wrote))
         return
     for path in wrote:
-        click.echo(f"wrote {path}", err=True)
+        say(f"wrote {path}")
 
 
 def _payload(fmt: str, warnings: list[Any], *, wrote: list[str], document: Any = None) -> dict[str, Any]:

@@ -7,13 +7,18 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, tree_location_options
+from . import emit_json, handle_errors, say, tree_location_options
 
 
 @click.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @click.option(
-    "--schema", type=click.Path(dir_okay=False), help="XSD to validate against (the official schemas are not shipped)."
+    "--schema",
+    "schemas",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    help="XSD to validate against (the official schemas are not shipped); repeatable: the one that declares "
+    "the document's root and version is used, and reported with its SHA-256.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--registry", "registry_site", help="Registry (URL or folder): schemas, extensions, stream profiles.")
@@ -23,7 +28,7 @@ from . import emit_json, handle_errors, tree_location_options
 @handle_errors
 def validate(
     doc: str,
-    schema: str | None,
+    schemas: tuple[str, ...],
     as_json: bool,
     registry_site: str | None,
     trusted_root: str | None,
@@ -35,22 +40,26 @@ def validate(
     Exits 1 if any error was found; every finding is listed, not just the first. Includes are
     read from local files only (--base, --mirror and --root as resolve's; nothing is fetched).
     """
-    from ..validate import validate_document
+    from ..validate import SchemaChoiceError, validate_document
 
-    if registry_site:
-        from .registry import validate_with_registry
+    try:
+        if registry_site:
+            from .registry import validate_with_registry
 
-        report = validate_with_registry(
-            doc, schema=schema, site=registry_site, trusted_root=trusted_root, strict=strict, tree=tree
-        )
-    else:
-        report = validate_document(doc, schema=schema, tree_options=tree)
+            report = validate_with_registry(
+                doc, schema=schemas, site=registry_site, trusted_root=trusted_root, strict=strict, tree=tree
+            )
+        else:
+            report = validate_document(doc, schema=schemas, tree_options=tree)
+    except SchemaChoiceError as exc:
+        raise click.UsageError(exc.message) from None
     if as_json:
         emit_json(
             {
                 "ok": report.ok,
                 "checked": report.checked,
                 "schema": report.schema,
+                "schema_sha256": report.schema_sha256,
                 "notes": list(report.notes),
                 "findings": [f.to_dict() for f in report.findings],
                 "errors": [f.to_dict() for f in report.findings if f.severity == "error"],
@@ -58,11 +67,13 @@ def validate(
         )
     else:
         for f in report.findings:
-            click.echo(str(f), err=True)
+            say(str(f))
         for n in report.notes:
-            click.echo(f"note: {n}", err=True)
+            say(f"note: {n}")
         if report.schema is None:
-            click.echo("note: no --schema given: only the semantic rules were checked", err=True)
+            say("note: no --schema given: only the semantic rules were checked")
+        else:
+            say(f"validated against {report.schema} (sha256 {report.schema_sha256})")
         errors = sum(1 for f in report.findings if f.severity == "error")
-        click.echo(f"{errors} error(s), {len(report.findings) - errors} warning(s)", err=True)
+        say(f"{errors} error(s), {len(report.findings) - errors} warning(s)")
     sys.exit(0 if report.ok else 1)

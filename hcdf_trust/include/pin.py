@@ -63,7 +63,7 @@ from urllib.parse import unquote, urlsplit
 
 from lxml import etree
 
-from ..digest import Pin
+from ..digest import PREFIX, Pin, include_mismatch_hint, prefixed_style
 from ..document import Document, Kind, Reference
 from ..errors import (
     DigestMismatchError,
@@ -449,6 +449,8 @@ class _Planner:
         if refused == PIN_DIFFERS:
             assert use.pin is not None
             said = _lock_says(use.pin, read, locked)
+            if art.kind is Kind.INCLUDE:
+                said += f"; {include_mismatch_hint(uri)}"
             self.errors.append(
                 self._mismatch(
                     f"{uri}: digest mismatch: the content is not what the sha pins ({said}); {hint}",
@@ -678,7 +680,8 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
 
     An existing ``sha`` attribute has its value replaced (quotes and a ``sha256:``
     prefix kept); a missing one is inserted right after the ``uri``/``href``
-    attribute, in the same quote style. Nothing else in the text changes.
+    attribute, in the same quote style and in the document's pin style
+    (:func:`~hcdf_trust.digest.prefixed_style`). Nothing else in the text changes.
 
     Raises:
         PinEditError: a reference cannot be located unambiguously in the text, or
@@ -700,6 +703,7 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
             file=doc.source,
         )
     index = {el: i for i, el in enumerate(elements)}
+    style = PREFIX.encode("ascii") if prefixed_style(r.sha for r in doc.references() if r.kind.fetchable) else b""
     splices: list[tuple[int, int, bytes]] = []
     for ref, sha in edits:
         i = index.get(ref.element)
@@ -726,7 +730,7 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
             splices.append((old.value_start, old.value_end, prefix + sha.encode("ascii")))
         else:
             q = uri.quote
-            splices.append((uri.end, uri.end, b" sha=" + q + sha.encode("ascii") + q))
+            splices.append((uri.end, uri.end, b" sha=" + q + style + sha.encode("ascii") + q))
     parts: list[bytes] = []
     pos = 0
     for start, end, new in sorted(splices):

@@ -31,8 +31,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
-from ..digest import Hashed, Pin, hash_bytes, hash_chunks, parse_pin
-from ..document import Document, Kind, Reference
+from ..digest import Hashed, Pin, hash_bytes, hash_chunks, include_mismatch_hint, parse_pin
+from ..document import Document, Kind, Reference, foreign_major_notice
 from ..errors import (
     DigestMismatchError,
     FetchError,
@@ -392,6 +392,8 @@ class _Run:
         )
         self._find_cycles()
         self._check_all()
+        if (notice := foreign_major_notice(res.documents.values())) is not None:
+            res.warnings.append(notice)
         if lock_error is not None:
             # Without its lock, the run's drift findings say nothing: the lock error alone.
             others = [e for e in res.errors if not isinstance(e, LockDriftError | UnpinnedError)]
@@ -862,9 +864,10 @@ def check_artifact(
                 warnings.append(where("unpinned", f"{use.ref.uri} is unpinned (sha256 {sha})"))
             continue
         if not pin.matches(sha):
+            hint = f" ({include_mismatch_hint(use.ref.uri or '')})" if art.kind is Kind.INCLUDE else ""
             errors.append(
                 DigestMismatchError(
-                    f"{use.ref.uri}: digest mismatch",
+                    f"{use.ref.uri}: digest mismatch{hint}",
                     file=use.doc,
                     line=use.ref.line,
                     url=art.url,

@@ -14,10 +14,7 @@ import os
 from typing import Any, Protocol
 
 from ..errors import InputError
-from ..localfile import read_input
 
-PASSPHRASE_ENV = "HCDF_TRUST_MACSEC_PASSPHRASE"
-MAX_SECRET_FILE = 4096
 # scrypt cost recorded in the store; bounds refuse a hostile store that asks for gigabytes.
 SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**15, 8, 1
 SCRYPT_N_RANGE = (2**14, 2**20)
@@ -126,25 +123,13 @@ class PassphraseWrapper:
 
 
 def passphrase_from(file: str | None) -> bytes:
-    """The passphrase from ``--passphrase-file`` (one line; a final newline is dropped) or the environment.
+    """The store passphrase: :func:`hcdf_trust.passphrase.read_passphrase` (the one rule:
+    ``--passphrase-file`` or ``$HCDF_TRUST_PASSPHRASE``)."""
+    from ..passphrase import read_passphrase
 
-    Raises:
-        InputError: neither is given, the file is not a small regular file, or it is empty.
-    """
-    if file is not None:
-        data = read_input(file, limit=MAX_SECRET_FILE, what="passphrase file")
-        data = data[:-1] if data.endswith(b"\n") else data
-        data = data[:-1] if data.endswith(b"\r") else data
-        if not data:
-            raise InputError("the passphrase file is empty", file=file)
-        return data
-    env = os.environ.get(PASSPHRASE_ENV)
-    if env:
-        return env.encode()
-    raise InputError(
-        f"no key store passphrase: give --passphrase-file FILE or set {PASSPHRASE_ENV} "
-        f"(a passphrase is never taken on the command line)"
-    )
+    data = read_passphrase(file)
+    assert data is not None
+    return data
 
 
 PKCS11_KEY_LABEL = "hcdf-trust-macsec-store"
@@ -275,12 +260,11 @@ class Pkcs11Wrapper:
         return dek
 
 
-def pin_from(file: str) -> bytes:
-    """A token PIN from ``--pin-file`` (one line; a final newline is dropped)."""
-    data = read_input(file, limit=MAX_SECRET_FILE, what="PIN file").rstrip(b"\r\n")
-    if not data:
-        raise InputError("the PIN file is empty", file=file)
-    return data
+def pin_from(file: str | None) -> bytes:
+    """A token PIN: :func:`hcdf_trust.passphrase.read_pin` (``--pin-file`` or ``$HCDF_TRUST_PKCS11_PIN``)."""
+    from ..passphrase import read_pin
+
+    return read_pin(file)
 
 
 class TpmWrapper:

@@ -148,6 +148,7 @@ def render(doc: str, p: Plan, store: KeyStore) -> bytes | None:
         "cwd": cwd,
         "document": given,
         "plan_document": p.document,
+        "robot": p.robot,
         "document_sha256": hash_bytes(res.root.data).sha256,
         "lock": str(res.lock_path),
         "lock_sha256": res.locked.sha256,
@@ -178,10 +179,12 @@ class Candidate:
             for kind, path, root, sha256 in self.head["files"]:
                 if _digest(kind, path, root) != sha256:
                     return None
-            document = self.head["plan_document"]
+            document, robot = self.head["plan_document"], self.head["robot"]
         except (ValueError, TypeError, KeyError):  # sealed by this store, yet not this layout
             return None
-        return Plan(document=document, associations=self.associations, resolution=None)
+        if not isinstance(robot, str):
+            return None
+        return Plan(document=document, robot=robot, associations=self.associations, resolution=None)
 
     def protect(self, out: Any) -> None:
         """Protect what a resolve of this tree would (see :func:`hcdf_trust.outputs.protect_inputs`)."""

@@ -57,6 +57,7 @@ from lxml import etree
 
 from ..document import Document, only
 from ..errors import ErrorGroup, HcdfTrustError, InputError, Notice
+from ..units import UnitError, bit_rate
 from ..xml import sourceline
 
 if TYPE_CHECKING:
@@ -139,7 +140,8 @@ class Element:
 
     @property
     def label(self) -> str:
-        return f"{self.kind}:{self.network}/{self.name}"
+        """``kind:network/name``; ``kind:network`` for a whole network (the new model's link, bus, mesh)."""
+        return f"{self.kind}:{self.network}/{self.name}" if self.name else f"{self.kind}:{self.network}"
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -226,6 +228,7 @@ class Association:
 @dataclass
 class Plan:
     document: str
+    robot: str = ""  # the root document's <hcdf name>: the identity a key store is bound to
     associations: dict[str, Association] = field(default_factory=dict)
     unprotected: list[Element] = field(default_factory=list)
     skipped: list[tuple[Element, str]] = field(default_factory=list)
@@ -242,6 +245,7 @@ class Plan:
     def to_dict(self) -> dict[str, Any]:
         return {
             "document": self.document,
+            "robot": self.robot,
             "associations": [ca.to_dict() for ca in self.associations.values()],
             "unprotected": [e.to_dict() for e in self.unprotected],
             "skipped": [dict(e.to_dict(), reason=r) for e, r in self.skipped],
@@ -361,6 +365,23 @@ def _children(el: etree._Element, tag: str) -> list[etree._Element]:
     return list(el.iterchildren("{*}" + tag))
 
 
+# Upstream's top-level network elements since 2026 (read by hcdf_trust.macsec.connectivity).
+NETWORK_KINDS = ("link", "bus", "chain", "star", "ring", "mesh", "tree")
+_NEW_NETWORK_TAGS = tuple("{*}" + k for k in NETWORK_KINDS)
+# Every <macsec> outside a 1.0 <network> that is not a capability declaration (see _Planner._unread_macsec),
+# with plain name tests (3x faster in libxml2) for a document that can hold no namespace, else local-name() tests.
+_POLICY_MACSEC = {
+    True: etree.XPath(
+        "*[not(self::network)]/descendant-or-self::macsec[not(ancestor::capabilities)]"
+        "[@* or not(*) or *[not(self::cipher)]]"
+    ),
+    False: etree.XPath(
+        "*[local-name()!='network']/descendant-or-self::*[local-name()='macsec']"
+        "[not(ancestor::*[local-name()='capabilities'])][@* or not(*) or *[local-name()!='cipher']]"
+    ),
+}
+
+
 def _by_tag(el: etree._Element) -> dict[str, list[etree._Element]]:
     """Child elements grouped by local name, in one pass."""
     out: dict[str, list[etree._Element]] = {}
@@ -405,7 +426,7 @@ class _Planner:
         self.includes = includes
         self.root = root
         self.errors: list[HcdfTrustError] = []
-        self.plan = Plan(document=documents[root].source)
+        self.plan = Plan(document=documents[root].source, robot=(documents[root].root.get("name") or "").strip())
         self._defined: dict[str, frozenset[str]] = {}
         self._comps: dict[str, dict[str, etree._Element]] = {}
         self._query_set: dict[str, _Queries] = {}
@@ -413,6 +434,7 @@ class _Planner:
         self._key_scope: dict[str, tuple[str, str, etree._Element]] = {}
         self._ports: dict[etree._Element, dict[str, _PortInfo]] = {}
         self._override_cache: dict[tuple[tuple[Any, ...], ...], Policy] = {}  # this network's overrides
+        self._consumed: set[etree._Element] = set()  # <macsec> elements outside <network> a reader understood
 
     def run(self) -> Plan:
         instances = self._instances()
@@ -423,11 +445,51 @@ class _Planner:
             doc = self.docs[inst.url]
             for net in nets:
                 self._network(inst, doc, net)
+        self._connectivity(instances)
+        self._unread_macsec(instances)
         if self.errors:
             raise ErrorGroup(self.errors)
         for ca in self.plan.keyed():
             self._pn_warning(ca)
         return self.plan
+
+    def _connectivity(self, instances: list[_Instance]) -> None:
+        """The top-level networks of upstream's newer connectivity model, in every instance
+        that has one (:mod:`hcdf_trust.macsec.connectivity`, imported only then)."""
+        for inst in instances:
+            doc = self.docs[inst.url]
+            if next(doc.root.iterchildren(*_NEW_NETWORK_TAGS), None) is not None:
+                from .connectivity import plan_networks
+
+                plan_networks(self, inst, doc)
+
+    def _unread_macsec(self, instances: list[_Instance]) -> None:
+        """Fail closed: every ``<macsec>`` outside a 1.0 ``<network>`` (whose rules are
+        :meth:`_network`'s) that is not a capability declaration must have been read by a
+        reader; one that was not is an error naming it, so a description whose MACsec policy
+        this code does not understand is never "0 associations to key". A capability
+        declaration is a ``<macsec>`` inside a port's ``<capabilities>``, or 1.0's switch-level
+        form: no attributes, only ``<cipher>`` children. (One XPath per document, in libxml2.)"""
+        for url in dict.fromkeys(inst.url for inst in instances):
+            doc = self.docs[url]
+            query = _POLICY_MACSEC[self._queries(url) is _compile(True)]
+            for el in cast("list[etree._Element]", query(doc.root)):
+                if el in self._consumed:
+                    continue
+                parent = el.getparent()
+                top = el
+                while top.getparent() is not None and top.getparent() is not doc.root:
+                    top = top.getparent()  # type: ignore[assignment]
+                where = etree.QName(parent).localname if parent is not None else "?"
+                self.errors.append(
+                    MacsecPlanError(
+                        f"<macsec> in <{where}> (under <{etree.QName(top).localname} name={top.get('name', '')!r}>) "
+                        f"is not read by this planner: refusing to plan a description whose MACsec policy would "
+                        f"be ignored",
+                        file=doc.source,
+                        line=sourceline(el),
+                    )
+                )
 
     def _pn_warning(self, ca: Association) -> None:
         speeds = ca.port_speeds_mbps
@@ -875,7 +937,19 @@ class _Planner:
         ca.elements.append(element)
         return ca
 
-    def _endpoint(self, ca: Association, element: Element, device: str, port: str, port_ref: _PortRef) -> None:
+    def _endpoint(
+        self,
+        ca: Association,
+        element: Element,
+        device: str,
+        port: str,
+        port_ref: _PortRef,
+        *,
+        capabilities: bool = True,
+    ) -> None:
+        """Add a member port to ``ca`` and give the port's warnings and speed errors; without
+        ``capabilities`` (the new connectivity model, whose ports declare no ciphers) the
+        port's MACsec capability is not compared with the cipher."""
         ca.add_member(device, port or None)
         if not port:
             return
@@ -898,8 +972,18 @@ class _Planner:
         policy = ca.policy
         if policy is None or policy.policy == "disabled":
             return
+        if port_ref.bad_speed is not None:
+            # The packet-number rules need the speed: one we cannot read is never "unknown, no check".
+            self.errors.append(
+                MacsecPlanError(
+                    f"{ca.id}: the speed of port {label} cannot be read ({port_ref.bad_speed[1]}); "
+                    'write it as e.g. <speed unit="Gb/s">10</speed> or <rate nominal="10000000000" unit="bit/s"/>',
+                    file=port_ref.file,
+                    line=port_ref.bad_speed[0],
+                )
+            )
         ciphers = port_ref.ciphers
-        if policy.cipher not in ciphers:
+        if capabilities and policy.cipher not in ciphers:
             what = f"declares only {', '.join(ciphers)}" if ciphers else "declares no MACsec capability"
             self.plan.warnings.append(
                 Notice(
@@ -931,20 +1015,25 @@ class _PortInfo(NamedTuple):
     iface: str
     speed_mbps: float | None
     ciphers: tuple[str, ...]
+    bad_speed: tuple[int | None, str] | None = None  # (line, why) of a speed that could not be read
 
 
 _PortRef = _PortInfo | None
 
 
 _SPEEDS = frozenset(("speed", "speed-tx", "speed-rx"))
-_ONCE_IN_CAPABILITIES = _SPEEDS | {"macsec"}  # hcdf.xsd port_capabilities: maxOccurs="1"
+_RATE_ATTRIBUTES = ("nominal", "max")  # upstream's <rate min max nominal unit>: nominal, else max
+_ONCE_IN_CAPABILITIES = _SPEEDS | {"macsec", "rate"}  # hcdf.xsd port_capabilities (and upstream's rate): once
 
 
 def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
     """Every ``<port name>`` defined anywhere inside a comp (switch ports included), read in one pass:
     the first definition of a name wins; ``<capabilities>`` children of the port give its speed
-    (the highest of ``speed``, ``speed-tx``, ``speed-rx``) and the ``<cipher>``s of its ``<macsec>``.
-    Tags match in no namespace or any, tested inline (20,000 ports make ~100,000 tests)."""
+    (the highest of 1.0's ``speed``, ``speed-tx``, ``speed-rx`` and of upstream's ``<rate nominal
+    max unit>``, all read by :func:`hcdf_trust.units.bit_rate`) and the ``<cipher>``s of its
+    ``<macsec>``. A speed that cannot be read is kept as ``bad_speed``: an error once the port
+    is a member of a keyed association. Tags match in no namespace or any, tested inline
+    (20,000 ports make ~100,000 tests)."""
     out: dict[str, _PortInfo] = {}
     for el in comp.iter("{*}port"):
         name = el.get("name")
@@ -952,6 +1041,7 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
             continue
         ciphers: list[str] = []
         speed: float | None = None
+        bad: tuple[int | None, str] | None = None
         seen: dict[str, etree._Element] = {}  # <capabilities>, <macsec>, <speed>...: each allowed once
         for caps in el:  # plain iteration and tag tests: faster in lxml than filtered iterators
             tag = caps.tag
@@ -974,10 +1064,23 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
                         tag = c.tag
                         if tag == "cipher" or (type(tag) is str and tag.endswith("}cipher")):
                             ciphers.append((c.text or "").strip())
-                elif local in _SPEEDS:
-                    mbps = _mbps(item.text, item.get("unit"))
-                    if mbps is not None:
-                        speed = mbps if speed is None or mbps > speed else speed
+                    continue
+                if local in _SPEEDS:
+                    values = [(item.text, item.get("unit"), "Mb/s", f"<{local}>")]
+                elif local == "rate":
+                    attr = next((a for a in _RATE_ATTRIBUTES if item.get(a) is not None), None)
+                    if attr is None:
+                        continue
+                    values = [(item.get(attr), item.get("unit"), "bit/s", f"<rate {attr}>")]
+                else:
+                    continue
+                for text, unit, default, what in values:
+                    try:
+                        mbps = bit_rate(text, unit, default_unit=default) / 1e6
+                    except UnitError as exc:
+                        bad = bad or (item.sourceline, f"{what}: {exc}")  # type: ignore[assignment]
+                        continue
+                    speed = mbps if speed is None or mbps > speed else speed
         out[name] = _PortInfo(
             file,
             el.sourceline,  # type: ignore[arg-type]  # lxml-stubs: `sourceline = ...`
@@ -985,21 +1088,6 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
             (el.get("iface") or "").strip() or name,
             speed,
             tuple(ciphers),
+            bad,
         )
     return out
-
-
-_UNITS = {"bps": 1e-6, "kbps": 1e-3, "mbps": 1.0, "gbps": 1e3, "tbps": 1e6}
-
-
-@functools.lru_cache(maxsize=1024)  # a description writes a handful of distinct speeds, many times
-def _mbps(text: str | None, unit: str | None) -> float | None:
-    """A ``<speed unit>`` value (element text, ``unit`` attribute) in Mb/s (default unit Mbps); None when unreadable."""
-    try:
-        value = float((text or "").strip())
-    except ValueError:
-        return None
-    factor = _UNITS.get((unit or "Mbps").strip().lower())
-    if factor is None or value != value or value <= 0 or value == float("inf"):
-        return None
-    return value * factor

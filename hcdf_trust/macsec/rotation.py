@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from ..errors import HcdfTrustError, InputError, Notice
+from ..errors import HcdfTrustError, InputError, IntegrityError, Notice
 from .kdf import key_check_value
 from .plan import Association, Plan
 from .store import BLOB_KINDS, Entry, KeyStore, fmt_time
@@ -28,6 +28,12 @@ DEFAULT_OVERLAP_SEC = 3600
 
 class RotationError(InputError):
     code = "macsec-rotation"
+
+
+class NoUsableKeyError(IntegrityError):
+    """A described association has no generation devices can send with now (``status`` exits 1)."""
+
+    code = "macsec-no-key"
 
 
 def _new_entry(ca: Association) -> Entry:
@@ -47,7 +53,12 @@ def _supported(ca: Association) -> bool:
 
 
 def generate(store: KeyStore, plan: Plan, *, now: datetime) -> tuple[list[str], list[Notice]]:
-    """Create every missing key; return the CA ids keyed now and notices. Existing keys are untouched."""
+    """Create every missing key; return the CA ids keyed now and notices. Existing keys are untouched.
+
+    Raises:
+        KeyStoreRobotError: the store was generated for another robot (a new store is bound to this one).
+    """
+    store.bind(plan.robot, document=plan.document)
     created: list[str] = []
     notices: list[Notice] = []
     taken = store.known_ckns()
@@ -193,8 +204,19 @@ def rotate(
     return done
 
 
-def retire(store: KeyStore, *, now: datetime) -> list[tuple[str, int]]:
-    """Remove generations past their expiry whose successor is active; return what was removed."""
+def retire(store: KeyStore, *, now: datetime, real_now: datetime | None = None) -> list[tuple[str, int]]:
+    """Remove generations past their expiry whose successor is active; return what was removed.
+
+    ``now`` (``--now``) can only make retiring more careful, never less: a generation is
+    removed only if it is retired, and a successor active, both at ``now`` and at the real
+    current time (``real_now``, the clock by default). Retirement is monotone in time, so
+    that is the earlier of the two: ``retire --now <future>`` never removes the key devices
+    send with today.
+    """
+    from .store import now_utc
+
+    real = now_utc() if real_now is None else real_now
+    now = min(now, real)
     removed = []
     for entry in store.entries.values():
         if entry.current(now) is None:
@@ -228,19 +250,43 @@ class Status:
     rows: list[dict[str, Any]] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)  # in the description, no key
     orphaned: list[str] = field(default_factory=list)  # keys for associations no longer described
+    problems: list[HcdfTrustError] = field(default_factory=list)  # described, and no usable key now
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
 
     def to_dict(self) -> dict[str, Any]:
         return {"associations": self.rows, "missing": self.missing, "orphaned": self.orphaned}
 
 
 def status(store: KeyStore, plan: Plan, *, now: datetime) -> Status:
-    """Per CA: the active generation, its age, whether it is due, pending ones, key check values."""
+    """Per CA: the active generation, its age, whether it is due, pending ones, key check values.
+
+    Raises:
+        KeyStoreRobotError: the store was generated for another robot.
+    """
+    store.bind(plan.robot, document=plan.document)
     out = Status()
     described = {ca.id: ca for ca in plan.keyed() if _supported(ca)}
     eap = {i for ca in plan.keyed() if not _supported(ca) for i in eap_ids(ca)}
+    where = {ca.id: ca for ca in plan.keyed()}
     for ca_id in [*described, *sorted(eap)]:
+        ca = described.get(ca_id) or next((c for c in where.values() if ca_id in eap_ids(c)), None)
+        file, line = (ca.file, ca.line) if ca is not None else (plan.document, None)
         if ca_id not in store.entries or not store.entries[ca_id].generations:
             out.missing.append(ca_id)
+            out.problems.append(NoUsableKeyError(f"{ca_id} has no key: run `macsec generate`", file=file, line=line))
+        elif store.entries[ca_id].current(now) is None:
+            states = ", ".join(f"g{g.generation} {g.state_at(now)}" for g in store.entries[ca_id].generations)
+            out.problems.append(
+                NoUsableKeyError(
+                    f"{ca_id} has no generation active at {fmt_time(now)} ({states}): its devices have no key "
+                    f"to send with; run `macsec rotate` for it and export again",
+                    file=file,
+                    line=line,
+                )
+            )
     for ca_id, entry in sorted(store.entries.items()):
         ca = described.get(ca_id)
         if ca is None and ca_id not in eap:

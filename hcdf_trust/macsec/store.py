@@ -4,7 +4,7 @@ Layout of ``DIR/macsec-keys.json`` (:data:`STORE_NAME`, mode 0600, format versio
 :data:`FORMAT_VERSION`): JSON Lines, compact and key-sorted, a header then one line per
 association, sorted by CA id::
 
-    {"mac":HEX,"format":"hcdf-trust-macsec-store","store_id":HEX,"version":2,
+    {"mac":HEX,"format":"hcdf-trust-macsec-store","robot":NAME,"store_id":HEX,"version":2,
      "wrap":{"method":"scrypt" | "pkcs11" | "tpm",...}}        # the wrapped 256-bit data key
     [CA_ID,{"cipher","generations":[{"activation","ciphertext","ckn","created","expiry",
             "generation","nonce","state"}],"key_bytes","kind","source":{"file","line"}}]
@@ -22,6 +22,11 @@ only when it is used (an export touches a handful of 10,000).
   re-serialising anything: any changed byte (an activation time, a dropped generation, a
   reformatted line) is an integrity error (exit 1). Version 1 (one JSON object, its MAC
   over a re-serialisation) is refused with a message saying so.
+* ``robot`` is the identity of the robot the store was generated for: the ``name`` of the
+  root document's ``<hcdf>`` (see :meth:`KeyStore.bind`). It is covered by the MAC, so it
+  cannot be edited; every verb that reads a description refuses a store of another robot
+  (exit 1, both names), so one robot's CAKs never reach another robot's devices. A store
+  without it (made before robots were recorded) is refused: make a new one.
 * CKNs are 16 random octets, unique across the store: only the first 16 octets of a CKN
   reach the 802.1X KDF.
 * The file is read through :func:`hcdf_trust.localfile.read_input` (bounded, regular file
@@ -54,7 +59,7 @@ from typing import Any
 
 from ..errors import InputError, IntegrityError
 from ..localfile import read_input
-from ..outputs import OutputPlan
+from ..outputs import KEY_STORE, OutputPlan, sweep_folder
 from .backends import KeyStoreFormatError, Wrapper, b64, unb64
 
 STORE_NAME = "macsec-keys.json"
@@ -74,6 +79,12 @@ class KeyStoreIntegrityError(IntegrityError):
     """The key store's metadata or a key's ciphertext was changed outside this tool."""
 
     code = "key-store-integrity"
+
+
+class KeyStoreRobotError(IntegrityError):
+    """The key store was generated for another robot than the description names."""
+
+    code = "key-store-robot"
 
 
 @contextlib.contextmanager
@@ -106,22 +117,10 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
                         f"the key store is locked by another run (waited {LOCK_WAIT_SEC:g} s)", file=str(path)
                     ) from None
                 time.sleep(0.05)
-        _remove_stale_temporaries(path.parent)
+        sweep_folder(path.parent)  # a killed run's staged store and its link to the previous one
         yield
     finally:
         os.close(fd)
-
-
-def _remove_stale_temporaries(folder: Path) -> None:
-    """Temporary store and index files a killed run left behind (we hold the lock: no run is writing them):
-    staged files (``.tmp``) and OutputPlan's links to the files they replaced (``.old``, which keep a
-    previous store, with generations a retire removed, on disk)."""
-    prefixes = (f".{STORE_NAME}.", f".{INDEX_NAME}.")
-    for name in os.listdir(folder):
-        if name.startswith(prefixes) and name.endswith((".tmp", ".old")):
-            with contextlib.suppress(OSError):
-                if stat.S_ISREG(os.lstat(folder / name).st_mode):
-                    os.unlink(folder / name)
 
 
 def now_utc() -> datetime:
@@ -275,9 +274,12 @@ def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
 class KeyStore:
     """An opened key store: metadata in memory, the data key unwrapped, keys decrypted on demand."""
 
-    def __init__(self, path: Path, *, store_id: str, wrap: dict[str, Any], dek: bytes) -> None:
+    def __init__(
+        self, path: Path, *, store_id: str, wrap: dict[str, Any], dek: bytes, robot: str | None = None
+    ) -> None:
         self.path = path
         self.store_id = store_id
+        self.robot = robot  # None only for a store being created, until :meth:`bind`
         self.wrap = wrap
         self._dek = dek
         self._aead: Any = None
@@ -339,9 +341,17 @@ class KeyStore:
                 expected=str(FORMAT_VERSION),
                 actual=repr(doc.get("version"))[:40],
             )
-        store_id, wrap = doc.get("store_id"), doc.get("wrap")
+        store_id, wrap, robot = doc.get("store_id"), doc.get("wrap"), doc.get("robot")
         if not isinstance(store_id, str) or not isinstance(wrap, dict):
             raise KeyStoreFormatError("the key store has no store_id or wrap section", file=source)
+        if not isinstance(robot, str) or not robot:
+            raise KeyStoreFormatError(
+                "the key store does not record which robot it was generated for (made by an earlier "
+                "hcdf-trust): make a new store with `macsec generate --store NEW_DIR` and export the devices again",
+                file=source,
+                expected="a robot name",
+                actual=repr(robot)[:40],
+            )
         if wrap.get("method") != wrapper.method:
             raise KeyStoreFormatError(
                 "the key store is protected by another backend",
@@ -364,9 +374,36 @@ class KeyStore:
             )
         if isinstance(index, KeyStoreFormatError):
             raise index
-        store = cls(path, store_id=store_id, wrap=wrap, dek=dek)
+        store = cls(path, store_id=store_id, wrap=wrap, dek=dek, robot=robot)
         store.entries = Entries(index, source=source)
         return store
+
+    def bind(self, robot: str, *, document: str) -> None:
+        """Check that this store belongs to ``robot`` (the root document's ``<hcdf name>``), or,
+        for a store being created, record it.
+
+        Raises:
+            KeyStoreRobotError: the store was generated for another robot (exit 1).
+            KeyStoreFormatError: a new store for a description whose root has no name.
+        """
+        if self.robot is None:
+            if not robot:
+                raise KeyStoreFormatError(
+                    "the root <hcdf> has no name: a key store is bound to the robot it is generated for, by that name",
+                    file=document,
+                    expected="<hcdf name=...>",
+                    actual="(missing)",
+                )
+            self.robot = robot
+            self.changed = True
+        elif robot != self.robot:
+            raise KeyStoreRobotError(
+                f"the key store was generated for robot {self.robot!r}, not for robot {robot!r} that "
+                f"{document} describes: one robot's keys never go to another's devices (use that robot's store)",
+                file=str(self.path),
+                expected=self.robot,
+                actual=robot or "(no name)",
+            )
 
     # -- keys --------------------------------------------------------------------------------
 
@@ -435,7 +472,15 @@ class KeyStore:
     # -- write -----------------------------------------------------------------------------
 
     def serialize(self, now: datetime) -> bytes:
-        head = {"format": FORMAT, "version": FORMAT_VERSION, "store_id": self.store_id, "wrap": self.wrap}
+        if self.robot is None:  # every verb that creates a store binds it first (rotation.generate)
+            raise KeyStoreFormatError("a key store is written only once bound to a robot", file=str(self.path))
+        head = {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "robot": self.robot,
+            "store_id": self.store_id,
+            "wrap": self.wrap,
+        }
         encode = line_encoder(sort_keys=True)
         lines = [encode(head)]
         for e in sorted(self.entries.values(), key=lambda e: e.ca_id):
@@ -461,7 +506,7 @@ class KeyStore:
 
     def plan_write(self, plan: OutputPlan, *, now: datetime) -> None:
         """Add the store file to ``plan`` (mode 0600); the caller commits."""
-        plan.add(self.path, self.serialize(now), flag="--store", mode=0o600)
+        plan.add(self.path, self.serialize(now), flag="--store", mode=0o600, replaces=(KEY_STORE,))
 
 
 def line_encoder(*, sort_keys: bool) -> Callable[[Any], str]:

@@ -27,11 +27,10 @@ Unknown keys are refused: a typo must not silently fall back to a default.
 from __future__ import annotations
 
 import os
-import tomllib
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from ..localfile import read_input
+from ..localfile import read_toml
 from .errors import OtaConfigError
 
 MAX_CONFIG_BYTES = 1 << 20
@@ -89,11 +88,7 @@ def load_config(path: str | os.PathLike[str] | None) -> OtaConfig:
     if path is None:
         return OtaConfig()
     shown = os.fspath(path)
-    data = read_input(shown, limit=MAX_CONFIG_BYTES, what="ota.toml")
-    try:
-        doc = tomllib.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise OtaConfigError(f"not valid TOML: {exc}", file=shown) from None
+    doc = read_toml(shown, limit=MAX_CONFIG_BYTES, what="ota.toml", error=OtaConfigError)
     _keys(doc, {"release", "boards", "images"}, shown, "the top level")
     release = _table(doc, "release", shown)
     _keys(release, {"base_url", "changelog", "sequence_number"}, shown, "[release]")

@@ -25,10 +25,9 @@ from urllib.parse import parse_qsl, unquote
 
 from cwt.cose_key_interface import COSEKeyInterface
 
+from ..passphrase import PIN_ENV
 from .errors import FirmwareError, KeyFileError
-from .keys import read_passphrase
 
-PIN_ENV = "HCDF_TRUST_PKCS11_PIN"
 MODULE_ENV = "HCDF_TRUST_PKCS11_MODULE"
 DEFAULT_MODULES = ("/usr/lib/softhsm/libsofthsm2.so", "/usr/lib/x86_64-linux-gnu/softhsm/libsofthsm2.so")
 _ED25519_SPKI_PREFIX = bytes.fromhex("302a300506032b6570032100")
@@ -86,17 +85,14 @@ def read_pin(uri: Pkcs11Uri, pin_file: str | None) -> str:
     """The user PIN: --pin-file, the URI's pin-source=file:…, or the environment.
 
     Raises:
-        KeyFileError: none given, or empty.
+        SecretFileError: none given, empty, several lines, a file others can read.
     """
+    from ..passphrase import read_pin as read_secret_pin
+
     path = pin_file
     if path is None and uri.pin_source:
         path = uri.pin_source[len("file:") :] if uri.pin_source.startswith("file:") else uri.pin_source
-    if path is not None:
-        return read_passphrase(path).decode("utf-8", "replace")
-    pin = os.environ.get(PIN_ENV)
-    if not pin:
-        raise KeyFileError(f"the token needs a PIN: give --pin-file or set {PIN_ENV}")
-    return pin
+    return read_secret_pin(path).decode("utf-8", "replace")
 
 
 class HsmSigner:

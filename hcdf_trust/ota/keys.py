@@ -11,12 +11,11 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ..localfile import read_input
+from ..localfile import read_input, read_secret
 from .errors import KeyFileError
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")
 MAX_KEY_BYTES = 64 << 10
-MAX_PASSPHRASE_BYTES = 4 << 10
 
 
 def generate(kind: str) -> Any:
@@ -57,22 +56,6 @@ def public_path(path: str | os.PathLike[str]) -> Path:
     return p.with_name(f"{stem}.pub.pem")
 
 
-def read_passphrase(path: str | os.PathLike[str]) -> bytes:
-    """A passphrase file's content without its final line ending.
-
-    Raises:
-        KeyFileError: empty. NotFoundError / InputError: unreadable, not a regular file.
-    """
-    data = read_input(os.fspath(path), limit=MAX_PASSPHRASE_BYTES, what="passphrase file")
-    for end in (b"\r\n", b"\n"):
-        if data.endswith(end):
-            data = data[: -len(end)]
-            break
-    if not data:
-        raise KeyFileError("the passphrase file is empty", file=str(path))
-    return data
-
-
 def load_private(path: str | os.PathLike[str], passphrase: bytes | None = None) -> Any:
     """An imgtool signing key from a PEM file.
 
@@ -82,13 +65,20 @@ def load_private(path: str | os.PathLike[str], passphrase: bytes | None = None) 
     """
     from cryptography.hazmat.primitives import serialization
 
+    from ..passphrase import read_passphrase
+
     shown = str(path)
-    data = read_input(os.fspath(path), limit=MAX_KEY_BYTES, what="key file")
+    data = read_secret(os.fspath(path), limit=MAX_KEY_BYTES, what="private key file", public_ok=True)
+    if passphrase is None and b"ENCRYPTED" in data:
+        passphrase = read_passphrase(None, required=False)  # the environment's, when the key needs one
     try:
         pk = serialization.load_pem_private_key(data, password=passphrase)
     except TypeError as exc:
         if passphrase is None:
-            raise KeyFileError("the private key is passphrase-protected: give --passphrase-file", file=shown) from None
+            raise KeyFileError(
+                "the private key is passphrase-protected: give --passphrase-file or set HCDF_TRUST_PASSPHRASE",
+                file=shown,
+            ) from None
         raise KeyFileError(f"cannot load the private key: {exc}", file=shown) from None
     except ValueError:
         if b"PUBLIC KEY" in data:

@@ -28,10 +28,10 @@ from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
 from ..document import Kind, single, single_text, software_elements
-from ..errors import ErrorGroup, HcdfTrustError, NotFoundError, Notice
+from ..errors import ErrorGroup, HcdfTrustError, InputError, NotFoundError, Notice
 from ..include.resolver import TreeOptions
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import DOCUMENT, ORDINARY, OutputPlan
 from ..xml import sourceline
 from . import latest as latest_json
 from . import suit
@@ -247,10 +247,12 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     plan = OutputPlan()
     _protect(plan, res, options, config_path, edited=set(edited))
     for path, data in outputs:
-        plan.add(path, data, flag="--out")
+        plan.add(path, data, flag="--out", under=options.out_dir)
     for url, data in edited.items():
         local = unquote(urlsplit(url).path)
-        plan.add(local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode))
+        plan.add(
+            local, data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(local).st_mode), replaces=(ORDINARY, DOCUMENT)
+        )
     if edited:
         plan.add(res.lock_path, lock_data, flag="--update-hcdf", mode=stat.S_IMODE(os.stat(res.lock_path).st_mode))
 
@@ -263,12 +265,13 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         components=tuple(components),
     )
     env, alg, kid = sign_release(release, options.signer)
-    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out")
+    plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
     rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
     plan.add(
         Path(options.out_dir, MANIFEST_JSON_NAME),
         (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
         flag="--out",
+        under=options.out_dir,
     )
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
@@ -577,9 +580,23 @@ def _join(base: str | None, rel: str) -> str:
 
 
 def _now() -> str:
-    epoch = os.environ.get("SOURCE_DATE_EPOCH")
-    t = int(epoch) if epoch and epoch.isdigit() else int(time.time())
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+    """``SOURCE_DATE_EPOCH`` (checked by :func:`hcdf_trust.clock.parse_epoch`), else the clock.
+
+    Raises:
+        InputError: ``SOURCE_DATE_EPOCH`` is refused (the CLI refuses it first, as a usage error).
+    """
+    from ..clock import source_date_epoch
+
+    try:
+        epoch = source_date_epoch()
+    except ValueError as exc:
+        raise InputError(f"SOURCE_DATE_EPOCH: {exc}", file="SOURCE_DATE_EPOCH") from None
+    return format_date(epoch.timestamp() if epoch is not None else time.time())
+
+
+def format_date(seconds: float) -> str:
+    """How a release is dated (``latest.json``'s ``date``): UTC, to the second."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(int(seconds)))
 
 
 def read_release(folder: str, public_key: Any) -> tuple[suit.Release, Any]:

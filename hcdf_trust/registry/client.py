@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, unquote, urlsplit
 
 from ..errors import HcdfTrustError, InputError, NotFoundError
-from ..localfile import open_checked, read_chunks, read_input
+from ..localfile import open_checked, read_bounded, read_chunks, read_input
 from .errors import AttackError, TransportError
 from .source import domain_pattern, is_version
 
@@ -136,7 +135,7 @@ class RegistryClient:
     """
 
     def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
-        from tuf.ngclient import Updater, Urllib3Fetcher
+        from tuf.ngclient import Urllib3Fetcher
 
         self.site = site
         local = "://" not in site
@@ -145,7 +144,11 @@ class RegistryClient:
         self.metadata_dir.mkdir(parents=True, exist_ok=True)
         (self.cache_dir / "targets").mkdir(exist_ok=True)
         self._previous = self._cached_roles()
-        if local:
+        if site.startswith("oci://"):  # an OCI artifact (registry publish --oci): transport only
+            from ..oci.site import BASE, oci_fetcher
+
+            base, fetcher = BASE.rstrip("/"), oci_fetcher(site)
+        elif local:
             folder = Path(site).resolve()
             if not folder.is_dir():
                 raise NotFoundError(f"{site}: no such registry site folder", file=site)
@@ -156,7 +159,7 @@ class RegistryClient:
                 raise InputError(f"{site}: a registry is an http(s) URL or a folder", file=site)
             base, fetcher = site.rstrip("/"), Urllib3Fetcher(socket_timeout=timeout)  # type: ignore[arg-type]
         try:
-            self.updater: Updater = Updater(
+            self.updater: Updater = _planned_updater()(
                 str(self.metadata_dir),
                 f"{base}/metadata/",
                 str(self.cache_dir / "targets"),
@@ -277,15 +280,16 @@ class RegistryClient:
             AttackError: arbitrary content or endless data (exit 1).
             TransportError: the file could not be fetched (exit 3).
         """
-        fd, tmp = tempfile.mkstemp(dir=self.cache_dir / "targets", prefix=".dl-")
-        os.close(fd)
+        # Into memory (python-tuf writes to a path: this one names the memfd), so a killed
+        # run leaves no partial download in the cache.
+        fd = os.memfd_create("registry-target", os.MFD_CLOEXEC)
         try:
-            self.updater.download_target(info, filepath=tmp)
-            return read_input(tmp, limit=info.length, what="downloaded target")
+            self.updater.download_target(info, filepath=f"/proc/self/fd/{fd}")
+            return read_bounded(fd, info.length, source=info.path, what="downloaded target")
         except _tuf_errors() as exc:
             raise _attack(exc, f"target {info.path}") from None
         finally:
-            os.unlink(tmp)
+            os.close(fd)
 
     def _check_replaced(self, role: str) -> None:
         """A version this client saw before must keep its content.
@@ -309,14 +313,35 @@ class RegistryClient:
         for path, was in old.items():
             now = new.get(path)
             if now is not None and (now.length, now.hashes) != (was.length, was.hashes):
-                cached = self.metadata_dir / f"{quote(role, '')}.json"
-                cached.write_bytes(before)
+                from ..outputs import OutputPlan
+
+                restore = OutputPlan()  # put back what this client trusted, all or nothing
+                restore.add(self.metadata_dir / f"{quote(role, '')}.json", before, flag="the registry cache")
+                restore.commit()
                 raise AttackError(
                     f"replaced published version: {path} ({role}) changed content since this client last saw it",
                     expected=f"sha256:{was.hashes.get('sha256')} ({was.length} bytes)",
                     actual=f"sha256:{now.hashes.get('sha256')} ({now.length} bytes)",
                     url=self.site,
                 )
+
+
+def _planned_updater() -> type[Updater]:
+    """python-tuf's Updater with its metadata written through OutputPlan: staged beside the
+    file, renamed, and a killed refresh's temporary file removed by the next one (python-tuf's
+    own ``tmpXXXX`` files would stay in the client cache for ever). Its one writer,
+    ``_persist_file``, is overridden; the test of a killed refresh notices if it is renamed."""
+    from tuf.ngclient import Updater
+
+    class PlannedUpdater(Updater):
+        def _persist_file(self, filename: str, data: bytes) -> None:
+            from ..outputs import OutputPlan
+
+            plan = OutputPlan()
+            plan.add(filename, data, flag="the registry client cache")
+            plan.commit()
+
+    return PlannedUpdater
 
 
 def default_cache_dir(site: str, trusted_root: bytes) -> Path:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..localfile import open_checked, read_bounded, read_input
-from ..outputs import OutputPlan
+from ..outputs import NEW_ONLY, ORDINARY, PUBLIC_KEY, REGISTRY_SOURCE, OutputPlan
 from . import keys as keymod
 from .errors import RefusedError, SourceError
 from .source import (
@@ -40,6 +40,7 @@ from .source import (
 )
 
 CONTENT_LIMIT = 16 << 20
+_SOURCE = (ORDINARY, REGISTRY_SOURCE)  # what an edit of the source may replace
 
 
 def _outside(keydir: Path, source_dir: Path) -> None:
@@ -67,16 +68,21 @@ def init(source_dir: Path, keydir: Path, passphrase: bytes, *, plan: OutputPlan)
         keys[key.keyid] = key
         roles[role] = Threshold(1, (key.keyid,))
     root = RootOfTrust(keys, roles)
-    plan.add(source_dir / "root.toml", dump(root), flag="DIR")
+    plan.add(source_dir / "root.toml", dump(root), flag="DIR", replaces=_SOURCE)
     return root
 
 
-def keygen(keydir: Path, public_out: Path, passphrase: bytes, *, plan: OutputPlan) -> PublicKey:
-    """A new owner key: the private half in ``keydir``, the public half (TOML) in ``public_out``."""
+def keygen(keydir: Path, public_out: Path, passphrase: bytes, *, plan: OutputPlan, force: bool = False) -> PublicKey:
+    """A new owner key: the private half in ``keydir``, the public half (TOML) in ``public_out``.
+
+    An existing ``public_out`` is replaced only with ``force``, and only when it is a public key.
+    """
+    replaces = (PUBLIC_KEY,) if force else NEW_ONLY
+    plan.check(public_out, flag="--out", replaces=replaces)  # before the passphrase is spent on a key
     key = keymod.plan_private(plan, keydir, keymod.generate(), passphrase)
     text = f'# hcdf-trust registry owner public key\nkeyid = "{key.keyid}"\n'
     text += "".join(f'{k} = "{v}"\n' for k, v in key.to_toml().items())
-    plan.add(public_out, text.encode(), flag="--out")
+    plan.add(public_out, text.encode(), flag="--out", replaces=replaces)
     return key
 
 
@@ -184,7 +190,7 @@ def add_domain(
     if version is None or schema is None:
         if current.versions or domain in source.domains:
             return None
-        plan.add(entry_file, dump(current), flag="DIR")
+        plan.add(entry_file, dump(current), flag="DIR", replaces=_SOURCE)
         return current
     release = _release(content_dir, schema, version, domain_path(domain, version))
     versions = _merge(current.versions, release, what=domain, file=str(entry_file))
@@ -207,7 +213,7 @@ def add_domain(
             what=f"{domain} {version}",
             source=bundle,
         )
-        plan.add(bundle_path(source.dir, domain, version), data, flag="DIR")
+        plan.add(bundle_path(source.dir, domain, version), data, flag="DIR", replaces=_SOURCE)
         release = replace(release, sigstore=True)
     else:
         sigs = ring.sign_threshold(
@@ -215,7 +221,7 @@ def add_domain(
         )
         release = replace(release, signatures={s.keyid: s.signature for s in sigs})
     updated = replace(current, versions={**versions, version: release})
-    plan.add(entry_file, dump(updated), flag="DIR")
+    plan.add(entry_file, dump(updated), flag="DIR", replaces=_SOURCE)
     return updated
 
 
@@ -248,7 +254,7 @@ def add_artifact(
     if versions is None:
         return None
     updated = replace(current, versions=versions)
-    plan.add(entry_file, dump(updated), flag="DIR")
+    plan.add(entry_file, dump(updated), flag="DIR", replaces=_SOURCE)
     return updated
 
 
@@ -279,7 +285,7 @@ def rotate_role(source: Source, role: str, keydir: Path, passphrase: bytes, *, p
     roles[role] = Threshold(1, (key.keyid,))
     used = {k for t in roles.values() for k in t.keyids}
     keys = {k: v for k, v in {**source.root.keys, key.keyid: key}.items() if k in used}
-    plan.add(source.dir / "root.toml", dump(RootOfTrust(keys, roles)), flag="DIR")
+    plan.add(source.dir / "root.toml", dump(RootOfTrust(keys, roles)), flag="DIR", replaces=_SOURCE)
     return key
 
 
@@ -310,5 +316,5 @@ def rotate_owner(
         for v, r in current.versions.items()
     }
     updated = replace(updated, versions=versions)
-    plan.add(source.entry_path("domain", domain), dump(updated), flag="DIR")
+    plan.add(source.entry_path("domain", domain), dump(updated), flag="DIR", replaces=_SOURCE)
     return key

@@ -3,7 +3,7 @@
 A keys folder holds one ``<keyid>.key`` per private key (PEM PKCS#8, encrypted with the
 passphrase, mode 0600); the public halves are in the registry source. A run reads a
 key only when it must sign with it, through the bounded local reader.
-The passphrase comes from ``--passphrase-file`` or ``HCDF_TRUST_PASSPHRASE``.
+The passphrase comes from ``--passphrase-file`` or ``HCDF_TRUST_PASSPHRASE`` (:mod:`hcdf_trust.passphrase`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..localfile import read_input
-from ..outputs import OutputPlan
+from ..localfile import read_secret
+from ..outputs import NEW_ONLY, OutputPlan
 from .errors import KeyFileError, RefusedError
 from .source import PublicKey, compute_keyid
 
@@ -22,26 +22,15 @@ if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
     from securesystemslib.signer import CryptoSigner, Signature
 
-PASSPHRASE_ENV = "HCDF_TRUST_PASSPHRASE"
 KEY_LIMIT = 64 << 10
 
 
 def read_passphrase(path: str | None) -> bytes:
-    """The passphrase: the first line of ``path``, else ``$HCDF_TRUST_PASSPHRASE``.
+    """The keys' passphrase: :func:`hcdf_trust.passphrase.read_passphrase` (the one rule)."""
+    from ..passphrase import read_passphrase as read_one
 
-    Raises:
-        KeyFileError: neither is given, or the passphrase is empty.
-    """
-    if path is not None:
-        data = read_input(path, limit=4096, what="passphrase file").split(b"\n", 1)[0].rstrip(b"\r")
-        source = path
-    else:
-        data = os.environ.get(PASSPHRASE_ENV, "").encode()
-        source = PASSPHRASE_ENV
-        if not data:
-            raise KeyFileError(f"no passphrase: give --passphrase-file or set {PASSPHRASE_ENV}")
-    if not data:
-        raise KeyFileError("the passphrase is empty", file=source)
+    data = read_one(path)
+    assert data is not None
     return data
 
 
@@ -65,19 +54,8 @@ def plan_private(plan: OutputPlan, keydir: Path, private: Ed25519PrivateKey, pas
 
     pem = private.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, BestAvailableEncryption(passphrase))
     key = public_of(private)
-    plan.add(keydir / f"{key.keyid}.key", pem, flag="--keys", mode=0o600)
+    plan.add(keydir / f"{key.keyid}.key", pem, flag="--keys", mode=0o600, replaces=NEW_ONLY, folder_mode=0o700)
     return key
-
-
-def prepare_keydir(keydir: Path) -> bool:
-    """Create the keys folder 0700 if missing; True when it was created (for cleanup)."""
-    if keydir.exists():
-        return False
-    try:
-        keydir.mkdir(mode=0o700, parents=True)
-    except OSError as exc:
-        raise KeyFileError(f"cannot create keys folder {keydir}: {exc.strerror}", file=str(keydir)) from None
-    return True
 
 
 class KeyRing:
@@ -115,7 +93,7 @@ class KeyRing:
             path = folder / f"{key.keyid}.key"
             if not path.exists():
                 continue
-            pem = read_input(path, limit=KEY_LIMIT, what="private key")
+            pem = read_secret(path, limit=KEY_LIMIT, what="private key file")
             try:
                 private = load_pem_private_key(pem, self._secret())
             except (ValueError, TypeError) as exc:

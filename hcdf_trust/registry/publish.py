@@ -420,12 +420,12 @@ def publish(
         path = site / "metadata" / fname
         if fname not in ("root.json", "timestamp.json") and path.exists():
             raise RefusedError(f"{path} already exists: the site was changed outside publish", file=str(path))
-        plan.add(path, data, flag="--out")
+        plan.add(path, data, flag="--out", under=site)
     for tpath, data in content.items():
         folder, _, base = tpath.rpartition("/")
         dest = site / "targets" / folder / f"{hashlib.sha256(data).hexdigest()}.{base}"
         if not dest.exists():
-            plan.add(dest, data, flag="--out")
+            plan.add(dest, data, flag="--out", under=site)
     result.written = plan.paths
     return result
 

@@ -118,16 +118,21 @@ class RegistryCheck:
 
 def _seed(cached: Path, dest: Path) -> None:
     """Copy the metadata a client trusted before (regular files only, bounded) into ``dest``."""
+    from ..outputs import OutputPlan
+
     dest.mkdir(parents=True)
     try:
         entries = list(os.scandir(cached))
     except OSError:
         return  # no client state yet: trust starts from the root
+    plan = OutputPlan()
     for entry in entries:
         if not entry.name.endswith(".json") or not entry.is_file(follow_symlinks=False):
             continue
         with contextlib.suppress(InputError):  # state we cannot read proves nothing
-            (dest / entry.name).write_bytes(read_input(entry.path, limit=METADATA_LIMIT, what="cached metadata"))
+            data = read_input(entry.path, limit=METADATA_LIMIT, what="cached metadata")
+            plan.add(dest / entry.name, data, flag="registry state", under=dest)
+    plan.commit()
 
 
 def check_resolution(

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import os
 import re
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Any
 
 import tomli_w
 
-from ..localfile import read_input
+from ..localfile import read_toml
 from .errors import SourceError
 
 ENTRY_LIMIT = 1 << 20  # bytes per TOML entry
@@ -273,15 +272,7 @@ class _Reader:
 
 
 def _parse(path: Path, shown: str) -> dict[str, Any]:
-    data = read_input(path, limit=ENTRY_LIMIT, what="registry entry", source=shown)
-    try:
-        return tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise SourceError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=shown) from None
-    except tomllib.TOMLDecodeError as exc:
-        text = str(exc)
-        m = re.search(r"at line (\d+)", text)
-        raise SourceError(f"not valid TOML: {text}", file=shown, line=int(m.group(1)) if m else None) from None
+    return read_toml(path, limit=ENTRY_LIMIT, what="registry entry", source=shown, error=SourceError)
 
 
 def _key(r: _Reader, keyid: str) -> PublicKey:

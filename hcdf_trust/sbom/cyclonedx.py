@@ -12,7 +12,15 @@ from __future__ import annotations
 from typing import Any
 
 from .. import __version__
-from .model import AssemblyFact, Facts, assembly_properties, comp_properties, firmware_properties, properties
+from .model import (
+    AssemblyFact,
+    Facts,
+    assembly_properties,
+    comp_properties,
+    file_properties,
+    firmware_properties,
+    properties,
+)
 
 
 def render(facts: Facts) -> bytes:
@@ -90,7 +98,7 @@ def render(facts: Facts) -> bytes:
             name=fl.name,
             bom_ref=fl.ref,
             hashes=sha256(fl.sha256),
-            properties=props(properties([("hcdf:kind", fl.kind), ("hcdf:size", fl.size)])),
+            properties=props(file_properties(fl)),
         )
     for component in by_ref.values():
         if component is not robot:

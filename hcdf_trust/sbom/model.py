@@ -26,15 +26,15 @@ import os
 import uuid
 from collections import Counter
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from dataclasses import dataclass, field, replace
+from datetime import datetime
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
 from lxml import etree
 
-from ..document import Document, Kind, single, single_text, software_elements
-from ..errors import InputError, Notice
+from ..document import Document, Kind, single, single_text, software_elements, stream_profile_selection
+from ..errors import InputError, Notice, StreamSelectionError
 from ..localfile import read_input
 from ..xml import sourceline
 
@@ -57,6 +57,7 @@ class FileFact:
     name: str  # the lock file's url (relative to the lock's folder, or the URL)
     sha256: str
     size: int
+    selected: bool | None = None  # a stream profile: the one its document selects (None: not a profile)
 
 
 @dataclass(frozen=True)
@@ -209,27 +210,20 @@ def created_time() -> datetime:
     """``SOURCE_DATE_EPOCH`` when set (reproducible builds), else the Unix epoch: never the clock.
 
     Raises:
-        InputError: ``SOURCE_DATE_EPOCH`` is not a non-negative integer.
+        InputError: ``SOURCE_DATE_EPOCH`` is refused by :func:`hcdf_trust.clock.parse_epoch`
+            (the CLI refuses it first, as a usage error).
     """
-    value = os.environ.get("SOURCE_DATE_EPOCH")
-    if value is None or value == "":
-        return datetime.fromtimestamp(0, UTC)
-    if not value.isascii() or not value.isdigit():
-        raise InputError(
-            "SOURCE_DATE_EPOCH is not a number of seconds",
-            file="SOURCE_DATE_EPOCH",
-            expected="a non-negative integer",
-            actual=value,
-        )
+    from ..clock import EARLIEST, source_date_epoch
+
     try:
-        return datetime.fromtimestamp(int(value), UTC)
-    except (OverflowError, OSError, ValueError):
-        raise InputError(
-            "SOURCE_DATE_EPOCH is out of range", file="SOURCE_DATE_EPOCH", expected="a date", actual=value
-        ) from None
+        return source_date_epoch() or EARLIEST
+    except ValueError as exc:
+        raise InputError(f"SOURCE_DATE_EPOCH: {exc}", file="SOURCE_DATE_EPOCH") from None
 
 
-def collect(res: Resolution, *, release: ReleaseFacts | None = None, fmt: str = "") -> Facts:
+def collect(
+    res: Resolution, *, release: ReleaseFacts | None = None, fmt: str = "", created: datetime | None = None
+) -> Facts:
     """The facts of ``res`` (which must be clean: ``res.ok``), with ``release``'s signatures.
 
     Raises:
@@ -237,7 +231,7 @@ def collect(res: Resolution, *, release: ReleaseFacts | None = None, fmt: str = 
         InputError: the lock cannot be read, a ``<software>`` has no name, or the tree
             multiplies past :data:`MAX_COMPONENTS`.
     """
-    return _Collector(res, release).run(fmt)
+    return _Collector(res, release).run(fmt, created)
 
 
 class _Collector:
@@ -261,7 +255,7 @@ class _Collector:
         self.assemblies: list[AssemblyFact] = []
         self._doc_parts: dict[str, tuple[list[tuple[Any, list[str]]], list[str]]] = {}
 
-    def run(self, fmt: str) -> Facts:
+    def run(self, fmt: str, created: datetime | None = None) -> Facts:
         res = self.res
         lock_data = read_input(str(res.lock_path), limit=MAX_LOCK_BYTES, what="lock file")
         lock_sha = hashlib.sha256(lock_data).hexdigest()
@@ -282,7 +276,7 @@ class _Collector:
             files=tuple(sorted(self.files.values(), key=lambda f: f.ref)),
             lock_sha256=lock_sha,
             identity=seed.hexdigest(),
-            created=created_time(),
+            created=created or created_time(),
             release_sequence=self.release.sequence_number if self.release else None,
             release_key_sha256=self.release.key_sha256 if self.release else None,
             notices=tuple(self.notices),
@@ -403,6 +397,11 @@ class _Collector:
                     continue
                 d = self.drivers.setdefault(name, DriverFact(ref=f"driver/{_q(name)}", name=name))
                 deps[comp].append(d.ref)
+        streams = stream_profile_selection(doc)
+        if streams.problems:
+            text, line = streams.problems[0]
+            raise StreamSelectionError(text, file=doc.source, line=line)
+        chosen = {id(r) for r in streams.selected}
         for ref in doc.references():
             if ref.kind not in FILE_KINDS:
                 continue
@@ -410,10 +409,20 @@ class _Collector:
             if art is None or art.sha256 is None or art.size is None:
                 continue
             name = self.res.lock_url(art.url)
+            selected = (id(ref) in chosen) if ref.kind is Kind.STREAM_PROFILE else None
             f = self.files.setdefault(
                 name,
-                FileFact(ref=f"file/{quote(name)}", kind=art.kind.value, name=name, sha256=art.sha256, size=art.size),
+                FileFact(
+                    ref=f"file/{quote(name)}",
+                    kind=art.kind.value,
+                    name=name,
+                    sha256=art.sha256,
+                    size=art.size,
+                    selected=selected,
+                ),
             )
+            if selected and not f.selected:  # one document selects what another only lists
+                f = self.files[name] = replace(f, selected=True)
             owner = _owner(ref.element, deps)
             holder = ref.element.getparent() if ref.kind is Kind.FIRMWARE_MANIFEST else None
             if holder is not None and holder in software:
@@ -491,8 +500,6 @@ class _Collector:
 
 
 def _replace(fw: FirmwareFact, **kw: Any) -> FirmwareFact:
-    from dataclasses import replace
-
     return replace(fw, **kw)
 
 
@@ -567,6 +574,11 @@ def comp_properties(c: CompFact) -> list[tuple[str, str]]:
             ("hcdf:file", f"{c.file}:{c.line}" if c.line else c.file),
         ]
     )
+
+
+def file_properties(f: FileFact) -> list[tuple[str, str]]:
+    selected = None if f.selected is None else str(f.selected).lower()
+    return properties([("hcdf:kind", f.kind), ("hcdf:size", f.size), ("hcdf:stream-profile-selected", selected)])
 
 
 def firmware_properties(f: FirmwareFact) -> list[tuple[str, str]]:

@@ -17,7 +17,7 @@ import re
 from typing import Any
 
 from .. import __version__
-from .model import Facts, assembly_properties, comp_properties, firmware_properties, properties
+from .model import Facts, assembly_properties, comp_properties, file_properties, firmware_properties
 
 _NOT_IN_IDSTRING = re.compile(r"[^A-Za-z0-9.-]+")
 
@@ -118,7 +118,7 @@ def render(facts: Facts) -> bytes:
                 software_primaryPurpose=purpose.configuration if fl.kind == "stream-profile" else purpose.data,
                 verifiedUsing=sha256(fl.sha256),
                 creationInfo=info,
-                extension=extension(properties([("hcdf:kind", fl.kind), ("hcdf:size", fl.size)])),
+                extension=extension(file_properties(fl)),
             )
         )
     for ref, deps in facts.all_refs().items():

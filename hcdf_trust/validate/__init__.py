@@ -20,11 +20,19 @@ Two steps, both always run and both collect every finding:
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 from lxml import etree
 
-from ..document import ROOT, Document, require_root
+from ..document import (
+    ROOT,
+    STREAM_SELECTION,
+    Document,
+    foreign_major_notice,
+    require_root,
+    stream_profile_selection,
+)
 from ..include.locate import display_path
 from ..include.resolver import TreeOptions, link_stub_target
 from ..localfile import absolute
@@ -32,12 +40,13 @@ from ..xml import parse_bytes, sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
 from .includes import local_include_edges, read_local
-from .schema import FileSchemaSource, Schema, SchemaSource, compile_schema, load_schema_file
+from .schema import FileSchemaSource, Schema, SchemaChoiceError, SchemaSource, compile_schema, load_schema_file
 
 __all__ = [
     "FileSchemaSource",
     "Finding",
     "Schema",
+    "SchemaChoiceError",
     "SchemaSource",
     "Severity",
     "ValidationReport",
@@ -47,21 +56,24 @@ __all__ = [
 ]
 
 _ROOTS = (ROOT, "stream-profile")
+SchemaArg = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | SchemaSource | None
 
 
 def validate_document(
     doc: str | os.PathLike[str] | Document,
     *,
-    schema: str | os.PathLike[str] | SchemaSource | None = None,
+    schema: SchemaArg = None,
     tree_options: TreeOptions | None = None,
 ) -> ValidationReport:
     """Validate one document; every problem found is a finding in the report.
 
     ``doc`` is a path (an ``<hcdf>`` document or a ``<stream-profile>``) or an
     already parsed :class:`Document` (its includes are then not read).
-    ``schema`` is an XSD path, any :class:`SchemaSource`, or None for the
-    semantic rules only (``report.schema`` is then None). ``tree_options`` holds resolve's
-    ``--base``, ``--mirror`` and ``--root``, for finding the local includes.
+    ``schema`` is an XSD path, several (:class:`FileSchemaSource` picks the one that fits),
+    any :class:`SchemaSource`, or None for the semantic rules only (``report.schema`` is
+    then None; otherwise ``report.schema`` and ``report.schema_sha256`` name the XSD used).
+    ``tree_options`` holds resolve's ``--base``, ``--mirror`` and ``--root``, for finding
+    the local includes.
 
     Raises:
         InputError (NotFoundError, XmlError, ...): the document or the schema
@@ -88,6 +100,15 @@ def validate_document(
         doc.references()  # every reference is seen, or the document is refused (exit 3)
     report = ValidationReport(source=source)
     findings: list[Finding] = []
+    if kind == ROOT:
+        if (notice := foreign_major_notice([doc])) is not None:
+            findings.append(Finding(notice.code, "warning", notice.message, file=source, line=notice.line))
+        streams = stream_profile_selection(doc)
+        for text, line in streams.problems:
+            findings.append(Finding(STREAM_SELECTION, "error", text, file=source, line=line))
+        if len(streams.selected) == 1:
+            chosen = streams.selected[0]
+            report.notes.append(f"selected stream profile: {chosen.uri} (line {chosen.line})")
 
     source_of_schema = _schema_source(schema)
     if source_of_schema is not None:
@@ -96,6 +117,7 @@ def validate_document(
             report.notes.append(f"no schema is known for <{kind}> version {root.get('version')}")
         else:
             report.schema = found.name
+            report.schema_sha256 = found.sha256
             report.checked.append("xsd")
             findings.extend(found.validate(tree, source=source))
             findings.extend(_version_mismatch(root, found, source))
@@ -115,12 +137,14 @@ def validate_document(
     return report
 
 
-def _schema_source(schema: str | os.PathLike[str] | SchemaSource | None) -> SchemaSource | None:
+def _schema_source(schema: SchemaArg) -> SchemaSource | None:
     if schema is None:
         return None
     if isinstance(schema, SchemaSource):
         return schema
-    return FileSchemaSource(schema)
+    if isinstance(schema, str | os.PathLike):
+        return FileSchemaSource(schema)
+    return FileSchemaSource(*schema) if schema else None
 
 
 def _version_mismatch(root: etree._Element, schema: Schema, source: str) -> list[Finding]:

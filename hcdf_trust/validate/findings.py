@@ -51,13 +51,14 @@ class ValidationReport:
     """Everything one ``validate`` run found.
 
     ``checked`` names what ran (``"xsd"``, ``"semantic"``); ``schema`` names the
-    XSD used, or is None when no schema was checked. ``notes`` are facts worth
+    XSD used and ``schema_sha256`` its digest, both None when no schema was checked. ``notes`` are facts worth
     telling the user that are not problems (e.g. which port-reference form the
     document uses).
     """
 
     source: str
     schema: str | None = None
+    schema_sha256: str | None = None  # of the XSD's bytes: which schema, as upstream's versions/HASHES names it
     checked: list[str] = field(default_factory=list)
     findings: list[Finding] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -80,6 +81,7 @@ class ValidationReport:
             "ok": self.ok,
             "source": self.source,
             "schema": self.schema,
+            "schema_sha256": self.schema_sha256,
             "checked": list(self.checked),
             "findings": [f.to_dict() for f in self.findings],
             "errors": [f.to_dict() for f in self.errors],

@@ -108,34 +108,61 @@ class SchemaSource(Protocol):
 
 
 class FileSchemaSource:
-    """``--schema FILE``: that XSD, whatever the document's version.
+    """``--schema FILE`` (repeatable): the schema a document is validated against, by content.
 
-    When the file does not declare the document's root element (a stream profile
-    checked with ``--schema hcdf.xsd``), the conventional sibling in the same
-    folder is used if it declares it (``hcdf-stream-profile.xsd``); otherwise the
-    given file is used and the XSD reports the root it does not know.
+    Upstream binds tooling to a schema by its SHA-256 (``versions/HASHES``): several 1.0
+    ``hcdf.xsd`` byte strings exist, so the report names the file *and* its digest
+    (:attr:`Schema.sha256`). With several files the one used is the one that declares the
+    document's root element and whose ``version`` has the document's major (a file without
+    a ``version`` matches any). Two different files that both fit are refused
+    (:class:`SchemaChoiceError`; ``validate`` exits 2): the report would depend on their order. When no
+    file declares the root (a stream profile checked with ``--schema hcdf.xsd``), the
+    conventional sibling of each file is tried (``hcdf-stream-profile.xsd``); otherwise
+    the first file is used and the XSD reports the root it does not know.
     """
 
     SIBLINGS = {"hcdf": "hcdf.xsd", "stream-profile": "hcdf-stream-profile.xsd"}
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
+    def __init__(self, path: str | os.PathLike[str], *more: str | os.PathLike[str]) -> None:
+        self.paths = [Path(p) for p in (path, *more)]
+
+    @property
+    def path(self) -> Path:
+        return self.paths[0]
 
     def schema_for(self, *, root: str, version: str | None) -> Schema:
-        schema = load_schema_file(self.path)
-        if schema.declares(root):
-            return schema
-        sibling_name = self.SIBLINGS.get(etree.QName(root).localname)
-        if sibling_name:
-            sibling = self.path.parent / sibling_name
-            if sibling.name != self.path.name and sibling.is_file():
-                other = load_schema_file(sibling)
-                if other.declares(root):
-                    return other
-        return schema
+        given = [load_schema_file(p) for p in self.paths]
+        fits = [s for s in given if s.declares(root)]
+        if not fits:
+            sibling_name = self.SIBLINGS.get(etree.QName(root).localname)
+            for path in self.paths if sibling_name else ():
+                sibling = path.parent / str(sibling_name)
+                if sibling.name != path.name and sibling.is_file():
+                    other = load_schema_file(sibling)
+                    if other.declares(root):
+                        fits.append(other)
+        if not fits:
+            return given[0]
+        major = (version or "1").strip().split(".")[0]
+        same = [s for s in fits if s.version is None or s.version.strip().split(".")[0] == major] or fits
+        distinct = {s.sha256: s for s in same}
+        if len(distinct) > 1:
+            names = ", ".join(f"{s.name} (sha256 {s.sha256})" for s in distinct.values())
+            raise SchemaChoiceError(
+                f"{len(distinct)} of the --schema files fit a <{etree.QName(root).localname}> document of "
+                f"version {version}: {names}; give the one to validate against"
+            )
+        return same[0]
 
     def __repr__(self) -> str:
-        return f"FileSchemaSource({str(self.path)!r})"
+        return f"FileSchemaSource({', '.join(repr(str(p)) for p in self.paths)})"
+
+
+class SchemaChoiceError(InputError):
+    """Several ``--schema`` files fit one document: which one validates it is the user's choice
+    (the CLI reports it as a usage error, exit 2)."""
+
+    code = "schema-choice"
 
 
 def load_schema_file(path: str | os.PathLike[str]) -> Schema:

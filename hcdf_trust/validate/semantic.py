@@ -57,6 +57,8 @@ RULES: dict[str, str] = {
     "joint-ignored": "axis2 only on universal joints, thread_pitch only on screw joints (warning)",
     "macsec-key-ref-conflict": "one key-ref is not used with different ciphers or policies",
     "macsec-cipher-unsupported": "a link's or chain's MACsec cipher is among the ciphers its ports declare (warning)",
+    "unresolved-participant": "in upstream's newer connectivity model (top-level link, bus, chain, star, ring, "
+    "mesh, tree): a participant-ref or hop-ref names one of its network, a macsec-policy-ref a policy",
     "frame-convention-mismatch": "body-frame and world-frame agree across the include chain",
     "include-unchecked": "an include could not be read (remote, missing, cycle, too deep): its names "
     "and frames were not checked (warning)",
@@ -263,6 +265,7 @@ class _Checker:
         self.rule_joints()
         self.rule_key_refs()
         self.rule_macsec_ciphers()
+        self.rule_connectivity()
         self.rule_frames()
 
     # --- index and duplicate names ---------------------------------------------------
@@ -866,6 +869,46 @@ class _Checker:
                 )
 
     # --- rule: frames across includes -------------------------------------------------
+
+    def rule_connectivity(self) -> None:
+        """Upstream's newer connectivity model (hcdformat 05d27b58, still ``version="1.0"``):
+        every participant's ``<endpoint><port-ref|channel-ref component port>`` resolves
+        (``unresolved-comp``, ``unresolved-port``, as a 1.0 link port), and every
+        ``<participant-ref network participant>``, ``<hop-ref network hop>`` and
+        ``<macsec-policy-ref network policy>`` inside a network names one of the document's
+        networks and, in it, a participant, hop or MACsec policy (``unresolved-participant``)."""
+        kinds = ("link", "bus", "chain", "star", "ring", "mesh", "tree")
+        networks = {(n.get("name") or "").strip(): n for n in self.root if isinstance(n.tag, str) and n.tag in kinds}
+        names = {
+            net: {
+                "participant": {(p.get("name") or "").strip() for p in el.findall("participant")},
+                "hop": {(h.get("name") or "").strip() for h in el.findall("hop")},
+                "policy": {(p.get("name") or "").strip() for p in el.findall("configuration/macsec/policy")},
+            }
+            for net, el in networks.items()
+        }
+        for net, el in networks.items():
+            where = f"{el.tag} {net!r}"
+            for part in el.findall("participant"):
+                for ref in part.findall("endpoint/*"):
+                    if ref.tag not in ("port-ref", "channel-ref"):
+                        continue
+                    what = f"{where} participant {part.get('name')!r}"
+                    comp = (ref.get("component") or "").strip() or None
+                    if self._comp(comp, code="unresolved-comp", what=what, el=ref) is not None and comp:
+                        self._port(comp, (ref.get("port") or "").strip() or None, what=what, el=ref)
+            for tag, attr in (("participant-ref", "participant"), ("hop-ref", "hop"), ("macsec-policy-ref", "policy")):
+                for ref in el.iter(tag):
+                    target, name = (ref.get("network") or "").strip(), (ref.get(attr) or "").strip()
+                    known = names.get(target, {}).get(attr)
+                    if known is None or name not in known:
+                        self.add(
+                            "unresolved-participant",
+                            "error",
+                            f"{where}: <{tag} network={target!r} {attr}={name!r}> names no {attr} of "
+                            + (f"network {target!r} ({_listing(known)})" if known is not None else "any network here"),
+                            ref,
+                        )
 
     def rule_frames(self) -> None:
         """body-frame and world-frame agree across the include chain.

@@ -131,8 +131,10 @@ def collect(plan: Plan, store: KeyStore, device: str, *, now: datetime) -> tuple
     """The device's ports in every keyed association it belongs to, with their live keys.
 
     Raises:
+        KeyStoreRobotError: the store was generated for another robot.
         ExportError: the device is in no keyed association, or one of them has no key yet.
     """
+    store.bind(plan.robot, document=plan.document)
     cas = [ca for ca in plan.for_device(device) if ca.kind == "macsec"]
     if not plan.for_device(device):
         known = sorted({d for ca in plan.keyed() for d in ca.members})

@@ -1,0 +1,564 @@
+"""``ota push`` / ``ota pull``: one release folder as one OCI 1.1 artifact, verified on every pull.
+
+The artifact (README, "ota push / pull"): an image manifest with ``artifactType``
+:data:`RELEASE_TYPE`, the empty config, one layer per release file (its media type below and
+its path in the release folder as ``org.opencontainers.image.title``), annotations naming each
+image's board, app, version and MCUboot hash, and the lock and root digests on the manifest.
+The signed SUIT envelope is also attached as a referrer (``subject`` = the release manifest),
+listed through the referrers API or, where the registry has none, the ``sha256-<hex>`` tag.
+
+``pull`` trusts nothing the registry says; in order:
+
+1. The manifest's digest is the hash of the body received (a ``@sha256:`` reference must match).
+2. The manifest is ours and well-formed: artifact type, empty config, every layer a known media
+   type, a size within bounds, a title that is a plain relative path (no ``..``, no absolute
+   path, no duplicate, not even by case).
+3. Each blob comes from the content store (a blob verified before: a resumed pull) or is
+   fetched by digest, hashed while streaming and refused past its declared size; only a blob
+   whose SHA-256 and size are the manifest's enters the store.
+4. The files are laid out in a private staging folder and ``ota verify`` runs there with the
+   public key (signature, every image, latest.json, ``--previous``): a title the signed manifest
+   does not account for is refused; the layer annotations must say what the signed manifest says.
+5. The SUIT referrers must point at this release and hold this release's envelope.
+6. Only then is the release written into ``--out`` through one OutputPlan (all or nothing).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..digest import hash_fd
+from ..errors import DigestMismatchError, HcdfTrustError, InputError, IntegrityError, Notice
+from ..localfile import open_checked, read_chunks
+from .client import INDEX_TYPE, MANIFEST_TYPE, RegistryClient, fallback_tag, sha256_digest
+from .reference import Reference
+
+RELEASE_TYPE = "application/vnd.hcdf.release.v1"
+SIGNATURE_TYPE = "application/vnd.hcdf.release.signature.v1"  # artifactType of the SUIT referrer
+MCUBOOT_TYPE = "application/vnd.hcdf.mcuboot.image.v1"
+RAW_TYPE = "application/vnd.hcdf.raw.image.v1"
+LATEST_TYPE = "application/vnd.hcdf.dendrite.latest.v1+json"
+SUIT_TYPE = "application/suit-envelope+cose"
+RENDERING_TYPE = "application/vnd.hcdf.release.suit.v1+json"
+LAYER_TYPES = frozenset({MCUBOOT_TYPE, RAW_TYPE, LATEST_TYPE, SUIT_TYPE, RENDERING_TYPE})
+EMPTY_TYPE = "application/vnd.oci.empty.v1+json"
+EMPTY = b"{}"
+EMPTY_DESCRIPTOR = {"mediaType": EMPTY_TYPE, "digest": sha256_digest(EMPTY), "size": 2}
+TITLE = "org.opencontainers.image.title"
+A = "dev.hcdf."  # our annotation prefix
+MAX_LAYERS = 1024
+FETCH_THREADS = 4
+MAX_REFERRERS = 16
+MAX_TOTAL_BYTES = 8 << 30
+_SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,254}")
+_DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
+
+
+class ArtifactError(InputError):
+    """The registry's manifest is not a release artifact we can read (exit 3)."""
+
+    code = "oci-artifact"
+
+
+class ReferrerError(IntegrityError):
+    code = "oci-referrer"
+
+
+@dataclass
+class PullReport:
+    reference: str
+    digest: str
+    release: Any
+    files: list[dict[str, Any]]
+    from_cache: int
+    referrers: list[str]
+    notices: list[Notice] = field(default_factory=list)
+    wrote: list[str] = field(default_factory=list)
+
+
+# -- push ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Layer:
+    rel: str
+    media_type: str
+    sha256: str
+    size: int
+    annotations: dict[str, str]
+
+    def descriptor(self) -> dict[str, Any]:
+        return {
+            "mediaType": self.media_type,
+            "digest": f"sha256:{self.sha256}",
+            "size": self.size,
+            "annotations": {TITLE: self.rel, **self.annotations},
+        }
+
+
+def release_layers(folder: str, release: Any) -> list[_Layer]:
+    """The files ``ota verify`` reads in ``folder``, with their media types and annotations."""
+    from ..ota.release import MANIFEST_JSON_NAME, MANIFEST_NAME
+    from ..ota.verify import image_path
+
+    wanted: list[tuple[str, str, dict[str, str]]] = [(MANIFEST_NAME, SUIT_TYPE, {})]
+    if os.path.lexists(os.path.join(folder, MANIFEST_JSON_NAME)):
+        wanted.append((MANIFEST_JSON_NAME, RENDERING_TYPE, {}))
+    for c in release.components:
+        about = {A + "board": c.board, A + "app": c.app, A + "version": c.version}
+        if c.mcuboot_hash:
+            about[A + "mcuboot-hash"] = c.mcuboot_hash
+        wanted.append((image_path(c), MCUBOOT_TYPE if c.type == "mcuboot" else RAW_TYPE, about))
+        latest = f"{c.board}/{c.app}/latest.json"
+        if c.type == "mcuboot" and os.path.lexists(os.path.join(folder, latest)):
+            wanted.append((latest, LATEST_TYPE, {A + "board": c.board, A + "app": c.app}))
+    layers = []
+    for rel, media_type, about in wanted:
+        fd, st = open_checked(os.path.join(folder, rel), folder, file=rel)
+        try:
+            hashed = hash_fd(fd, size=st.st_size)
+        finally:
+            os.close(fd)
+        layers.append(_Layer(rel, media_type, hashed.sha256, hashed.size, about))
+    return layers
+
+
+def manifest_for(release: Any, layers: list[_Layer]) -> bytes:
+    """The release's OCI image manifest, deterministic (sorted keys, no spaces)."""
+    doc = {
+        "schemaVersion": 2,
+        "mediaType": MANIFEST_TYPE,
+        "artifactType": RELEASE_TYPE,
+        "config": EMPTY_DESCRIPTOR,
+        "layers": [layer.descriptor() for layer in layers],
+        "annotations": {
+            A + "sequence-number": str(release.sequence_number),
+            A + "lock-sha256": release.lock_sha256,
+            A + "root": release.root,
+            A + "root-sha256": release.root_sha256,
+        },
+    }
+    return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
+
+
+def push_release(folder: str, ref: Reference, client: RegistryClient, release: Any) -> dict[str, Any]:
+    """Upload every blob (streamed), the manifest under the tag, and the SUIT referrer."""
+    layers = release_layers(folder, release)
+    push_blobs(client, folder, layers)
+    body = manifest_for(release, layers)
+    digest = sha256_digest(body)
+    client.put_manifest(ref.tag or digest, body, MANIFEST_TYPE)
+    envelope = next(layer for layer in layers if layer.media_type == SUIT_TYPE)
+    referrer = attach_signature(client, subject=(digest, len(body)), envelope=envelope)
+    return {"digest": digest, "layers": [x.descriptor() for x in layers], "referrers": [referrer]}
+
+
+def push_blobs(client: RegistryClient, folder: str, layers: list[_Layer]) -> None:
+    """The empty config and every layer's file, streamed from ``folder``."""
+    client.check()
+    client.push_blob(str(EMPTY_DESCRIPTOR["digest"]), 2, [EMPTY])
+    for layer in layers:
+        fd, _ = open_checked(os.path.join(folder, layer.rel), folder, file=layer.rel)
+        try:
+            client.push_blob(f"sha256:{layer.sha256}", layer.size, _checked(read_chunks(fd), layer))
+        finally:
+            os.close(fd)
+
+
+def _checked(chunks: Iterator[bytes], layer: _Layer) -> Iterator[bytes]:
+    """The file's bytes as uploaded, refused when they are not what was hashed a moment ago."""
+    import hashlib
+
+    h = hashlib.sha256()
+    size = 0
+    for chunk in chunks:
+        h.update(chunk)
+        size += len(chunk)
+        yield chunk
+    if h.hexdigest() != layer.sha256 or size != layer.size:
+        raise InputError(f"{layer.rel} changed while it was being pushed", file=layer.rel)
+
+
+def attach_signature(client: RegistryClient, *, subject: tuple[str, int], envelope: _Layer) -> str:
+    """Push the SUIT envelope as a referrer of the release manifest; keep the fallback tag
+    index up to date when the registry does not say it indexed the subject itself."""
+    digest, size = subject
+    doc = {
+        "schemaVersion": 2,
+        "mediaType": MANIFEST_TYPE,
+        "artifactType": SIGNATURE_TYPE,
+        "config": EMPTY_DESCRIPTOR,
+        "layers": [envelope.descriptor()],
+        "subject": {"mediaType": MANIFEST_TYPE, "digest": digest, "size": size},
+    }
+    body = json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
+    ref_digest = sha256_digest(body)
+    headers = client.put_manifest(ref_digest, body, MANIFEST_TYPE)
+    if not any(k.lower() == "oci-subject" for k in headers):
+        _update_fallback(
+            client,
+            digest,
+            {
+                "mediaType": MANIFEST_TYPE,
+                "digest": ref_digest,
+                "size": len(body),
+                "artifactType": SIGNATURE_TYPE,
+            },
+        )
+    return ref_digest
+
+
+def _update_fallback(client: RegistryClient, subject: str, descriptor: dict[str, Any]) -> None:
+    from .json import parse_json
+
+    tag = fallback_tag(subject)
+    got = client.get_manifest(tag, accept=INDEX_TYPE)
+    manifests: list[Any] = []
+    if got is not None:
+        doc = parse_json(got[0], source=tag, what="referrers tag")
+        if isinstance(doc, dict) and isinstance(doc.get("manifests"), list):
+            manifests = [m for m in doc["manifests"] if isinstance(m, dict) and m.get("digest") != descriptor["digest"]]
+    index = {"schemaVersion": 2, "mediaType": INDEX_TYPE, "manifests": [*manifests, descriptor]}
+    client.put_manifest(tag, json.dumps(index, sort_keys=True, separators=(",", ":")).encode(), INDEX_TYPE)
+
+
+# -- pull ------------------------------------------------------------------------------
+
+
+def check_manifest(
+    body: bytes,
+    *,
+    source: str,
+    artifact_type: str = RELEASE_TYPE,
+    layer_types: frozenset[str] = LAYER_TYPES,
+    max_segments: int = 3,
+    what: str = "an hcdf-trust release",
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Step 2: the manifest document and its layers, each checked. Pure.
+
+    Raises:
+        ArtifactError: not an artifact of ``artifact_type``, or a layer we would not write.
+    """
+    from .json import parse_json
+
+    doc = parse_json(body, source=source, what="OCI manifest")
+    if not isinstance(doc, dict) or doc.get("schemaVersion") != 2 or doc.get("mediaType") != MANIFEST_TYPE:
+        raise ArtifactError("not an OCI image manifest (schemaVersion 2, mediaType)", file=source)
+    if doc.get("artifactType") != artifact_type:
+        raise ArtifactError(
+            f"not {what}", file=source, expected=artifact_type, actual=str(doc.get("artifactType"))[:100]
+        )
+    if doc.get("config") != EMPTY_DESCRIPTOR:
+        raise ArtifactError("the config is not the OCI empty descriptor", file=source)
+    layers = doc.get("layers")
+    if not isinstance(layers, list) or not layers or len(layers) > MAX_LAYERS:
+        raise ArtifactError(f"layers: a list of 1 to {MAX_LAYERS} descriptors is expected", file=source)
+    seen: dict[str, str] = {}
+    total = 0
+    for i, layer in enumerate(layers):
+        where = f"/layers/{i}"
+        if not isinstance(layer, dict):
+            raise ArtifactError(f"{where}: not a descriptor", file=source)
+        if not isinstance(layer.get("mediaType"), str) or layer["mediaType"] not in layer_types:
+            raise ArtifactError(f"{where}: unknown media type {str(layer.get('mediaType'))[:100]!r}", file=source)
+        if not isinstance(layer.get("digest"), str) or not _DIGEST.fullmatch(layer["digest"]):
+            raise ArtifactError(f"{where}: digest is not sha256: and 64 lower-case hex digits", file=source)
+        size = layer.get("size")
+        if type(size) is not int or size < 0 or size > (256 << 20):
+            raise ArtifactError(f"{where}: size is not an integer from 0 to 256 MiB", file=source)
+        total += size
+        annotations = layer.get("annotations")
+        title = annotations.get(TITLE) if isinstance(annotations, dict) else None
+        if not isinstance(title, str):
+            raise ArtifactError(f"{where}: no {TITLE} annotation", file=source)
+        parts = title.split("/")
+        if len(parts) > max_segments or not all(_SEGMENT.fullmatch(p) and p not in (".", "..") for p in parts):
+            raise ArtifactError(
+                f"{where}: title {title[:200]!r} is not a plain relative path "
+                f"(1-{max_segments} segments of A-Z a-z 0-9 . _ + -)",
+                file=source,
+            )
+        if title.lower() in seen:
+            raise ArtifactError(f"{where}: title {title!r} is also the title of {seen[title.lower()]}", file=source)
+        seen[title.lower()] = where
+    for title, where in seen.items():  # "a" and "a/b": a file where a folder must be
+        parts = title.split("/")
+        for n in range(1, len(parts)):
+            prefix = "/".join(parts[:n])
+            if prefix in seen:
+                raise ArtifactError(f"{where}: title {title!r} lies below the file of {seen[prefix]}", file=source)
+    if total > MAX_TOTAL_BYTES:
+        raise ArtifactError(f"the layers add up to more than {MAX_TOTAL_BYTES} bytes", file=source)
+    return doc, layers
+
+
+def pull_release(
+    ref: Reference,
+    client: RegistryClient,
+    *,
+    public_key: Any,
+    out_dir: str,
+    cache_dir: str,
+    key_path: str,
+    previous: Any = None,
+) -> PullReport:
+    """Steps 1–6 above. Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
+    from ..outputs import OutputPlan
+    from ..store import ContentStore
+
+    # 1. the manifest, pinned by the hash of its body
+    got = client.get_manifest(ref.reference)
+    if got is None:
+        raise ArtifactError(f"{ref}: the registry has no such manifest", url=str(ref))
+    body, digest, _ = got
+    if ref.digest is not None and digest != ref.digest:
+        raise DigestMismatchError(
+            f"{ref}: the manifest received is not the one pinned", url=str(ref), expected=ref.digest, actual=digest
+        )
+    source = str(ref.with_digest(digest))
+    # 2. ours, and well-formed
+    doc, layers = check_manifest(body, source=source)
+    # 3. every blob into the content store, verified
+    store = ContentStore(cache_dir)
+    cached = 0
+    paths: dict[str, Path] = {}
+    todo: list[tuple[int, dict[str, Any]]] = []
+    for i, layer in enumerate(layers):
+        hit = store.verified_path(layer["digest"].split(":", 1)[1])
+        if hit is not None and hit.stat().st_size == layer["size"]:
+            paths[layer["annotations"][TITLE]] = hit
+            cached += 1
+        else:
+            todo.append((i, layer))
+    # a few blobs at a time: each request waits on the registry, not on us (1 connection each)
+    with ThreadPoolExecutor(max_workers=FETCH_THREADS) as pool:
+        fetched = pool.map(
+            lambda item: _fetch_blob(
+                client, store, item[1], title=item[1]["annotations"][TITLE], where=f"{source}#/layers/{item[0]}"
+            ),
+            todo,
+        )
+        for (_, layer), path in zip(todo, list(fetched), strict=True):
+            paths[layer["annotations"][TITLE]] = path
+    # 4. ota verify in a staging folder beside the store (hard links to the verified blobs)
+    os.makedirs(cache_dir, exist_ok=True)
+    sweep_stages(cache_dir)
+    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
+    lock = _hold(stage)
+    try:
+        for title, path in paths.items():
+            dest = os.path.join(stage, *title.split("/"))
+            os.makedirs(os.path.dirname(dest), exist_ok=True)
+            try:
+                os.link(path, dest, follow_symlinks=False)
+            except OSError:  # another filesystem, or links not allowed
+                shutil.copyfile(path, dest, follow_symlinks=False)
+        release, errors = _verify_staged(stage, public_key, previous, set(paths), layers)
+        if errors:
+            raise _group(errors)
+        # 5. the SUIT referrers
+        envelope = next(x for x in layers if x["mediaType"] == SUIT_TYPE)
+        referrers, notices = check_referrers(client, digest, envelope["digest"])
+        # 6. into --out, all or nothing
+        plan = OutputPlan()
+        plan.protect(key_path, what="the public key")
+        plan.protect_tree(cache_dir, what="the cache")
+        for title in sorted(paths):
+            plan.add(
+                os.path.join(out_dir, *title.split("/")),
+                Path(stage, *title.split("/")).read_bytes(),
+                flag="--out",
+                under=out_dir,
+            )
+        wrote = [str(p) for p in plan.commit()]
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        os.close(lock)
+    files = [
+        {"title": x["annotations"][TITLE], "mediaType": x["mediaType"], "digest": x["digest"], "size": x["size"]}
+        for x in layers
+    ]
+    return PullReport(str(ref), digest, release, files, cached, referrers, notices, wrote)
+
+
+STAGE_PREFIX = ".oci-pull-"
+_STAGE_LOCK = ".lock"
+_STALE_UNLOCKED = 600.0  # a staging folder with no lock file yet, older than this: its pull died
+
+
+def _hold(stage: str) -> int:
+    """Lock the staging folder for the life of this pull (a killed pull's lock goes with it)."""
+    import fcntl
+
+    fd = os.open(os.path.join(stage, _STAGE_LOCK), os.O_CREAT | os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return fd
+
+
+def sweep_stages(cache_dir: str) -> int:
+    """Remove the staging folders killed pulls left in ``cache_dir`` (those whose lock no
+    live pull holds); returns how many."""
+    import fcntl
+    import time
+
+    removed = 0
+    with os.scandir(cache_dir) as entries:
+        for entry in entries:
+            if not entry.name.startswith(STAGE_PREFIX) or not entry.is_dir(follow_symlinks=False):
+                continue
+            try:
+                fd = os.open(os.path.join(entry.path, _STAGE_LOCK), os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+            except FileNotFoundError:
+                if time.time() - entry.stat(follow_symlinks=False).st_mtime > _STALE_UNLOCKED:
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                    removed += 1
+                continue
+            except OSError:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:  # a pull is running there
+                continue
+            finally:
+                os.close(fd)  # (releases the lock we may have taken; the folder goes next)
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed += 1
+    return removed
+
+
+def _fetch_blob(client: RegistryClient, store: Any, layer: dict[str, Any], *, title: str, where: str) -> Path:
+    want = layer["digest"].split(":", 1)[1]
+    size = layer["size"]
+    with client.blob(layer["digest"], size) as chunks:
+        hashed, path = store.ingest(
+            chunks, accept=lambda h: h.sha256 == want and h.size == size, limit=size, source=title
+        )
+    if path is None:
+        if hashed.size != size:
+            raise DigestMismatchError(
+                f"{title}: the blob is shorter than the manifest says",
+                file=where,
+                expected=str(size),
+                actual=str(hashed.size),
+            )
+        raise DigestMismatchError(
+            f"{title}: the blob's SHA-256 is not its digest in the manifest",
+            file=where,
+            expected=layer["digest"],
+            actual=f"sha256:{hashed.sha256}",
+        )
+    return Path(path)
+
+
+def _verify_staged(
+    stage: str, public_key: Any, previous: Any, titles: set[str], layers: list[dict[str, Any]]
+) -> tuple[Any, list[HcdfTrustError]]:
+    from ..ota.release import MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
+    from ..ota.verify import check_release, image_path
+
+    release, files = read_release(stage, public_key)
+    errors = check_release(release, files, public_key, previous=previous)
+    accounted = {MANIFEST_NAME, *files.latest}
+    if files.rendering is not None:
+        accounted.add(MANIFEST_JSON_NAME)
+    by_title: dict[str, Any] = {}
+    for c in release.components:
+        accounted.add(image_path(c))
+        by_title[image_path(c)] = c
+    for title in sorted(titles - accounted):
+        errors.append(
+            IntegrityError(f"layer {title!r} is not a file of the signed release (refused: unverified)", file=title)
+        )
+    for layer in layers:
+        title = layer["annotations"][TITLE]
+        comp = by_title.get(title)
+        if comp is None:
+            continue
+        want = {A + "board": comp.board, A + "app": comp.app, A + "version": comp.version}
+        if comp.mcuboot_hash:
+            want[A + "mcuboot-hash"] = comp.mcuboot_hash
+        want_type = MCUBOOT_TYPE if comp.type == "mcuboot" else RAW_TYPE
+        for key, value in [("mediaType", want_type)]:
+            if layer.get(key) != value:
+                errors.append(
+                    IntegrityError(
+                        f"{title}: layer {key} differs from the signed manifest",
+                        file=title,
+                        expected=value,
+                        actual=str(layer.get(key)),
+                    )
+                )
+        for key, value in want.items():
+            got = layer["annotations"].get(key)
+            if got != value:
+                errors.append(
+                    IntegrityError(
+                        f"{title}: layer annotation {key} differs from the signed manifest",
+                        file=title,
+                        expected=value,
+                        actual=str(got),
+                    )
+                )
+    return release, errors
+
+
+def check_referrers(client: RegistryClient, digest: str, envelope_digest: str) -> tuple[list[str], list[Notice]]:
+    """Step 5: every SUIT referrer listed for ``digest`` has it as subject and carries this
+    release's envelope; none at all is a notice (the release itself verified)."""
+    from .json import parse_json
+
+    listed, _api = client.referrers(digest, artifact_type=SIGNATURE_TYPE)
+    ours = [x for x in listed if isinstance(x, dict) and x.get("artifactType") == SIGNATURE_TYPE]
+    if len(ours) > MAX_REFERRERS:
+        raise ReferrerError(f"referrers of {digest}: more than {MAX_REFERRERS} signature referrers listed")
+    found: list[str] = []
+    for item in listed:
+        if not isinstance(item, dict) or item.get("artifactType") != SIGNATURE_TYPE:
+            continue
+        rd = item.get("digest")
+        if not isinstance(rd, str) or not _DIGEST.fullmatch(rd):
+            raise ReferrerError(f"referrers of {digest}: a descriptor with no valid digest")
+        got = client.get_manifest(rd)
+        if got is None:
+            raise ReferrerError(f"referrer {rd} is listed but the registry does not have it")
+        body, actual, _ = got
+        if actual != rd:
+            raise ReferrerError(f"referrer {rd}: the manifest received hashes otherwise", expected=rd, actual=actual)
+        doc = parse_json(body, source=rd, what="referrer manifest")
+        subject = doc.get("subject") if isinstance(doc, dict) else None
+        if not isinstance(subject, dict) or subject.get("digest") != digest:
+            raise ReferrerError(
+                f"referrer {rd} points at another release",
+                expected=digest,
+                actual=str(subject.get("digest") if isinstance(subject, dict) else None),
+            )
+        layers = doc.get("layers")
+        if (
+            not isinstance(layers, list)
+            or len(layers) != 1
+            or not isinstance(layers[0], dict)
+            or layers[0].get("digest") != envelope_digest
+        ):
+            raise ReferrerError(f"referrer {rd} does not carry this release's SUIT envelope", expected=envelope_digest)
+        found.append(rd)
+    notices = (
+        []
+        if found
+        else [Notice("oci-no-referrer", f"{digest}: no SUIT envelope referrer is listed (the release itself verified)")]
+    )
+    return found, notices
+
+
+def _group(errors: list[HcdfTrustError]) -> HcdfTrustError:
+    from ..errors import ErrorGroup
+
+    return ErrorGroup(errors)

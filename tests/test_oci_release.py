@@ -1,0 +1,135 @@
+"""``ota push`` / ``ota pull`` against a real CNCF distribution server on 127.0.0.1."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import pytest
+
+from tests._oci import registry  # noqa: F401 -- fixture
+from tests._ota import make_robot, tree
+
+pytestmark = pytest.mark.filterwarnings("ignore::ResourceWarning")
+
+
+@pytest.fixture(scope="module")
+def release(tmp_path_factory):
+    """One release built by ``ota build`` (module scope: imgtool signing takes a while)."""
+    from click.testing import CliRunner
+
+    from hcdf_trust.cli import main
+    from tests.conftest import CliResult
+
+    def cli(*args):
+        r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+        return CliResult(r.exit_code, r.stdout, r.stderr)
+
+    tmp = tmp_path_factory.mktemp("release")
+    robot = make_robot(tmp, cli)
+    out = tmp / "release"
+    r = robot.build(cli, out)
+    assert r.exit_code == 0, r.stderr
+    return robot, out
+
+
+def test_push_then_pull_into_an_empty_folder_verifies(cli, registry, release, tmp_path):  # noqa: F811
+    robot, out = release
+    ref = registry.ref(tag="happy")
+    r = cli("ota", "push", out, ref, "--key", robot.pub, "--json")
+    assert r.exit_code == 0, r.stderr
+    pushed = r.json
+    # the registry holds our OCI 1.1 artifact: artifactType, empty config, one titled layer per file
+    body, digest = registry.manifest("robots/scout", "happy")
+    assert digest == pushed["digest"]
+    doc = json.loads(body)
+    assert doc["artifactType"] == "application/vnd.hcdf.release.v1"
+    assert doc["config"]["mediaType"] == "application/vnd.oci.empty.v1+json"
+    titles = {x["annotations"]["org.opencontainers.image.title"]: x for x in doc["layers"]}
+    assert set(titles) == set(tree(out))
+    for title, layer in titles.items():
+        assert layer["digest"] == "sha256:" + hashlib.sha256((out / title).read_bytes()).hexdigest()
+    assert titles["release.suit"]["mediaType"] == "application/suit-envelope+cose"
+    assert "dev.hcdf.lock-sha256" in doc["annotations"]
+    # the SUIT referrer, through the sha256-<hex> tag (distribution 2.8 has no referrers API)
+    index, _ = registry.manifest("robots/scout", digest.replace(":", "-"))
+    (entry,) = json.loads(index)["manifests"]
+    assert entry["artifactType"] == "application/vnd.hcdf.release.signature.v1"
+    sig, _ = registry.manifest("robots/scout", entry["digest"])
+    assert json.loads(sig)["subject"]["digest"] == digest
+
+    dest = tmp_path / "pulled"
+    r = cli("ota", "pull", ref, "--key", robot.pub, "--out", dest, "--json")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["digest"] == digest and r.json["referrers"] == [entry["digest"]]
+    assert tree(dest) == tree(out)
+    r = cli("ota", "verify", dest, "--key", robot.pub)
+    assert r.exit_code == 0, r.stderr
+    # by digest, and resumed from the content store: nothing fetched again
+    r = cli(
+        "ota",
+        "pull",
+        registry.ref(tag="x").replace(":x", "@" + digest),
+        "--key",
+        robot.pub,
+        "--out",
+        tmp_path / "again",
+        "--json",
+    )
+    assert r.exit_code == 0, r.stderr
+    assert r.json["from_cache"] == len(titles)
+    assert tree(tmp_path / "again") == tree(out)
+
+
+def test_demo_release_through_the_registry_with_only_the_public_key(cli, registry, tmp_path):  # noqa: F811
+    """Issue 22's "done when": the release `make demo` builds, pushed to the loopback registry,
+    pulled into an empty folder with only the public key, verifies."""
+    import shutil
+
+    from tests.conftest import PROJECT
+
+    robot = tmp_path / "robot"
+    shutil.copytree(PROJECT / "examples" / "robot", robot)
+    key = tmp_path / "demo.pem"
+    assert cli("ota", "keygen", "-o", key).exit_code == 0
+    out = tmp_path / "release"
+    r = cli(
+        "ota", "build", robot / "robot.hcdf", "--firmware-dir", robot / "firmware", "--key", key,
+        "--out", out, "--base-url", "https://firmware.example.com/scout2",
+    )  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    pub_only = tmp_path / "device"
+    pub_only.mkdir()
+    shutil.copy(tmp_path / "demo.pub.pem", pub_only / "demo.pub.pem")
+    r = cli("ota", "push", out, registry.ref("demo/scout2", "1"), "--key", pub_only / "demo.pub.pem", "--json")
+    assert r.exit_code == 0, r.stderr
+    dest = pub_only / "release"
+    r = cli("ota", "pull", registry.ref("demo/scout2", "1"), "--key", pub_only / "demo.pub.pem", "--out", dest)
+    assert r.exit_code == 0, r.stderr
+    assert tree(dest) == tree(out)
+    assert cli("ota", "verify", dest, "--key", pub_only / "demo.pub.pem").exit_code == 0
+
+
+def test_a_killed_pulls_staging_folder_is_swept_a_live_ones_kept(cli, registry, release, tmp_path):  # noqa: F811
+    import fcntl
+    import os
+
+    robot, out = release
+    assert cli("ota", "push", out, registry.ref(tag="sweep")).exit_code == 0
+    cache = tmp_path / "cache"
+    dead, live = cache / ".oci-pull-dead", cache / ".oci-pull-live"
+    for folder in (dead, live):
+        (folder / "mr_mcxn_t1").mkdir(parents=True)
+        (folder / ".lock").write_bytes(b"")
+        (folder / "mr_mcxn_t1" / "x.bin").write_bytes(b"partial")
+    fd = os.open(live / ".lock", os.O_RDWR)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # a pull still running there
+    try:
+        r = cli(
+            "ota", "pull", registry.ref(tag="sweep"), "--key", robot.pub, "--out", tmp_path / "o", "--cache-dir", cache
+        )
+        assert r.exit_code == 0, r.stderr
+        assert not dead.exists() and live.exists()
+        assert sorted(p.name for p in cache.glob(".oci-pull-*")) == [".oci-pull-live"]  # ours removed too
+    finally:
+        os.close(fd)

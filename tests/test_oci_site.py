@@ -1,0 +1,91 @@
+"""``registry publish --oci`` and ``registry verify|fetch oci://…``: the TUF site through the real
+registry; the TUF client's rules still decide, the OCI layer only transports (and hashes)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests._oci import registry  # noqa: F401 -- fixture
+from tests._registry import PASSPHRASE, ROS2_XSD, build
+
+pytestmark = pytest.mark.filterwarnings("ignore::ResourceWarning")
+REPO = "hcdf/registry"
+
+
+@pytest.fixture
+def site(tmp_path, cli, monkeypatch, registry):  # noqa: F811
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path, cli)
+    r = reg.publish("--oci", registry.ref(REPO, "v1"), "--json")
+    assert r.exit_code == 0, r.stderr
+    return reg, r.json["oci"]["digest"]
+
+
+def test_publish_oci_then_verify_and_fetch_from_the_registry(cli, site, registry, tmp_path):  # noqa: F811
+    reg, digest = site
+    body, got = registry.manifest(REPO, "v1")
+    assert got == digest
+    doc = json.loads(body)
+    assert doc["artifactType"] == "application/vnd.hcdf.registry.site.v1"
+    titles = {x["annotations"]["org.opencontainers.image.title"] for x in doc["layers"]}
+    assert titles == {str(p.relative_to(reg.site)) for p in reg.site.rglob("*") if p.is_file()}
+    r = reg.verify(registry.ref(REPO, "v1"), cache="oci-client")
+    assert r.exit_code == 0, r.stderr
+    pinned = registry.ref(REPO, "x").replace(":x", "@" + digest)
+    out = tmp_path / "ros2.xsd"
+    r = reg.fetch("org.ros2", out=out, site=pinned, cache="oci-client2")
+    assert r.exit_code == 0, r.stderr
+    assert out.read_bytes() == ROS2_XSD.read_bytes()
+
+
+def test_target_blob_edited_on_the_registry_disk(cli, site, registry, tmp_path):  # noqa: F811
+    reg, _ = site
+    doc = json.loads(registry.manifest(REPO, "v1")[0])
+    layer = next(x for x in doc["layers"] if "org.ros2" in x["annotations"]["org.opencontainers.image.title"]
+                 and x["mediaType"].endswith("target.v1"))  # fmt: skip
+    path = registry.blob_path(layer["digest"])
+    data = bytearray(path.read_bytes())
+    data[10] ^= 1
+    path.chmod(0o644)
+    path.write_bytes(bytes(data))
+    out = tmp_path / "ros2.xsd"
+    r = reg.fetch("org.ros2", out=out, site=registry.ref(REPO, "v1"), cache="c3")
+    assert r.exit_code != 0, r.stderr
+    assert not out.exists()
+
+
+def test_metadata_blob_edited_on_the_registry_disk(cli, site, registry):  # noqa: F811
+    reg, _ = site
+    doc = json.loads(registry.manifest(REPO, "v1")[0])
+    layer = next(
+        x for x in doc["layers"] if x["annotations"]["org.opencontainers.image.title"] == "metadata/timestamp.json"
+    )
+    path = registry.blob_path(layer["digest"])
+    data = bytearray(path.read_bytes())
+    at = data.index(b'"sig":"') + 8  # one hex digit of the signature: same size
+    data[at] = ord("0") if data[at] != ord("0") else ord("1")
+    path.chmod(0o644)
+    path.write_bytes(bytes(data))
+    r = reg.verify(registry.ref(REPO, "v1"), cache="c4")
+    assert r.exit_code != 0
+    assert "metadata/timestamp.json: the blob's SHA-256 is not its digest in the site manifest" in r.stderr, r.stderr
+
+
+def test_site_layer_title_traversing(cli, site, registry):  # noqa: F811
+    reg, _ = site
+    doc = json.loads(registry.manifest(REPO, "v1")[0])
+    doc["layers"][0]["annotations"]["org.opencontainers.image.title"] = "../../metadata/x"
+    registry.put_manifest(REPO, "evil", json.dumps(doc).encode())
+    r = reg.verify(registry.ref(REPO, "evil"), cache="c5")
+    assert r.exit_code == 3 and "is not a plain relative path" in r.stderr, r.stderr
+
+
+def test_release_is_not_a_site(cli, site, registry):  # noqa: F811
+    reg, _ = site
+    doc = json.loads(registry.manifest(REPO, "v1")[0])
+    doc["artifactType"] = "application/vnd.hcdf.release.v1"
+    registry.put_manifest(REPO, "release", json.dumps(doc).encode())
+    r = reg.verify(registry.ref(REPO, "release"), cache="c6")
+    assert r.exit_code == 3 and "not an hcdf-trust registry site" in r.stderr, r.stderr
