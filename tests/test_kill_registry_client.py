@@ -254,7 +254,8 @@ def test_a_replaced_version_names_both_contents_and_the_site(reg, tmp_path):
     assert res.exit_code == 1, res.stdout
     [err] = res.json["errors"]
     assert err["message"] == (
-        "replaced published version: extensions/org.ros2/1.0.xsd (org.ros2) changed content since this client last saw it"
+        "replaced published version: extensions/org.ros2/1.0.xsd (org.ros2) "
+        "changed content since this client last saw it"
     )
     assert err["expected"] == f"sha256:{hashlib.sha256(was).hexdigest()} ({len(was)} bytes)"
     assert err["actual"] == f"sha256:{hashlib.sha256(evil).hexdigest()} ({len(evil)} bytes)"
