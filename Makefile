@@ -4,14 +4,24 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
+TEST_STAMP := $(VENV)/.test-stamp
+
 .PHONY: demo test lint bench clean mutation
 
-$(STAMP): pyproject.toml .ci/apt-packages
-	bash .ci/install-system-deps
+## `make demo`: only Python, as any user (no Debian packages, no native extras).
+$(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -e .
 	touch $(STAMP)
+
+## `make test` and the other developer targets: the Debian packages the tests use (installing
+## them needs root; as another user the script lists the missing ones), then the test extras
+## (tpm2-pytss compiles against libtss2-dev).
+$(TEST_STAMP): $(STAMP) pyproject.toml .ci/apt-packages
+	bash .ci/install-system-deps
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $(TEST_STAMP)
 
 ## Resolve, lock, flatten and verify the bundled example robot, then resolve and verify
 ## the flattened document itself. It lives in examples/out and references the robot's
@@ -28,8 +38,8 @@ demo: $(STAMP)
 	$(BIN)/hcdf-trust resolve examples/out/scout2.flat.hcdf --root examples
 	$(BIN)/hcdf-trust verify examples/out/scout2.flat.hcdf --root examples
 	$(BIN)/hcdf-trust ota keygen --type ecdsa-p256 -o examples/out/ota-demo-key.pem
-	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware --key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2
-	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem
+	$(BIN)/hcdf-trust ota build examples/robot/robot.hcdf --firmware-dir examples/robot/firmware --key examples/out/ota-demo-key.pem --out examples/out/release --base-url https://firmware.example.com/scout2 --provenance
+	$(BIN)/hcdf-trust ota verify examples/out/release --key examples/out/ota-demo-key.pub.pem --provenance
 	umask 077 && head -c 24 /dev/urandom | base64 > examples/out/registry.pass && head -c 24 /dev/urandom | base64 > examples/out/macsec.pass
 	$(BIN)/hcdf-trust registry init examples/out/registry --keys examples/out/registry-keys --passphrase-file examples/out/registry.pass
 	$(BIN)/hcdf-trust registry keygen --keys examples/out/ros2-keys -o examples/out/ros2.pub --passphrase-file examples/out/registry.pass
@@ -42,15 +52,18 @@ demo: $(STAMP)
 	$(BIN)/hcdf-trust macsec export examples/robot/robot.hcdf --store examples/out/macsec --passphrase-file examples/out/macsec.pass --device compute --format iproute2 --out examples/out/macsec-compute
 	$(BIN)/hcdf-trust audit examples/robot/robot.hcdf --policy examples/audit-policy.toml --release examples/out/release --key examples/out/ota-demo-key.pub.pem --store examples/out/macsec --passphrase-file examples/out/macsec.pass
 	$(BIN)/hcdf-trust sbom examples/robot/robot.hcdf --format cyclonedx --release examples/out/release --key examples/out/ota-demo-key.pub.pem -o examples/out/scout2.cdx.json
+	@echo
+	@echo "Done. The command is installed in $(abspath $(BIN)): run $(abspath $(BIN))/hcdf-trust --help,"
+	@echo "or put it on PATH: export PATH=\"$(abspath $(BIN)):\$$PATH\" (see Install in README.md)."
 
 ## The whole test suite (what CI runs); installs the Debian packages the tests need first.
-test: $(STAMP)
+test: $(TEST_STAMP)
 	bash .ci/install-system-deps
 	$(BIN)/ruff check hcdf_trust tests bench
 	$(BIN)/mypy hcdf_trust
 	$(BIN)/pytest -n 2 -q
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(BIN)/ruff check hcdf_trust tests bench
 	$(BIN)/mypy hcdf_trust
 
@@ -58,14 +71,14 @@ clean:
 	rm -rf $(VENV) examples/out bench/work .pytest_cache mutants
 
 ## Ratio benchmarks (a few minutes, not part of `make test`); writes bench/RESULTS.md.
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(BIN)/python bench/run.py $(BENCH_ARGS)
 
 ## Mutation testing of the verification core (slow; not part of `make test`). One worker: the
 ## machine is shared. Resumes where it stopped; MUTANTS='hcdf_trust.digest.*' narrows it.
 ## The corpus is passed explicitly: mutmut runs the tests from a copy in mutants/.
 MUTANTS ?=
-mutation: $(STAMP)
+mutation: $(TEST_STAMP)
 	$(BIN)/pip install --quiet -e '.[test,mutation]'
 	HCDF_CORPUS="$${HCDF_CORPUS:-$(abspath $(CURDIR)/..)/shared/corpus}" HCDF_FUZZ_EXAMPLES="$${HCDF_FUZZ_EXAMPLES:-10}" \
 		$(BIN)/mutmut run --max-children 1 $(MUTANTS)

@@ -47,7 +47,7 @@ from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, Notice, redact
+from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, Notice, counted, redact
 from .xml import parse_bytes, sourceline
 
 
@@ -605,7 +605,7 @@ def foreign_major_notice(docs: Iterable[Document]) -> Notice | None:
     if not foreign:
         return None
     first = foreign[0]
-    others = f" (and {len(foreign) - 1} more document(s) of this tree)" if len(foreign) > 1 else ""
+    others = f" (and {counted(len(foreign) - 1, 'more document')} of this tree)" if len(foreign) > 1 else ""
     return Notice(
         FOREIGN_MAJOR,
         f'version="{first.version}"{others}: read here as HCDF 1.0, but upstream\'s own reader '

@@ -13,6 +13,11 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``1 file``, ``2 files``: a count with its noun in the right number (``plural`` when not noun+s)."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
+
+
 def display_path(path: str | os.PathLike[str]) -> str:
     """How messages name a local file: relative to the working folder when inside it."""
     text = os.fspath(path)
@@ -133,6 +138,8 @@ class HcdfTrustError(Exception):
         if self.file:
             shown = display_place(self.file)
             where = f"{shown}:{self.line}: " if self.line else f"{shown}: "
+            if not self.line and self.message.startswith((where, f"{self.file}: ")):
+                where = ""  # the message already starts with the file ("robot.hcdf: no such file")
         text = f"{where}{self.message}"
         if self.url:
             url = display_place(self.url)
@@ -289,7 +296,7 @@ class ErrorGroup(HcdfTrustError):
     def __init__(self, errors: list[HcdfTrustError]) -> None:
         self.errors = errors
         first = errors[0]
-        super().__init__(f"{len(errors)} error(s); first: {first}", file=first.file, line=first.line)
+        super().__init__(f"{counted(len(errors), 'error')}; first: {first}", file=first.file, line=first.line)
         self.exit_code = 1 if any(e.exit_code == 1 for e in errors) else 3
         self.code = "errors"
 

@@ -45,6 +45,7 @@ from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 from .errors import InputError, display_path, display_place
+from .flock import flock
 from .store import create_temp, default_cache_dir, fsync_dir
 
 if TYPE_CHECKING:
@@ -279,6 +280,17 @@ class OutputPlan:
     def paths(self) -> list[Path]:
         return [o.path for o in self._outputs.values()]
 
+    def planned(self, under: str | os.PathLike[str]) -> dict[str, bytes]:
+        """The outputs planned so far inside the folder ``under``: relative POSIX path -> bytes
+        (what a release's provenance lists as its subjects, whoever added them)."""
+        root = os.path.realpath(under)
+        found = {}
+        for o in self._outputs.values():
+            rel = os.path.relpath(o.path, root)
+            if rel != ".." and not rel.startswith("../"):
+                found[rel.replace(os.sep, "/")] = o.data
+        return found
+
     def commit(self) -> list[Path]:
         """Write every planned output; rename them into place only when all are written.
         Returns the paths written (not those found :attr:`unchanged`, nor standard output).
@@ -452,29 +464,25 @@ def _claim(dfd: int) -> None:
     """Hold a shared ``flock`` on the folder ``dfd`` for this commit. When no other commit
     holds one (the exclusive lock is free), first remove the staged files and backups
     (``.NAME.<12 hex>.tmp|.old``, regular files only) that a killed commit left there."""
-    import fcntl
-
     try:
-        fcntl.flock(dfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        flock(dfd, wait=False)
     except OSError:  # EWOULDBLOCK: a live commit in this folder; else a filesystem without flock
         with contextlib.suppress(OSError):
-            fcntl.flock(dfd, fcntl.LOCK_SH)
+            flock(dfd, shared=True)
         return
     sweep_leftovers(dfd)
-    fcntl.flock(dfd, fcntl.LOCK_SH)  # not atomic: another commit may sweep in between; nothing of ours is there yet
+    flock(dfd, shared=True)  # not atomic: another commit may sweep in between; nothing of ours is there yet
 
 
 def sweep_folder(folder: str | os.PathLike[str]) -> int:
     """Remove the staged files and backups a killed commit left in ``folder``, unless a commit
     is writing there now (its folder lock is held). Returns how many; never raises."""
-    import fcntl
-
     try:
         dfd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
     except OSError:
         return 0
     try:
-        fcntl.flock(dfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        flock(dfd, wait=False)
         return sweep_leftovers(dfd)
     except OSError:
         return 0

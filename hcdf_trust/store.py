@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import os
 import stat
 import threading
@@ -19,6 +18,7 @@ from typing import BinaryIO
 
 from .digest import Hashed, hash_chunks, hash_fd, is_full_sha256
 from .errors import FetchError, InputError
+from .flock import flock
 
 _NEW_FILE = os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 
@@ -158,7 +158,7 @@ class ContentStore:
                 st = os.fstat(fd)
                 if not stat.S_ISREG(st.st_mode):
                     continue
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # OSError (EWOULDBLOCK): a live writer
+                flock(fd, wait=False)  # OSError (EWOULDBLOCK): a live writer
                 now = os.lstat(path)  # still the file we locked, not one renamed over its name?
                 if (now.st_dev, now.st_ino) == (st.st_dev, st.st_ino):
                     os.unlink(path)
@@ -193,7 +193,7 @@ class ContentStore:
                 fd, tmp = create_temp(self.tmp_dir, PARTIAL_PREFIX)
             # Blocks only while a sweeper that opened it first holds the lock; it then
             # unlinks it, and we see no link left and start over.
-            fcntl.flock(fd, fcntl.LOCK_EX)
+            flock(fd)
             if os.fstat(fd).st_nlink:
                 return fd, tmp
             os.close(fd)

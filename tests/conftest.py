@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from hcdf_trust.cli import main
 
-pytest_plugins = ["tests.servers"]  # loopback HTTP(S) servers: tests/servers.py
+pytest_plugins = ["tests.servers", "tests._fleet"]  # loopback HTTP(S) servers; fleet robots and SMP devices
 
 PROJECT = Path(__file__).resolve().parents[1]
 CORPUS = Path(os.environ.get("HCDF_CORPUS", PROJECT.parent / "shared" / "corpus")).resolve()

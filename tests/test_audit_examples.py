@@ -99,4 +99,4 @@ def test_human_output_names_file_line_severity_code(cli):
     r = cli("audit", ROBOT)
     assert r.exit_code == 1
     assert "robot.hcdf:84: warning[macsec-file-key-store]:" in r.stderr
-    assert "audit: 1 error(s), 3 warning(s)" in r.stderr
+    assert "audit: 1 error, 3 warnings" in r.stderr

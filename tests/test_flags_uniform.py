@@ -38,6 +38,9 @@ TREE_VERBS = [
     "audit",
     "sbom",
     "ota build",
+    "fleet status",
+    "fleet update",
+    "fleet confirm",
     *(f"macsec {v}" for v in ("plan", "generate", "status", "rotate", "export")),
 ]
 LOCATION_FLAGS = ["--base", "--mirror", "--root"]

@@ -88,4 +88,3 @@ def test_mirrored_references_take_the_fast_path(tmp_path, monkeypatch):
     loc = locator.locate("../models/m0001.glb", ref, file="doc.hcdf", line=1)
     assert loc.url == f"{file_url(root / 'models')}/m0001.glb"
     assert loc.remote == "http://127.0.0.1:9/models/m0001.glb" and loc.path is None
-

@@ -21,6 +21,7 @@ from pycose.messages import CoseMessage
 
 from hcdf_trust.ota.hsm import DEFAULT_MODULES
 from tests._ota import make_robot, tree
+from tests._suit import zcbor_validate
 
 IMGTOOL = str(Path(sys.executable).with_name("imgtool"))
 MODULE = next((m for m in DEFAULT_MODULES if os.path.exists(m)), DEFAULT_MODULES[0])
@@ -96,6 +97,9 @@ def test_images_and_manifest_signed_in_the_token_verify(tmp_path, cli, token, ki
     msg.payload = auth[0]
     msg.key = CoseKey.from_pem_public_key(robot.pub.read_text())
     assert msg.verify_signature() is True
+    # and the envelope is the draft's: zcbor with the draft's CDDL (issue 17)
+    proc = zcbor_validate((out / "release.suit").read_bytes(), tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
 def test_pin_from_the_environment(tmp_path, cli, token, monkeypatch):

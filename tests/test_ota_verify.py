@@ -140,7 +140,7 @@ def _resign(out, robot, protected: dict) -> bytes:
     to_sign = cbor2.dumps(["Signature1", header, b"", env.digest])  # RFC 9052 Sig_structure, built here
     r, s = decode_dss_signature(key.sign(to_sign, ec.ECDSA(hashes.SHA256())))
     sign1 = cbor2.CBORTag(18, [header, {}, None, r.to_bytes(32, "big") + s.to_bytes(32, "big")])
-    return suit.envelope(env.manifest, cbor2.dumps(sign1))
+    return suit.envelope(env.manifest, cbor2.dumps(sign1), env.payloads)
 
 
 @pytest.mark.parametrize("alg", [-35, -36, -8, 0])
@@ -310,10 +310,26 @@ def test_the_unsigned_json_rendering_must_say_what_the_manifest_says(built, cli)
     robot, out = built
     path = out / "release.suit.json"
     doc = json.loads(path.read_text())
+    signed = doc["components"][0]["mcuboot_hash"]
     doc["components"][0]["mcuboot_hash"] = "ab" * 32
-    path.write_text(json.dumps(doc))
+    path.write_text(json.dumps(doc, indent=2, ensure_ascii=False) + "\n")
+    r = verify(cli, robot, out, "--json")
+    assert r.exit_code == 1
+    (err,) = r.json["errors"]
+    assert "release.suit.json is not the rendering of the signed manifest" in err["message"]
+    assert err["file"] == "release.suit.json" and err["line"] > 1
+    assert err["expected"] == f'"mcuboot_hash": "{signed}",' and err["actual"] == f'"mcuboot_hash": "{"ab" * 32}",'
+
+
+def test_a_reformatted_json_rendering_is_refused_too(built, cli):
+    """Byte for byte: the same values in another layout are not what ota build wrote."""
+    robot, out = built
+    path = out / "release.suit.json"
+    path.write_text(json.dumps(json.loads(path.read_text())))
     r = verify(cli, robot, out)
-    assert r.exit_code == 1 and "release.suit.json: components differs from the signed manifest" in r.stderr
+    assert r.exit_code == 1 and "release.suit.json is not the rendering" in r.stderr
+    path.unlink()  # not shipping it is fine: the envelope is what is signed
+    assert verify(cli, robot, out).exit_code == 0
 
 
 def test_a_missing_latest_json_is_refused(built, cli):
@@ -340,7 +356,7 @@ def test_a_signed_manifest_whose_class_id_is_another_boards_is_refused(built, cl
     common[4] = cbor2.dumps(shared)
     manifest[3] = cbor2.dumps(common)
     new = cbor2.dumps(manifest)
-    data, _alg, _kid = sign_manifest(new, FileSigner(load_private(robot.key)))
+    data, _alg, _kid = sign_manifest(new, FileSigner(load_private(robot.key)), env.payloads)
     (out / "release.suit").write_bytes(data)
     r = verify(cli, robot, out)
     assert r.exit_code == 3 and "vendor-id/class-id do not match the component's board" in r.stderr

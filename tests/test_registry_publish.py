@@ -26,7 +26,7 @@ def test_clean_publish_verifies_and_fetches_corpus_bytes_over_loopback(reg, tmp_
     with LoopbackServer(root=reg.site) as srv:
         res = reg.verify(srv.base)
         assert res.exit_code == 0, res.stderr
-        assert "2 domain role(s), 3 file(s)" in res.stderr
+        assert "2 domain roles, 3 files" in res.stderr
         for what, corpus in [
             (("org.ros2",), ROS2_XSD),
             (("org.gazebosim@1.0",), GAZEBO_XSD),
@@ -94,7 +94,7 @@ def test_shards_keep_top_level_targets_small_and_lookups_to_one_shard(tmp_path, 
         shard_hits = {p: n for p, n in srv.hits.items() if "extensions-" in p}
         assert shard_hits == {f"/metadata/1.{shard_of(names[0], 2)}.json": 1}
         res = reg.verify(srv.base)
-        assert res.exit_code == 0 and "70 domain role(s), 3 file(s)" in res.stderr, res.stderr
+        assert res.exit_code == 0 and "70 domain roles, 3 files" in res.stderr, res.stderr
 
 
 def test_init_keys_are_0600_encrypted_and_outside_the_source(reg, tmp_path):

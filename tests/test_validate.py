@@ -191,7 +191,7 @@ def test_human_output_names_file_line_and_code(tmp_path, cli):
     result = cli("validate", path, "--schema", XSD)
     assert result.exit_code == 1
     assert re.search(r"humanoid\.hcdf:\d+: error\[schedule-cycle-mismatch\]: schedule 'uplink-1ms'", result.stderr)
-    assert re.search(r"\d+ error\(s\), \d+ warning\(s\)", result.stderr)
+    assert re.search(r"\d+ errors?, \d+ warnings?\b", result.stderr)
 
 
 # --- input errors ---------------------------------------------------------------------

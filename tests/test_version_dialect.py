@@ -38,7 +38,7 @@ def test_a_2_0_tree_resolves_with_one_notice(cli, tmp_path):
     found = [w for w in r.json["warnings"] if w["code"] == CODE]
     assert len(found) == 1  # once per run, not once per document
     assert found[0]["file"].endswith("robot.hcdf") and found[0]["line"] == 1
-    assert 'version="2.0"' in found[0]["message"] and "2 more document(s)" in found[0]["message"]
+    assert 'version="2.0"' in found[0]["message"] and "2 more documents" in found[0]["message"]
     assert "refuses" in found[0]["message"]
     r = cli("verify", doc, "--lock", tmp_path / "x.lock")
     assert r.exit_code == 0 and r.stderr.count("upstream's own reader") == 1, r.stderr

@@ -9,7 +9,8 @@ The steps, each built on the verb that owns the subject (nothing is parsed twice
 1. Resolve the tree (:func:`hcdf_trust.include.resolve`: offline unless asked, no cache or
    lock written); read its lock with :func:`hcdf_trust.include.lockfile.load`.
 2. References (:mod:`.references`), firmware (:mod:`.firmware`, with ``--release`` verified
-   by :mod:`hcdf_trust.ota` first), MACsec (:mod:`.macsec`, on the macsec plan and, with a
+   by :mod:`hcdf_trust.ota` first), the fleet (:mod:`.fleet`, a signed ``fleet status``
+   report), MACsec (:mod:`.macsec`, on the macsec plan and, with a
    key store, its status), extensions (:mod:`.extensions`, with a registry).
 3. Every finding gets its severity from the :class:`~.policy.Policy`; the run fails when
    one is at or above the threshold. An error that stops a check (a digest mismatch, a file
@@ -47,6 +48,8 @@ class AuditOptions:
     store_wrapper: Any = None  # a hcdf_trust.macsec.backends wrapper, with store_dir
     now: datetime | None = None
     registry: Any = None  # a RegistrySchemaSource
+    fleet_report: str | None = None  # `fleet status --out` (a signed, host-attested version report)
+    fleet_key: str | None = None  # the host's public key that signed it
 
 
 def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> Report:
@@ -85,6 +88,13 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
             report.add(STREAM_SELECTION, text, file=part.source, line=line)
     report.checked.append("firmware")
     firmware.check(report, res, release)
+    if o.fleet_report is not None:
+        if o.fleet_key is None:
+            raise InputError("a fleet report is verified with the host's public key: fleet_key is missing")
+        from . import fleet
+
+        fleet.check(report, res, release, o.fleet_report, o.fleet_key)
+        report.checked.append("fleet")
 
     plan = macsec.plan_of(report, res)
     if plan is not None:

@@ -66,6 +66,10 @@ CHECKS: dict[str, Check] = {
     "macsec-capability": Check("macsec", "warning", "an endpoint port that does not declare the cipher"),
     "extension-unregistered": Check("extensions", "warning", "an extension domain or version not in --registry"),
     "extension-content": Check("extensions", "error", "extension content that fails its registered schema"),
+    "fleet-device": Check(
+        "fleet", "error", "a comp the signed fleet report (--fleet-report) shows not running the release, or lacks"
+    ),
+    "fleet-report-stale": Check("fleet", "error", "a fleet report about another description or release"),
 }
 
 

@@ -18,17 +18,53 @@ from typing import Any
 import click
 
 from .. import __version__
-from ..errors import ErrorGroup, HcdfTrustError
+from ..errors import ErrorGroup, HcdfTrustError, counted
 from .params import TIMEOUT
 
+_QUIET = "hcdf_trust.quiet"  # ctx.meta key (one per run, shared by a verb and its groups)
 
-def say(*lines: str, err: bool = True) -> None:
+
+def say(*lines: str, err: bool = True, always: bool = False) -> None:
     """Print a message, each argument one line, through the secret filter (:mod:`hcdf_trust.scrub`:
     credentials, query strings, private keys and passphrases hidden, control characters escaped).
-    Every human message of every verb goes through here (stderr unless ``err=False``)."""
+    Every human message of every verb goes through here (stderr unless ``err=False``).
+    ``--quiet`` drops the stderr ones unless ``always`` (errors, warnings, findings); results a
+    verb prints on stdout are never dropped."""
+    if err and not always and _is_quiet():
+        return
     from ..scrub import scrub
 
     click.echo("\n".join(scrub(line) for line in lines), err=err)  # noqa: TID251 -- the one place that prints messages
+
+
+def _is_quiet() -> bool:
+    ctx = click.get_current_context(silent=True)
+    return ctx is not None and bool(ctx.meta.get(_QUIET))
+
+
+def _set_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value:
+        ctx.meta[_QUIET] = True
+
+
+def _with_shared_options(command: click.Command) -> click.Command:
+    """Give ``command`` (and, for a group, each of its verbs) the options every verb has:
+    ``-q/--quiet``. Added here, where every verb is looked up, so no verb can miss it."""
+    if isinstance(command, click.Group):
+        for sub in command.commands.values():
+            _with_shared_options(sub)
+    elif not any(p.name == "quiet" for p in command.params):
+        command.params.append(
+            click.Option(
+                ["-q", "--quiet"],
+                is_flag=True,
+                expose_value=False,
+                is_eager=True,
+                callback=_set_quiet,
+                help="Print only errors and warnings on stderr (results on stdout stay).",
+            )
+        )
+    return command
 
 
 def emit_json(payload: dict[str, Any]) -> None:
@@ -55,7 +91,7 @@ def fail(errors: list[HcdfTrustError], *, as_json: bool, payload: dict[str, Any]
     else:
         for e in errors:
             first, *rest = e.lines()
-            say(f"error: {first}", *rest)
+            say(f"error: {first}", *rest, always=True)
     sys.exit(group.exit_code)
 
 
@@ -220,8 +256,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
         click.option(
             "--strict",
             is_flag=True,
-            help="Refuse weak pins (hex prefixes shorter than 64 digits); with --registry, also unregistered "
-            "extension domains and versions.",
+            help="Refuse weak pins (hex prefixes shorter than 64 digits).",
         ),
         JSON_OPTION,
     ]
@@ -230,18 +265,34 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
-def registry_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """``--registry`` and ``--trusted-root`` of resolve and verify (checks: hcdf_trust.registry.resolution)."""
-    func = click.option(
-        "--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust (with --registry)."
-    )(func)
-    return click.option(
-        "--registry",
-        "registry_site",
-        metavar="URL|DIR",
-        help="Check extensions and stream profiles against this signed registry: an http(s) URL or a folder "
-        "(a folder only when offline, as verify always is). Needs --trusted-root.",
-    )(func)
+def _registry_options(*, urls: bool) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--registry`` and ``--trusted-root`` (checks: hcdf_trust.registry.resolution); ``urls``: the
+    verb may fetch, so the site may be an http(s) URL (resolve), else only a folder (verify)."""
+    site = (
+        "an http(s) URL (not with --offline) or a folder holding a copy of the published site"
+        if urls
+        else "a folder holding a copy of the published site (verify never fetches)"
+    )
+
+    def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
+        func = click.option(
+            "--trusted-root",
+            type=click.Path(dir_okay=False),
+            help="The registry's root.json you trust (with --registry).",
+        )(func)
+        return click.option(
+            "--registry",
+            "registry_site",
+            metavar="URL|DIR" if urls else "DIR",
+            help=f"Check extensions and stream profiles against this signed registry: {site}. Needs "
+            "--trusted-root; with --strict, unregistered extension domains and versions are errors too.",
+        )(func)
+
+    return decorate
+
+
+registry_options = _registry_options(urls=True)
+offline_registry_options = _registry_options(urls=False)
 
 
 def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offline: bool, persist: bool) -> Any:
@@ -356,7 +407,7 @@ def _stdout_failed(exc: OSError) -> None:
     except (AttributeError, OSError, ValueError):
         pass
     why = exc.strerror or str(exc)
-    say(f"error: cannot write to standard output: {why}")
+    say(f"error: cannot write to standard output: {why}", always=True)
     raise click.exceptions.Exit(3)
 
 
@@ -402,7 +453,7 @@ class _Main(click.Group):
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
-            say("interrupted: nothing more was written")
+            say("interrupted: nothing more was written", always=True)
             ctx.exit(130)
         except click.ClickException as exc:  # a usage error of a verb: click prints it, filtered
             raise _scrubbed(exc) from None
@@ -419,7 +470,8 @@ class _Main(click.Group):
 
             module, attr = _LAZY_COMMANDS[cmd_name]
             self.add_command(getattr(importlib.import_module(module, __name__), attr), cmd_name)
-        return super().get_command(ctx, cmd_name)
+        command = super().get_command(ctx, cmd_name)
+        return None if command is None else _with_shared_options(command)
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         global _KEPT
@@ -622,7 +674,7 @@ def resolve(
 @main.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
-@registry_options
+@offline_registry_options
 @handle_errors
 def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str | None, **kw: Any) -> None:
     """Check DOC's tree against its lock file, offline; write nothing.
@@ -660,7 +712,7 @@ class _progress:
     """A rich progress bar on stderr when it is a terminal; otherwise nothing."""
 
     def __init__(self, *, enabled: bool) -> None:
-        self.enabled = enabled and sys.stderr.isatty()
+        self.enabled = enabled and sys.stderr.isatty() and not _is_quiet()
         self.bar: Any = None
 
     def __enter__(self) -> tuple[Callable[[int], None] | None, Callable[[int, int], None] | None]:
@@ -739,7 +791,7 @@ def _payload(res: Any) -> dict[str, Any]:
 
 def _warn(warnings: list[Any]) -> None:
     for w in warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
 
 
 def _summary(res: Any) -> dict[str, int]:
@@ -770,7 +822,8 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
     _warn(res.warnings)
     s = _summary(res)
     say(
-        f"{s['references']} references to {s['files']} files: {s['pinned']} pinned, {s['weak']} weak, "
+        f"{counted(s['references'], 'reference')} to {counted(s['files'], 'file')}: "
+        f"{s['pinned']} pinned, {s['weak']} weak, "
         f"{s['unpinned']} unpinned; {s['bytes_verified']} bytes verified "
         f"({s['local']} local, {s['from_cache']} from cache, {s['fetched']} fetched)"
     )
@@ -785,6 +838,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 # it building pin's and validate's options). Name -> (module, attribute).
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
+    "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),
     "ota": (".ota", "ota"),
     "pin": (".pin", "pin"),

@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 
@@ -21,6 +22,12 @@ from .macsec import store_options
 @tree_options
 @click.option("--release", "release_dir", type=click.Path(file_okay=False), help="Signed OTA release folder.")
 @click.option("--key", "release_key", type=click.Path(dir_okay=False), help="The release's public key (PEM).")
+@click.option(
+    "--fleet-report",
+    type=click.Path(dir_okay=False),
+    help="A signed `fleet status --out` report: flag comps not running the release.",
+)
+@click.option("--fleet-key", type=click.Path(dir_okay=False), help="The host's public key (PEM) that signed it.")
 @click.option("--registry", "registry_site", help="Registry (URL or folder): extension domains and schemas.")
 @click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
 @functools.partial(store_options, required=False)
@@ -32,6 +39,8 @@ def audit_cmd(
     tree: Any,
     release_dir: str | None,
     release_key: str | None,
+    fleet_report: str | None,
+    fleet_key: str | None,
     registry_site: str | None,
     trusted_root: str | None,
     store_dir: str | None,
@@ -51,6 +60,8 @@ def audit_cmd(
 
     if (release_dir is None) != (release_key is None):
         raise click.UsageError("--release and --key go together")
+    if (fleet_report is None) != (fleet_key is None):
+        raise click.UsageError("--fleet-report and --fleet-key go together")
     if registry_site is not None and trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     if registry_site is not None and "://" in registry_site and tree.offline:
@@ -77,6 +88,8 @@ def audit_cmd(
             tree=tree,
             release_dir=release_dir,
             release_key=release_key,
+            fleet_report=fleet_report,
+            fleet_key=fleet_key,
             store_dir=store_dir,
             store_wrapper=wrapper,
             now=now,
@@ -87,10 +100,11 @@ def audit_cmd(
         emit_json(report.to_dict())
     else:
         for f in report.sorted():
-            say(str(f))
+            say(str(f), always=True)
         counts = report.to_dict()["counts"]
         say(
-            f"audit: {counts['error']} error(s), {counts['warning']} warning(s), {counts['info']} info "
+            f"audit: {counted(counts['error'], 'error')}, {counted(counts['warning'], 'warning')}, "
+            f"{counts['info']} info "
             f"({', '.join(report.checked)}); {len(report.failing)} at or above {policy.threshold}",
         )
     sys.exit(0 if report.ok else 1)

@@ -12,6 +12,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, fail, handle_errors, keep_until_exit, say, tree_options
 from .params import UTC_TIME, Duration
 
@@ -50,7 +51,7 @@ def _plan_lines(p: Any) -> None:
     for el, reason in p.skipped:
         say(f"skipped: {el.label}: {reason}", err=False)
     for w in p.warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
 
 
 @macsec.command("plan")
@@ -75,7 +76,7 @@ def plan_cmd(doc: str, tree: Any, as_json: bool) -> None:
         return
     _plan_lines(p)
     keyed = p.keyed()
-    say(f"{len(keyed)} association(s) to key, {len(p.associations) - len(keyed)} disabled")
+    say(f"{counted(len(keyed), 'association')} to key, {len(p.associations) - len(keyed)} disabled")
 
 
 # --- the key store ---------------------------------------------------------------------------
@@ -97,7 +98,8 @@ def store_options(func: Any, *, required: bool = True) -> Any:
     func = click.option(
         "--pkcs11-module",
         type=click.Path(dir_okay=False),
-        help="Keep the store's wrapping key in this PKCS#11 token (e.g. /usr/lib/softhsm/libsofthsm2.so).",
+        help="PKCS#11 library (e.g. /usr/lib/softhsm/libsofthsm2.so) of the token named by --token-label, "
+        "whose non-extractable AES key (made on first use) wraps the store's keys; needs hcdf-trust[hsm].",
     )(func)
     func = click.option(
         "--now",
@@ -278,10 +280,10 @@ def generate(
         )
         return
     for w in warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
     if created:  # one write for 10,000 lines
         say(*(f"created {ca_id} generation 1" for ca_id in created), err=False)
-    say(f"{len(created)} key(s) created in {store.path}" if created else "nothing to do")
+    say(f"{counted(len(created), 'key')} created in {store.path}" if created else "nothing to do")
 
 
 @macsec.command()
@@ -548,6 +550,6 @@ def export(
         )
         return
     for n in notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     for w in written:
         say(f"wrote {w}")

@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .params import source_date_epoch_option
 
@@ -99,6 +100,10 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 @tree_options
 @click.option("--jobs", "-j", type=click.IntRange(0, 64), default=0, help="Parallel signing [default: one per core].")
 @source_date_epoch_option
+@click.option(
+    "--provenance", is_flag=True, help="Also write provenance.intoto.json (in-toto/SLSA, DSSE, the release key)."
+)
+@click.option("--builder-id", help="The provenance's runDetails.builder.id [default: the CI workflow, else ours].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def build(
@@ -117,6 +122,8 @@ def build(
     tree: Any,
     jobs: int,
     source_date: Any,
+    provenance: bool,
+    builder_id: str | None,
     as_json: bool,
 ) -> None:
     """Build a signed release from DOC's verified tree: one MCUboot image per <comp> with
@@ -144,6 +151,8 @@ def build(
                 tree=tree,
                 jobs=jobs,
                 ca_bundle=ca_bundle,
+                provenance=provenance,
+                builder_id=builder_id,
             ),
         )
     finally:
@@ -164,14 +173,14 @@ def build(
         )
         return
     for n in report.notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     for ch in report.hcdf_changes:
         say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
         say(f"{c.board}/{c.app} {c.version} ({c.type}): mcuboot_hash {c.mcuboot_hash or '-'}")
     say(
-        f"release {report.release.sequence_number}: {len(report.release.components)} image(s), "
-        f"{len(report.wrote)} file(s) written to {out_dir}"
+        f"release {report.release.sequence_number}: {counted(len(report.release.components), 'image')}, "
+        f"{counted(len(report.wrote), 'file')} written to {out_dir}"
     )
 
 
@@ -187,19 +196,51 @@ def build(
     envvar="HCDF_TRUST_CA_BUNDLE",
     help="PEM CA certificates for an https --previous [env: HCDF_TRUST_CA_BUNDLE].",
 )
+@click.option(
+    "--provenance", is_flag=True, help="Also verify provenance.intoto.json (signed by --key and --provenance-key)."
+)
+@click.option(
+    "--provenance-key",
+    "provenance_keys",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    help="Another public key (PEM) that may sign the provenance (repeatable).",
+)
+@click.option(
+    "--threshold", type=click.IntRange(1, 64), default=1, show_default=True, help="Provenance signatures needed."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
-def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str | None, as_json: bool) -> None:
+def verify_cmd(
+    release_dir: str,
+    key: str,
+    previous: str | None,
+    ca_bundle: str | None,
+    provenance: bool,
+    provenance_keys: tuple[str, ...],
+    threshold: int,
+    as_json: bool,
+) -> None:
     """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
     from ..ota.keys import load_public
     from ..ota.release import previous_manifest, read_release
+    from ..ota.signer import key_id
     from ..ota.verify import check_release
     from . import fail
 
     public = load_public(key)
+    keys = [public, *(load_public(k) for k in provenance_keys)]
+    if not provenance and (provenance_keys or threshold != 1):
+        raise click.UsageError("--provenance-key and --threshold need --provenance")
+    if len({key_id(k) for k in keys}) < threshold:
+        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--key, --provenance-key)")
     release, files = read_release(release_dir, public)
     before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
     errors = check_release(release, files, public, previous=before)
+    if provenance:
+        from ..provenance.verify import verify_provenance
+
+        errors += verify_provenance(release_dir, release, keys, threshold=threshold)
     payload = {
         "sequence_number": release.sequence_number,
         "lock_sha256": release.lock_sha256,
@@ -211,8 +252,8 @@ def verify_cmd(release_dir: str, key: str, previous: str | None, ca_bundle: str 
         emit_json({"ok": True, **payload, "errors": []})
     else:
         say(
-            f"release {release.sequence_number}: {len(release.components)} component(s) verified "
-            f"(signatures, digests, latest.json{', rollback' if before else ''})"
+            f"release {release.sequence_number}: {counted(len(release.components), 'component')} verified "
+            f"(signatures, digests, latest.json{', rollback' if before else ''}{', provenance' if provenance else ''})"
         )
 
 
@@ -304,7 +345,7 @@ def push(
 
             path = os.path.join(release_dir, MANIFEST_NAME)
             data = read_input(path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
-            release = suit.parse_manifest(suit.parse_envelope(data, source=path).manifest, source=path)
+            release = suit.parse_release(suit.parse_envelope(data, source=path), source=path)
         result = push_release(release_dir, ref, client, release)
     warnings = []
     if key is None:
@@ -326,8 +367,8 @@ def push(
         )
     else:
         for n in warnings:
-            say(f"warning: {n}")
-        say(f"pushed {len(result['layers'])} file(s) to {ref} ({result['digest']})")
+            say(f"warning: {n}", always=True)
+        say(f"pushed {counted(len(result['layers']), 'file')} to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
 
@@ -397,8 +438,8 @@ def pull(
         )
         return
     for n in report.notices:
-        say(f"warning: {n}")
+        say(f"warning: {n}", always=True)
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
-        f"{len(report.files)} file(s) verified ({report.from_cache} from the cache), written to {out_dir}"
+        f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache), written to {out_dir}"
     )

@@ -6,6 +6,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, fail, fetch_options, handle_errors, resolve_options, say
 
 
@@ -53,13 +54,13 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     if report.errors:
         if not as_json:
             for w in report.warnings:
-                say(f"warning: {w}")
+                say(f"warning: {w}", always=True)
         fail(report.errors, as_json=as_json, payload=payload)
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
         return
     for w in report.warnings:
-        say(f"warning: {w}")
+        say(f"warning: {w}", always=True)
     verb = "pinned" if write else "would pin"
     for c in report.changes:
         say(f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new} [lock: {c.lock}]")
@@ -71,6 +72,7 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
         say(f"wrote {path}")
     tail = "" if write or not report.planned else f" (dry run: --write writes {', '.join(report.planned)})"
     say(
-        f"{len(report.changes)} sha change(s), {len(report.lock_changes) - added} lock entr(ies) changed, "
+        f"{counted(len(report.changes), 'sha change')}, "
+        f"{counted(len(report.lock_changes) - added, 'lock entry', 'lock entries')} changed, "
         f"{added} new{tail}"
     )

@@ -11,6 +11,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from ..outputs import OutputPlan
 from . import JSON_OPTION, emit_json, handle_errors, say
 from .params import TIMEOUT, Duration
@@ -250,7 +251,7 @@ def add(
 @JSON_OPTION
 @handle_errors
 def statement(domain: str, version: str, schema: str, content_dir: str, out: str, as_json: bool) -> None:
-    """Write the bytes an owner signs to approve a version (e.g. `sigstore sign` in CI)."""
+    """Write the bytes an owner signs to approve a version (to sign with `sigstore sign` in CI)."""
     from ..registry import edit
 
     plan = OutputPlan()
@@ -422,9 +423,9 @@ def publish(
         )
     else:
         versions = ", ".join(f"{k} v{v}" for k, v in result.versions.items())
-        say(f"published {site}: {versions}; {len(result.written)} file(s) written")
+        say(f"published {site}: {versions}; {counted(len(result.written), 'file')} written")
         if pushed is not None:
-            say(f"pushed {pushed['files']} file(s) to {ref} ({pushed['digest']})")
+            say(f"pushed {counted(pushed['files'], 'file')} to {ref} ({pushed['digest']})")
 
 
 def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
@@ -488,7 +489,8 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
         emit_json({"ok": True, **payload, "errors": []})
     else:
         say(
-            f"{site}: verified (root v{report.root_version}, {report.roles} domain role(s), {report.targets} file(s))",
+            f"{site}: verified (root v{report.root_version}, {counted(report.roles, 'domain role')}, "
+            f"{counted(report.targets, 'file')})",
         )
 
 

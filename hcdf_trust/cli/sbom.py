@@ -68,7 +68,7 @@ def sbom(
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:
-            say(f"warning: {w}")
+            say(f"warning: {w}", always=True)
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
@@ -81,7 +81,7 @@ def sbom(
     warnings = [*res.warnings, *facts.notices]
     if not as_json:
         for n in facts.notices:
-            say(f"warning: {n}")
+            say(f"warning: {n}", always=True)
     if out is None or out == "-":
         if as_json:
             import json

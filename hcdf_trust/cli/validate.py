@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from . import emit_json, handle_errors, say, tree_location_options
 
 
@@ -67,7 +68,7 @@ def validate(
         )
     else:
         for f in report.findings:
-            say(str(f))
+            say(str(f), always=True)
         for n in report.notes:
             say(f"note: {n}")
         if report.schema is None:
@@ -75,5 +76,5 @@ def validate(
         else:
             say(f"validated against {report.schema} (sha256 {report.schema_sha256})")
         errors = sum(1 for f in report.findings if f.severity == "error")
-        say(f"{errors} error(s), {len(report.findings) - errors} warning(s)")
+        say(f"{counted(errors, 'error')}, {counted(len(report.findings) - errors, 'warning')}")
     sys.exit(0 if report.ok else 1)

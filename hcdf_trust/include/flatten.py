@@ -112,7 +112,7 @@ from urllib.parse import unquote, urljoin, urlsplit
 from lxml import etree
 
 from ..document import URI_ATTRS, Document, Kind
-from ..errors import FlattenError
+from ..errors import FlattenError, counted
 from ..localfile import absolute
 from ..xml import sourceline
 from .locate import _normalise, display_path, file_url
@@ -560,7 +560,7 @@ class _Flattener:
                 f"outside its folder {shown_root}, the only folder a plain `hcdf-trust resolve {out}` lets it reference"
             )
         raise FlattenError(
-            f"{out} would reference {len(outside)} file(s) {why} (first {written}): write it beside "
+            f"{out} would reference {counted(len(outside), 'file')} {why} (first {written}): write it beside "
             f"{self.res.root.source} or in a folder above, or give --root DIR (a folder holding both) "
             "to this run and to every run that reads the flattened document",
             file=use.doc,

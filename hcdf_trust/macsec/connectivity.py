@@ -59,6 +59,7 @@ from typing import TYPE_CHECKING
 from lxml import etree
 
 from ..document import single
+from ..errors import counted
 from ..units import UnitError, bit_rate
 from ..xml import sourceline
 from .plan import CIPHERS, NETWORK_KINDS, OFFSETS, POLICIES, Association, Element, MacsecPlanError, Policy
@@ -455,7 +456,7 @@ class _Reader:
             return
         if ports < 2 or (net.kind == "link" and ports > 2):
             self.error(
-                f"{ca_id} is secured but joins {ports} port(s): "
+                f"{ca_id} is secured but joins {counted(ports, 'port')}: "
                 + ("a link joins exactly two" if net.kind == "link" else "a secured segment needs at least two"),
                 None,
                 line=element.line,

@@ -41,7 +41,6 @@ Times are UTC, ISO 8601 with a ``Z``. A generation is *pending* before its activ
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import functools
 import hashlib
 import hmac
@@ -58,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError, IntegrityError
+from ..flock import flock
 from ..localfile import read_input
 from ..outputs import KEY_STORE, OutputPlan, sweep_folder
 from .backends import KeyStoreFormatError, Wrapper, b64, unb64
@@ -109,7 +109,7 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
         deadline = time.monotonic() + LOCK_WAIT_SEC
         while True:
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                flock(fd, wait=False)
                 break
             except BlockingIOError:
                 if time.monotonic() >= deadline:

@@ -38,6 +38,7 @@ from typing import Any
 
 from ..digest import hash_fd
 from ..errors import DigestMismatchError, HcdfTrustError, InputError, IntegrityError, Notice
+from ..flock import flock
 from ..localfile import open_checked, read_chunks
 from .client import INDEX_TYPE, MANIFEST_TYPE, RegistryClient, fallback_tag, sha256_digest
 from .reference import Reference
@@ -397,17 +398,14 @@ _STALE_UNLOCKED = 600.0  # a staging folder with no lock file yet, older than th
 
 def _hold(stage: str) -> int:
     """Lock the staging folder for the life of this pull (a killed pull's lock goes with it)."""
-    import fcntl
-
     fd = os.open(os.path.join(stage, _STAGE_LOCK), os.O_CREAT | os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
-    fcntl.flock(fd, fcntl.LOCK_EX)
+    flock(fd)
     return fd
 
 
 def sweep_stages(cache_dir: str) -> int:
     """Remove the staging folders killed pulls left in ``cache_dir`` (those whose lock no
     live pull holds); returns how many."""
-    import fcntl
     import time
 
     removed = 0
@@ -425,7 +423,7 @@ def sweep_stages(cache_dir: str) -> int:
             except OSError:
                 continue
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                flock(fd, wait=False)
             except BlockingIOError:  # a pull is running there
                 continue
             finally:

@@ -15,7 +15,6 @@ The steps, in order (any error stops the build before anything is written):
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import re
 import stat
@@ -63,6 +62,8 @@ class BuildOptions:
     date: str | None = None
     jobs: int = 0  # 0: one per core
     ca_bundle: str | None = None  # for https: --previous, and the tree under --online
+    provenance: bool = False  # also write provenance.intoto.json, signed with the release key
+    builder_id: str | None = None  # its runDetails.builder.id
     # resolve's --base, --mirror, --root, --cache-dir, --lock, --offline (the default) / --online
     tree: TreeOptions = field(default_factory=TreeOptions)
 
@@ -200,6 +201,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
             )
         rel = f"{p.board}/{p.app}/{version_name}.bin"
         url = _join(base_url, rel)
+        changelog = p.settings.changelog or options.changelog or config.changelog
         outputs.append((Path(options.out_dir, rel), image.data))
         components.append(
             suit.Component(
@@ -213,6 +215,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                 mcuboot_hash=None if is_raw else image.image_hash,
                 security_counter=None if is_raw else image.security_counter,
                 comps=tuple(u.comp for u in p.uses),
+                changelog=changelog,
             )
         )
         if not is_raw:
@@ -222,7 +225,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                 mcuboot_hash=image.image_hash,
                 size=image.size,
                 url=url,
-                changelog=p.settings.changelog or options.changelog or config.changelog,
+                changelog=changelog,
             )
             try:
                 doc = latest_json.advance(
@@ -263,27 +266,45 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         root=os.path.basename(res.root.source),
         root_sha256=hashlib.sha256(root_data).hexdigest(),
         components=tuple(components),
+        date=date,
     )
     env, alg, kid = sign_release(release, options.signer)
     plan.add(Path(options.out_dir, MANIFEST_NAME), env, flag="--out", under=options.out_dir)
-    rendering = suit.to_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
-    plan.add(
-        Path(options.out_dir, MANIFEST_JSON_NAME),
-        (json.dumps(rendering, indent=2, ensure_ascii=False) + "\n").encode(),
-        flag="--out",
-        under=options.out_dir,
-    )
+    rendering = suit.render_json(release, alg=ALG_NAMES[alg], kid=kid.hex())
+    plan.add(Path(options.out_dir, MANIFEST_JSON_NAME), rendering, flag="--out", under=options.out_dir)
+    if options.provenance:
+        from ..provenance import FILE_NAME
+        from ..provenance.build import release_provenance
+
+        signed = release_provenance(  # the last output: its subjects are every other one
+            out_dir=options.out_dir,
+            new_files=plan.planned(options.out_dir),
+            release=release,
+            lock_name=os.path.basename(res.lock_path),
+            lock_entries=res.lock_entries(edited),
+            images=[f"{p.board}/{p.app}" for p in todo],
+            date=date,
+            base_url=base_url,
+            config_path=config_path,
+            signers=[options.signer],
+            builder_id=options.builder_id,
+        )
+        plan.add(Path(options.out_dir, FILE_NAME), signed, flag="--out", under=options.out_dir)
     wrote = [str(p) for p in plan.commit()]
     return BuildReport(release=release, notices=notices, wrote=wrote, excluded=excluded, hcdf_changes=changes)
 
 
 def sign_release(release: suit.Release, signer: Signer) -> tuple[bytes, int, bytes]:
     """The signed envelope, the COSE algorithm and the key id."""
-    return sign_manifest(suit.manifest_bytes(release), signer)
+    manifest, payloads = suit.encode(release)
+    return sign_manifest(manifest, signer, payloads)
 
 
-def sign_manifest(manifest: bytes, signer: Signer) -> tuple[bytes, int, bytes]:
-    """The envelope around ``manifest`` with its COSE_Sign1, made by cwt with the signer's key.
+def sign_manifest(
+    manifest: bytes, signer: Signer, payloads: dict[str, bytes] | None = None
+) -> tuple[bytes, int, bytes]:
+    """The envelope around ``manifest`` (and its integrated ``payloads``) with its COSE_Sign1,
+    made by cwt with the signer's key.
 
     cwt has no detached encode: it signs ``["Signature1", protected, h'', payload]`` with
     the payload attached, and the payload is then set to nil (the signature is the same).
@@ -301,7 +322,7 @@ def sign_manifest(manifest: bytes, signer: Signer) -> tuple[bytes, int, bytes]:
     )
     assert isinstance(tag, cbor2.CBORTag) and tag.tag == suit.COSE_SIGN1_TAG and tag.value[2] == payload
     tag.value[2] = None
-    return suit.envelope(manifest, cbor2.dumps(tag)), alg, kid
+    return suit.envelope(manifest, cbor2.dumps(tag), payloads), alg, kid
 
 
 def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:

@@ -6,7 +6,9 @@ given the previous release, that nothing went backwards. The steps, as in
 python-tuf's trusted metadata set, run in order and name the device and field of
 every violation:
 
-1. The envelope is well-formed CBOR of the pinned draft (else exit 3).
+1. The envelope is one well-formed, deterministically encoded SUIT_Envelope of the
+   pinned draft (:func:`.suit.parse_envelope`: no trailing bytes, no duplicate map
+   key, nothing in the COSE unprotected header; else exit 3).
 2. The COSE ``alg`` is one bound to the verifying key's type, and the ``kid`` is
    that key's (a manifest signed by another key, or relabelled, is refused).
 3. The authentication wrapper's digest is over this manifest, and the COSE_Sign1
@@ -15,7 +17,8 @@ every violation:
    another component's image is named a mix-and-match), imgtool verifies it *with
    the key*, its MCUboot hash, header version and security counter are the listed ones.
 5. Each ``latest.json``: for a component of the manifest, and its version, hash,
-   size and URL are that component's.
+   size, URL, date and changelog are the signed ones (the last two from the release
+   record); ``release.suit.json`` is byte for byte the rendering of the envelope.
 6. Against the previous release: a greater sequence number, and no security
    counter lower than before.
 """
@@ -56,6 +59,19 @@ def verify_envelope(data: bytes, public_key: Any, *, source: str) -> suit.Releas
     Raises:
         MalformedReleaseError: step 1. SignatureError / ReleaseIntegrityError: steps 2–3.
     """
+    env = open_envelope(data, public_key, source=source)
+    return suit.parse_release(env, source=source)
+
+
+def open_envelope(data: bytes, public_key: Any, *, source: str, require_kid: bool = True) -> suit.Envelope:
+    """Steps 1–3 for any draft-34 envelope: taken apart strictly, then its signature checked.
+
+    ``require_kid=False`` accepts a protected header without a ``kid`` (the working
+    group's examples have none); a ``kid`` that is present must still be the key's.
+
+    Raises:
+        MalformedReleaseError: step 1. SignatureError / ReleaseIntegrityError: steps 2–3.
+    """
     import cbor2
     from cwt import COSE, COSEKey
     from cwt.exceptions import CWTError
@@ -64,7 +80,7 @@ def verify_envelope(data: bytes, public_key: Any, *, source: str) -> suit.Releas
 
     env = suit.parse_envelope(data, source=source)
     kind = key_type(public_key)
-    alg: Any = env.protected_map.get(1)
+    alg: Any = env.protected_map.get(suit.COSE_ALG)
     allowed = COSE_ALGS[kind][1]
     if alg not in allowed:
         raise SignatureError(
@@ -74,8 +90,8 @@ def verify_envelope(data: bytes, public_key: Any, *, source: str) -> suit.Releas
             actual=str(ALG_NAMES.get(alg, alg)),
         )
     kid = key_id(public_key)
-    if env.protected_map.get(4) != kid:
-        got = env.protected_map.get(4)
+    got = env.protected_map.get(suit.COSE_KID)
+    if got != kid and (require_kid or got is not None):
         raise SignatureError(
             "manifest was signed by another key (COSE kid)",
             file=source,
@@ -95,7 +111,7 @@ def verify_envelope(data: bytes, public_key: Any, *, source: str) -> suit.Releas
         COSE.new().decode(env.cose_sign1, cose_key, detached_payload=env.digest)
     except (CWTError, ValueError) as exc:
         raise SignatureError(f"manifest signature does not verify with the key: {exc}", file=source) from None
-    return suit.parse_manifest(env.manifest, source=source)
+    return env
 
 
 def check_release(
@@ -114,40 +130,40 @@ def check_release(
                 ReleaseIntegrityError(f"{rel}: no such component in the signed manifest (mix-and-match)", file=rel)
             )
             continue
-        errors += _check_latest(comp, data, rel)
+        errors += _check_latest(comp, data, rel, date=release.date)
     for rel in sorted(set(listed) - set(files.latest)):
         errors.append(ReleaseIntegrityError(f"{listed[rel].name}: latest.json is missing", file=rel))
     if files.rendering is not None:
-        errors += _check_rendering(release, files.rendering)
+        errors += _check_rendering(release, files, public_key)
     if previous is not None:
         errors += check_rollback(release, previous, source=files.manifest_source)
     return errors
 
 
-def _check_rendering(release: suit.Release, data: bytes) -> list[HcdfTrustError]:
-    """The unsigned ``release.suit.json`` says what the signed manifest says (people read it)."""
-    import json
-
+def _check_rendering(release: suit.Release, files: ReleaseFiles, public_key: Any) -> list[HcdfTrustError]:
+    """The unsigned ``release.suit.json`` is, byte for byte, what ``ota build`` renders from
+    the signed envelope (people read it): anything else is refused, not merely compared."""
     name = "release.suit.json"
-    try:
-        doc = json.loads(data)
-    except (ValueError, RecursionError) as exc:
-        return [MalformedReleaseError(f"{name} is not JSON: {exc}", file=name)]
-    want = suit.to_json(release, alg="", kid="")
-    if not isinstance(doc, dict):
-        return [MalformedReleaseError(f"{name} is not an object", file=name)]
-    errors: list[HcdfTrustError] = []
-    for key in ("sequence_number", "hcdf", "components"):
-        if doc.get(key) != want[key]:
-            errors.append(
-                ReleaseIntegrityError(
-                    f"{name}: {key} differs from the signed manifest",
-                    file=name,
-                    expected=json.dumps(want[key])[:200],
-                    actual=json.dumps(doc.get(key))[:200],
-                )
-            )
-    return errors
+    assert files.rendering is not None
+    alg: Any = suit.parse_envelope(files.manifest, source=files.manifest_source).protected_map.get(suit.COSE_ALG)
+    want = suit.render_json(release, alg=ALG_NAMES.get(alg, str(alg)), kid=key_id(public_key).hex())
+    if files.rendering == want:
+        return []
+    got_lines = files.rendering.decode("utf-8", "replace").splitlines()
+    want_lines = want.decode().splitlines()
+    line = next(
+        (i for i, (a, b) in enumerate(zip(got_lines, want_lines, strict=False)) if a != b),
+        min(len(got_lines), len(want_lines)),
+    )
+    return [
+        ReleaseIntegrityError(
+            f"{name} is not the rendering of the signed manifest (delete it, or rebuild the release)",
+            file=name,
+            line=line + 1,
+            expected=want_lines[line].strip()[:200] if line < len(want_lines) else "end of file",
+            actual=got_lines[line].strip()[:200] if line < len(got_lines) else "end of file",
+        )
+    ]
 
 
 def check_rollback(release: suit.Release, previous: suit.Release, *, source: str) -> list[HcdfTrustError]:
@@ -246,7 +262,7 @@ def _check_image(
     return errors
 
 
-def _check_latest(c: suit.Component, data: bytes, rel: str) -> list[HcdfTrustError]:
+def _check_latest(c: suit.Component, data: bytes, rel: str, *, date: str) -> list[HcdfTrustError]:
     try:
         doc = latest_json.parse(data, source=rel)
     except MalformedReleaseError as exc:
@@ -259,6 +275,8 @@ def _check_latest(c: suit.Component, data: bytes, rel: str) -> list[HcdfTrustErr
         ("latest.mcuboot_hash", doc.latest.mcuboot_hash, c.mcuboot_hash),
         ("latest.size", str(doc.latest.size), str(c.size)),
         ("latest.url", doc.latest.url, c.uri),
+        ("latest.date", doc.latest.date, date),
+        ("latest.changelog", doc.latest.changelog, c.changelog),
     )
     for name, actual, expected in checks:
         if actual != expected:
@@ -266,8 +284,13 @@ def _check_latest(c: suit.Component, data: bytes, rel: str) -> list[HcdfTrustErr
                 ReleaseIntegrityError(
                     f"{c.name}: latest.json {name} differs from the signed manifest",
                     file=rel,
-                    expected=expected,
-                    actual=actual,
+                    expected=_text(expected),
+                    actual=_text(actual),
                 )
             )
     return errors
+
+
+def _text(value: str | None) -> str:
+    """A field's value for a message: an absent field is named, not printed as ``None``."""
+    return "(absent)" if value is None else value

@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ..errors import counted
 from ..localfile import read_secret
 from ..outputs import NEW_ONLY, OutputPlan
 from .errors import KeyFileError, RefusedError
@@ -119,9 +120,9 @@ class KeyRing:
         sigs = [s.sign(payload) for s in (self.signer(k) for k in keys.values()) if s is not None]
         if len(sigs) < threshold:
             raise RefusedError(
-                f"{what}: the keys folder holds {len(sigs)} of the {threshold} key(s) needed "
+                f"{what}: the keys folder holds {len(sigs)} of the {counted(threshold, 'key')} needed "
                 f"(keys {', '.join(k[:12] for k in keys)}); only the owner can sign this",
-                expected=f"{threshold} signature(s)",
+                expected=counted(threshold, "signature"),
                 actual=f"{len(sigs)}",
             )
         return sigs

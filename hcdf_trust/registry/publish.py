@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..errors import DigestMismatchError, InputError
+from ..errors import DigestMismatchError, InputError, counted
 from ..localfile import open_checked, read_bounded, read_input
 from ..outputs import OutputPlan
 from . import keys as keymod
@@ -78,9 +78,9 @@ def check_source(source: Source, *, sigstore_root: str | None = None) -> None:
             if len(good) < domain.threshold:
                 raise RefusedError(
                     f"{domain.domain} {release.version} is not signed by the domain's owner "
-                    f"({len(good)} of {domain.threshold} required owner signature(s) verify)",
+                    f"({len(good)} of {counted(domain.threshold, 'required owner signature')} verify)",
                     file=domain.source,
-                    expected=f"{domain.threshold} signature(s) by {domain.owner}",
+                    expected=f"{counted(domain.threshold, 'signature')} by {domain.owner}",
                     actual=f"{len(good)}",
                 )
     for art in [*source.profiles.values(), *source.schemas.values()]:
