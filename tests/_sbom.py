@@ -17,10 +17,16 @@ def validate_cyclonedx(text: str) -> None:
 
 
 def validate_spdx(data: bytes) -> None:
-    """SPDX 3.0.1 through the official bindings: deserialising checks every type, enum and
+    """SPDX 3.0.1 through the official validator (``spdx3-validate``, offline: JSON Schema and
+    SHACL), then through the official bindings: deserialising checks every type, enum and
     IRI; serialising again checks every required property and cardinality, and must give
     the same bytes (nothing was dropped or added)."""
     from spdx_python_model import v3_0_1 as spdx
+
+    from tests._spdx3 import spdx3_validate
+
+    errors = spdx3_validate(data)
+    assert not errors, "\n".join(errors)[:4000]
 
     objset = spdx.SHACLObjectSet()
     spdx.JSONLDDeserializer().read(io.BytesIO(data), objset)

@@ -223,8 +223,29 @@ def test_update_of_an_unknown_name_says_what_it_expected(cli, tmp_path):
     r = _resolve(cli, doc, tmp_path / "c", "--update", "nope.glb")
     assert r.exit_code == 3, r.stdout
     [err] = r.json["errors"]
-    assert err["expected"] == "a uri as written in a document, or a url of the lock file"
+    assert err["code"] == "update-unknown"
+    assert err["expected"] == "a uri as written, a lock url, a URL or a path of the tree"
     assert err["actual"] == "nope.glb" and Path(err["file"]).name == "robot.hcdf.lock"
+
+
+def test_update_names_a_file_by_its_path_or_url(cli, tmp_path, monkeypatch):
+    """resolve reads --update names as pin does: a path (as the shell names it) or the URL."""
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "m.glb").write_bytes(b"abc")
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model("sub/m.glb")))
+    assert _resolve(cli, doc, tmp_path / "c").exit_code == 0
+    (tmp_path / "sub" / "m.glb").write_bytes(b"abcd")
+    monkeypatch.chdir(tmp_path)
+    for name in ("m.glb", "sub/../m.glb"):  # neither the uri as written, nor a lock url, nor its path
+        r = _resolve(cli, doc, tmp_path / "c", "--update", name)
+        assert r.exit_code != 0 and "update-unknown" in {e["code"] for e in r.json["errors"]}, r.stdout
+    r = _resolve(cli, doc, tmp_path / "c", "--update", (tmp_path / "sub" / "m.glb").as_uri())
+    assert r.exit_code == 0, r.stdout
+    (tmp_path / "sub" / "m.glb").write_bytes(b"abcde")
+    monkeypatch.chdir(tmp_path / "sub")
+    r = _resolve(cli, doc, tmp_path / "c", "--update", "./m.glb")  # its path, from where the shell is
+    assert r.exit_code == 0, r.stdout
 
 
 def test_two_distinct_include_cycles_are_both_reported(cli, tmp_path):

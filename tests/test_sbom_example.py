@@ -36,7 +36,7 @@ FILES = {
     "file/models/gripper.glb": "adaa3b076b88becda44d529ac2c0d1f1fa34a31b80ccdb5ea12dcea241c668b1",
     "file/models/camera-head.glb": "5f3fa4f7649dbf775c2faa6c68bcc5cb5fa9cc88f18ed275a82363f9b7a5c7b7",
     "file/profiles/operational.streams.xml": "03afc225badfc099817aa1a31bdc719a761d211f23f35f178da6583b2e514039",
-    "file/firmware/arm-ctrl.latest.json": "d20021558e6c4a285b86320c58b4c211caaf07ffad08c9e683445d051ae9017d",
+    "file/firmware/arm-ctrl.latest.json": "83663e8b3d733668f11bbffc86b1e54a785ae9442b436a1fbf0027dff8b89fd5",
 }
 ARM_HASH = "856a8b3415ed27a14eadd2e320ad44797baa05efe4f89ee008e22a24eb81f75a"  # arm.hcdf <software><hash>
 ARM_FW = "firmware/scout2_arm/arm-ctrl@1.4.2"

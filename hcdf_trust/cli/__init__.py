@@ -604,7 +604,7 @@ class _OptionalValueCommand(click.Command):
     flag_value="",
     metavar="[URI]",
     help="Accept new content for a reference the lock pins: --update alone re-pins every entry, "
-    "--update URI (repeatable; the uri as written or the lock's url) only that one.",
+    "--update URI (repeatable; the uri as written, the lock's url, the file's URL or its path) only that one.",
 )
 @handle_errors
 def resolve(

@@ -25,7 +25,7 @@ from .macsec import store_options
 @click.option(
     "--fleet-report",
     type=click.Path(dir_okay=False),
-    help="A signed `fleet status --out` report: flag comps not running the release.",
+    help="A signed report written by `hcdf-trust fleet status`: flag comps not running the release.",
 )
 @click.option("--fleet-key", type=click.Path(dir_okay=False), help="The host's public key (PEM) that signed it.")
 @click.option("--registry", "registry_site", help="Registry (URL or folder): extension domains and schemas.")

@@ -453,7 +453,7 @@ def _wpa_version(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     default="2.10",
     show_default=True,
     callback=_wpa_version,
-    help="wpa_supplicant version on the device (2.10 is Debian 12's); only its keys are written.",
+    help="wpa_supplicant version on the device (2.10: Debian 12, Ubuntu 22.04/24.04); only its keys are written.",
 )
 @click.option(
     "--age-recipient",
@@ -536,6 +536,7 @@ def export(
             replaces=(ORDINARY, kind),
         )
     written = out.commit()
+    target = f"{wpa_version[0]}.{wpa_version[1]}" if fmt == "wpa_supplicant" else None
     if as_json:
         emit_json(
             {
@@ -546,6 +547,7 @@ def export(
                 "associations": sorted({pk.ca.id for pk in ports} | {m.ca.id for m in mesh}),
                 "files": [str(w) for w in written],
                 "warnings": [n.to_dict() for n in notices],
+                **({"wpa_supplicant_version": target} if target else {}),
             }
         )
         return
@@ -553,3 +555,5 @@ def export(
         say(f"warning: {n}", always=True)
     for w in written:
         say(f"wrote {w}")
+    if target:
+        say(f"written for wpa_supplicant {target} (--wpa-version)")

@@ -153,6 +153,9 @@ def load(path: str | os.PathLike[str]) -> Lock:
     try:  # any other form: the one strict reader (duplicate keys, NaN, surrogates, depth), integers only
         doc = parse_json(raw, source=name, what="lock file", limit=MAX_LOCK_BYTES, floats=False)
     except JsonError as exc:
+        conflict = merge_conflict(raw.decode(errors="replace"), name)
+        if conflict is not None:
+            raise conflict from None
         _bad(name, exc.message.removeprefix("lock file: ").removeprefix("lock file "))
     return dataclasses.replace(_check(doc, name), sha256=digest)
 
@@ -210,6 +213,53 @@ def _canonical(text: str, raw: bytes) -> Lock | None:
     entries = dict(zip(urls, map(new_entry, fields), strict=True))
     ordered = all(map(operator.lt, urls, urls[1:]))  # render's order: by url (each url once)
     return Lock(root=tail.group(1), entries=entries, rendered=raw if ordered else None)
+
+
+# git's conflict markers: "<<<<<<< ours", "||||||| base" (diff3), "=======", ">>>>>>> theirs".
+_MARKER = re.compile(r"^(?:(<{7}|\|{7}|>{7})(?: .*)?|(={7}))$", re.M)
+_URL_SHA = re.compile(r'"sha256": "([0-9a-fA-F]{64})".*"url": "([^"\\]*)"')
+
+
+def merge_conflict(text: str, name: str) -> LockFileError | None:
+    """The error for a lock holding git merge-conflict markers (None if it holds none). Pure.
+
+    It names the entries the two sides disagree on (a url with another digest on each
+    side, or on one side only) and says how to recover without losing the first-use
+    pins: every entry is the only pin of a reference without a full sha, so deleting
+    the lock, or re-locking from the files as they are now, would trust them anew.
+    """
+    starts = [m for m in _MARKER.finditer(text) if m.group(1) == "<" * 7]
+    if not starts:
+        return None
+    sides: dict[str, dict[str, str]] = {"ours": {}, "theirs": {}}
+    side: str | None = None
+    for row in text.splitlines():
+        marker = _MARKER.fullmatch(row)
+        if marker is not None:
+            tag = marker.group(1) or marker.group(2)
+            side = {"<" * 7: "ours", "|" * 7: None, "=" * 7: "theirs", ">" * 7: None}[tag]
+            continue
+        entry = _URL_SHA.search(row) if side is not None else None
+        if side is not None and entry is not None:
+            sides[side][entry.group(2)] = entry.group(1).lower()
+    ours, theirs = sides["ours"], sides["theirs"]
+    differ = sorted(url for url in ours.keys() | theirs.keys() if ours.get(url) != theirs.get(url))
+    shown = ", ".join(
+        f"{url} ({(ours.get(url) or 'absent')[:12]} | {(theirs.get(url) or 'absent')[:12]})" for url in differ[:8]
+    ) + (f" and {len(differ) - 8} more" if len(differ) > 8 else "")
+    line = text.count("\n", 0, starts[0].start()) + 1
+    return LockFileError(
+        f"lock file {name} has unresolved merge-conflict markers (git's <<<<<<< at line {line}, "
+        f"{len(starts)} conflict(s)); the entries the two sides pin differently (ours | theirs): "
+        f"{shown or 'none'}. Do not delete it: it is the only pin of every reference without a full sha. "
+        "Keep one side of each conflict (or every line of both, once per url), or take one side whole "
+        f"(git checkout --ours {name}), then run resolve: an entry whose file differs from the side kept "
+        "fails as lock-drift until you have checked it and run resolve --update URI for it",
+        file=name,
+        line=line,
+        expected="a lock file without merge-conflict markers",
+        actual=starts[0].group(0)[:60],
+    )
 
 
 def _check(doc: object, name: str) -> Lock:

@@ -22,7 +22,9 @@ Every change reports its old and new digests and how the lock entry related to
 them (:func:`lock_agreement`). The run has five steps:
 
 1. Resolve the tree with ``accept_mismatch`` so that a disagreeing pin does not
-   stop the walk. Whether content agrees with its pins and its lock entry is
+   stop the walk, and with the ``update`` names, so that a named include's new
+   content is read and walked (and a named remote file cached), as ``resolve --update``
+   does. Whether content agrees with its pins and its lock entry is
    decided again here, by the rules above; every other error (missing file,
    malformed XML, transport, path escape, a bad ``sha`` text, an unreadable lock,
    ...) stops the run.
@@ -31,7 +33,11 @@ them (:func:`lock_agreement`). The run has five steps:
    from the child's *edited* bytes. After ``pin --write`` a plain ``resolve`` passes.
 3. Locate each reference's start tag in the raw bytes (by element order, checked
    against lxml's ``sourceline``) and its attributes within that tag only.
-4. Plan the outputs with :class:`~hcdf_trust.outputs.OutputPlan`: the edited
+4. Check the new lock against the rule that a pin run changes only what it was told
+   to accept (:func:`kept_violations`): only the entries of files named (``update``,
+   ``update_all``), of documents this run edits and of files a full sha pins may change,
+   and no include may be left unread (its references' entries would be dropped).
+   Then plan the outputs with :class:`~hcdf_trust.outputs.OutputPlan`: the edited
    documents (in place, keeping their permission bits) and the lock file, rendered
    exactly as a following plain ``resolve`` writes it. Every other input (the
    tree's other documents, the verified artifacts, the cache) is protected, so the
@@ -70,6 +76,7 @@ from ..errors import (
     HcdfTrustError,
     InputError,
     IntegrityError,
+    LockFileError,
     Notice,
     WeakPinError,
 )
@@ -161,12 +168,6 @@ class PinEditError(InputError):
     code = "pin-edit"
 
 
-class UnknownUpdateError(InputError):
-    """An ``--update`` name matches no reference of the tree."""
-
-    code = "update-unknown"
-
-
 def pin_tree(
     doc_path: str | os.PathLike[str],
     options: ResolveOptions | None = None,
@@ -186,7 +187,16 @@ def pin_tree(
     (not even the cache).
     """
     base = options or ResolveOptions()
-    opts = replace(base, accept_mismatch=True, locked=False, write_cache=base.write_cache and write)
+    # The names go to resolve too: it reads a named include's new content (and walks what it
+    # references), and caches a named file's new content, as `resolve --update` does.
+    opts = replace(
+        base,
+        accept_mismatch=True,
+        locked=False,
+        write_cache=base.write_cache and write,
+        update=tuple(update),
+        update_all=update_all,
+    )
     report = PinReport()
     try:
         res = resolve(doc_path, opts)
@@ -194,9 +204,12 @@ def pin_tree(
         report.errors.append(exc)
         return report
     try:
-        lock_raw, lock = _read_lock(res.lock_path)
+        lock_raw, lock_entries = _read_lock(res.lock_path)
     except HcdfTrustError as exc:
-        report.errors.append(exc)
+        # resolve read it first and said what is wrong with it (a lock that is one of the
+        # tree's inputs is named as such, not just as malformed)
+        said = [e for e in res.errors if isinstance(e, LockFileError | OutputError)]
+        report.errors.extend(said or [exc])
         return report
 
     # step 1: which errors pin decides again, and which stop it
@@ -215,12 +228,12 @@ def pin_tree(
             if not isinstance(err, WeakPinError) or decided[key]:
                 continue  # pins and lock versus content: decided by the rules above
         report.errors.append(err)
-    named = _named(res, update, update_all, report.errors)
     if report.errors:
         return report
+    lock = {url: entry.sha256 for url, entry in lock_entries.items()}
 
     # steps 2 and 3: settle documents bottom-up, editing their text
-    planner = _Planner(res, editable, lock, named)
+    planner = _Planner(res, editable, lock, res.updating)
     try:
         planner.settle(res.root_location.url)
     except HcdfTrustError as exc:
@@ -235,6 +248,10 @@ def pin_tree(
     entries = res.lock_entries(edited=planner.new_bytes)
     lock_new = lockfile.render(entries, root=res.lock_url(res.root_location.url))
     report.lock_changes = _lock_diff(lock, {e.url: e.sha256 for e in entries})
+    report.errors.extend(_unread_includes(res))
+    report.errors.extend(_check_kept(res, planner, lock_entries, entries))
+    if report.errors:
+        return report
     targets = _targets(res, planner, locations, report.errors)
     plan = OutputPlan()
     if not report.errors:
@@ -319,8 +336,8 @@ def _is_editable(url: str, loc: Location) -> bool:
     return file_url(loc.path) == url or Path(unquote(urlsplit(url).path)) == Path(loc.path)
 
 
-def _read_lock(path: Path, *, parse: bool = True) -> tuple[bytes | None, dict[str, str]]:
-    """The lock file's bytes (None when there is none) and its digests by lock URL.
+def _read_lock(path: Path, *, parse: bool = True) -> tuple[bytes | None, dict[str, lockfile.LockEntry]]:
+    """The lock file's bytes (None when there is none) and its entries by lock URL.
 
     Raises:
         HcdfTrustError: it cannot be read, or (with ``parse``) is not a valid lock file.
@@ -329,34 +346,7 @@ def _read_lock(path: Path, *, parse: bool = True) -> tuple[bytes | None, dict[st
         return None, {}
     entries = lockfile.load(path).entries if parse else {}  # refuses a FIFO, a device, a huge file...
     raw = read_input(path, limit=lockfile.MAX_LOCK_BYTES, what="lock file", source=display_path(path))
-    return raw, {url: entry.sha256 for url, entry in entries.items()}
-
-
-def _named(res: Resolution, update: Iterable[str], update_all: bool, errors: list[HcdfTrustError]) -> set[str]:
-    """The URLs of the files the user named for update; an unknown name is an error."""
-    if update_all:
-        return set(res.artifacts)
-    update = list(update)
-    if not update:
-        return set()
-    names: dict[str, set[str]] = {}
-    for art in res.artifacts.values():
-        keys = {u.ref.uri for u in art.uses if u.ref.uri} | {art.url, display_url(art.url), res.lock_url(art.url)}
-        if art.location.path is not None:
-            keys.add(os.path.realpath(art.location.path))
-        names[art.url] = keys
-    out: set[str] = set()
-    for value in update:
-        real = os.path.realpath(value)
-        hits = {url for url, keys in names.items() if value in keys or real in keys}
-        if not hits:
-            errors.append(
-                UnknownUpdateError(
-                    f"--update {value!r} names no file of the tree (give the uri as written, its URL or its path)"
-                )
-            )
-        out |= hits
-    return out
+    return raw, entries
 
 
 class _Planner:
@@ -519,6 +509,74 @@ def _lock_says(pin: Pin, read: str, locked: str | None) -> str:
     if locked == read:
         return "the lock has the new content"
     return f"the lock has a third digest, {locked}"
+
+
+# -- the lock keeps every pin it was not told to change ---------------------------------
+
+
+class LockKeptError(IntegrityError):
+    """This run would change or drop a lock entry that nothing it was told to accept changes."""
+
+    code = "lock-kept"
+
+
+def kept_violations(
+    old: dict[str, lockfile.LockEntry], new: list[lockfile.LockEntry], *, may_change: set[str]
+) -> list[tuple[str, lockfile.LockEntry, lockfile.LockEntry]]:
+    """``(url, old entry, new entry)`` for each lock entry whose pin (digest and size) the
+    new lock changes though its url is not in ``may_change``. Pure.
+
+    The lock is the only pin of every reference without a full sha: an entry that changes
+    without the user accepting that file's content would let tampered content through
+    (trust on first use, taken again).
+    """
+    out = []
+    for entry in new:
+        before = old.get(entry.url)
+        if before is None or entry.url in may_change:
+            continue
+        if (before.sha256, before.size) != (entry.sha256, entry.size):
+            out.append((entry.url, before, entry))
+    return out
+
+
+def _check_kept(
+    res: Resolution, planner: _Planner, old: dict[str, lockfile.LockEntry], new: list[lockfile.LockEntry]
+) -> list[HcdfTrustError]:
+    """An error for every lock entry this run would change without being told to (see
+    :func:`kept_violations`). It may change: the files named with ``--update`` (all with
+    ``--all``), the documents it edits, and files a full sha in the tree pins to their
+    content (authoritative over the lock, as for ``resolve``)."""
+    may_change = {res.lock_url(url) for url in res.updating | planner.vouched}
+    may_change |= {res.lock_url(url) for url, data in planner.new_bytes.items() if data != res.documents[url].data}
+    shown = display_path(res.lock_path)
+    return [
+        LockKeptError(
+            f"{url}: this run would change its entry in {shown} though nothing it was told to accept changes "
+            "it (name the file with --update to accept its content); nothing written",
+            file=shown,
+            url=url,
+            expected=f"{before.sha256} ({before.size} bytes)",
+            actual=f"{after.sha256} ({after.size} bytes)",
+        )
+        for url, before, after in kept_violations(old, new, may_change=may_change)
+    ]
+
+
+def _unread_includes(res: Resolution) -> list[HcdfTrustError]:
+    """An error for every include whose content was hashed but not read as a document: the
+    references in it would be missing, and their lock entries dropped."""
+    return [
+        PinEditError(
+            f"{display_url(art.url)} was not read, so the files it references are unknown: refusing to "
+            "write a lock that would drop their entries",
+            file=art.uses[0].doc,
+            line=art.uses[0].ref.line,
+            url=art.url,
+        )
+        for art in res.artifacts.values()
+        if art.kind is Kind.INCLUDE and art.sha256 is not None and art.error is None and art.url not in res.documents
+    ]
 
 
 # -- the outputs ---------------------------------------------------------------------

@@ -177,6 +177,8 @@ class Resolution:
     errors: list[HcdfTrustError] = field(default_factory=list)
     warnings: list[Notice] = field(default_factory=list)
     locked: lockfile.Lock | None = field(default=None, repr=False)  # the lock file as read, if any
+    # The URLs of the artifacts that ``--update`` names (every one under ``update_all``).
+    updating: set[str] = field(default_factory=set, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -327,6 +329,15 @@ class _Run:
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
         self._lock = threading.Lock()
         self._updating: set[str] = set()  # lock urls re-pinned by --update
+        self._update_names = frozenset(options.update)
+        self._named_files: dict[str, list[str]] = {}  # by artifact url: see _named_paths
+        self._update_files: dict[tuple[int, int], list[str]] = {}  # --update names that are paths, by inode
+        for name in options.update:
+            try:
+                st = os.stat(name)
+            except (OSError, ValueError):
+                continue  # not a path (a uri as written, a URL), or nothing there
+            self._update_files.setdefault((st.st_dev, st.st_ino), []).append(name)
         if options.ca_bundle and not options.offline:
             # A bad --ca-bundle fails the run even when the tree needs no fetch: it is a
             # flag error, not something to find out on the first remote reference.
@@ -444,12 +455,43 @@ class _Run:
         return self.lock.get(key)
 
     def _is_updating(self, art: Artifact) -> bool:
-        """Does ``--update`` re-pin this artifact? (All, or named by its lock url or a uri as written.)"""
+        """Does ``--update`` re-pin this artifact? (All, or named by one of :meth:`_names`.)"""
+        if self.o.update_all:
+            return True
+        names = self._update_names
+        if not names:
+            return False
+        lock_url = self.res.lock_url(art.url)
         return (
-            self.o.update_all
-            or self.res.lock_url(art.url) in self._updating
-            or (bool(self.o.update) and any(u.ref.uri in self.o.update for u in art.uses))
+            lock_url in self._updating
+            or lock_url in names
+            or art.url in names
+            or any(u.ref.uri in names for u in art.uses)
+            or bool(self._named_paths(art))
         )
+
+    def _names(self, art: Artifact) -> set[str]:
+        """Every name ``--update`` may give this artifact (resolve and pin alike): a uri as
+        written in a document, its lock url, its URL, or its path (a name that is the same
+        file, compared by inode: what the shell names, through symlinks and ``..``)."""
+        names = {self.res.lock_url(art.url), art.url, *self._named_paths(art)}
+        return names | {u.ref.uri for u in art.uses if u.ref.uri}
+
+    def _named_paths(self, art: Artifact) -> list[str]:
+        """The ``--update`` names that are paths of this artifact's local file (by inode)."""
+        if not self._update_files or art.location.path is None:
+            return []
+        hits = self._named_files.get(art.url)
+        if hits is None:
+            inode = art.inode
+            if inode is None:
+                try:
+                    st = os.stat(art.location.path)
+                    inode = (st.st_dev, st.st_ino)
+                except OSError:
+                    inode = None
+            hits = self._named_files[art.url] = self._update_files.get(inode, []) if inode is not None else []
+        return hits
 
     def _confinement_root(self, doc_path: Path) -> Path:
         return confinement_root(doc_path, root=self.o.root, base=self.o.base)
@@ -809,23 +851,35 @@ class _Run:
         self._check_update_names()
 
     def _check_update_names(self) -> None:
-        """Every ``--update`` name must be a uri as written or a lock url (like ``cargo update -p``)."""
+        """Every ``--update`` name must name a file of the tree or a lock entry (like ``cargo update -p``)."""
+        res = self.res
+        if self.o.update_all:
+            res.updating = set(res.artifacts)
         if not self.o.update:
             return
         known = {e.uri for e in self.lock.values()} | {e.url for e in self.lock.values()}
-        for art in self.res.artifacts.values():
-            known.add(self.res.lock_url(art.url))
-            known.update(u.ref.uri for u in art.uses if u.ref.uri)
+        for art in res.artifacts.values():
+            names = self._names(art)
+            known |= names
+            if self._is_updating(art):
+                res.updating.add(art.url)
         for name in self.o.update:
             if name not in known:
-                self.res.errors.append(
-                    InputError(
-                        f"--update {name}: no reference has this uri and no lock entry this url",
-                        file=display_path(self.res.lock_path),
-                        expected="a uri as written in a document, or a url of the lock file",
+                res.errors.append(
+                    UnknownUpdateError(
+                        f"--update {name} names no file of the tree and no lock entry (give the uri as written "
+                        "in a document, a url of the lock file, the file's URL or its path)",
+                        file=display_path(res.lock_path),
+                        expected="a uri as written, a lock url, a URL or a path of the tree",
                         actual=name,
                     )
                 )
+
+
+class UnknownUpdateError(InputError):
+    """An ``--update`` name matches no file of the tree and no lock entry."""
+
+    code = "update-unknown"
 
 
 def _full_pin_matches(art: Artifact, sha: str) -> bool:

@@ -8,6 +8,7 @@ release moves the previous ``latest`` to the front of ``previous``: history is n
 
 from __future__ import annotations
 
+import datetime
 import json
 import re
 from dataclasses import dataclass
@@ -17,6 +18,10 @@ from .errors import FirmwareError, MalformedReleaseError, RollbackError
 
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 MAX_BYTES = 4 << 20  # a latest.json (the fleet's have a few entries; ours one per release)
+# RFC 3339 date-time: what the fleet daemon's chrono parser needs (a subset of what it accepts).
+# A date without a time makes it refuse the whole file, history included.
+_RFC3339 = re.compile(r"(\d{4})-(\d{2})-(\d{2})[Tt ](\d{2}):(\d{2}):(\d{2})(?:\.\d{1,9})?(?:[Zz]|[+-](\d{2}):(\d{2}))")
+_U64 = 2**64
 
 
 @dataclass(frozen=True)
@@ -94,19 +99,41 @@ def _entry(raw: Any, source: str, where: str) -> Entry:
             f"{where}.mcuboot_hash is not a SHA-256", file=source, expected="64 hex digits", actual=mcuboot_hash
         )
     size = _field(raw, "size", int, source, where)
-    if size < 0:
-        raise MalformedReleaseError(f"{where}.size is negative", file=source, actual=str(size))
+    if not 0 <= size < _U64:
+        raise MalformedReleaseError(f"{where}.size is not a u64", file=source, actual=str(size))
     changelog = raw.get("changelog")
     if changelog is not None and not isinstance(changelog, str):
         raise MalformedReleaseError(f"{where}.changelog is not a string", file=source)
     return Entry(
         version=_field(raw, "version", str, source, where),
-        date=_field(raw, "date", str, source, where),
+        date=_date(_field(raw, "date", str, source, where), source, where),
         mcuboot_hash=mcuboot_hash,
         size=size,
         url=_field(raw, "url", str, source, where),
         changelog=changelog,
     )
+
+
+def _date(value: str, source: str, where: str) -> str:
+    """An RFC 3339 date and time (leap second allowed), as the fleet daemon needs; else refused."""
+    m = _RFC3339.fullmatch(value)
+    valid = m is not None
+    if m is not None:
+        year, month, day, hour, minute, second = (int(g) for g in m.groups()[:6])
+        off_h, off_m = (int(g) if g else 0 for g in m.groups()[6:])
+        try:
+            datetime.date(year, month, day)
+        except ValueError:
+            valid = False
+        valid = valid and hour < 24 and minute < 60 and second <= 60 and off_h < 24 and off_m < 60
+    if not valid:
+        raise MalformedReleaseError(
+            f"latest.json {where}.date is not an RFC 3339 date and time: the fleet daemon refuses the whole file",
+            file=source,
+            expected="YYYY-MM-DDTHH:MM:SSZ",
+            actual=value,
+        )
+    return value
 
 
 def _field(raw: dict[str, Any], key: str, kind: type, source: str, where: str) -> Any:

@@ -15,7 +15,15 @@ from __future__ import annotations
 from ...errors import Notice
 from . import DEVICE_NAME, ExportError, PortKeys, check_name, header, offset_notice
 
-DEFAULT_VERSION = "2.10"  # Debian 12's wpasupplicant
+DEFAULT_VERSION = "2.10"  # what a user most likely runs: Debian 12, Ubuntu 22.04 and 24.04 ship 2.10
+
+
+def target_line(version: tuple[int, int]) -> str:
+    """The header line naming the version the file was written for (and how to change it)."""
+    return (
+        f"# For wpa_supplicant {version[0]}.{version[1]}: only keys it knows are written "
+        f"(hcdf-trust macsec export --wpa-version; Debian 12 and Ubuntu 22.04/24.04 ship 2.10)."
+    )
 
 
 CERT_DIR = "/etc/wpa_supplicant/hcdf"
@@ -72,7 +80,7 @@ def render(ports: list[PortKeys], *, version: tuple[int, int], notices: list[Not
                 actual=f"{version[0]}.{version[1]}",
             )
         offset_notice(pk, notices, fmt="wpa_supplicant")
-        lines = header(pk)
+        lines = [*header(pk), target_line(version)]
         lines += ["ctrl_interface=/run/wpa_supplicant", "eapol_version=3", "ap_scan=0"]
         if pk.eap is not None:
             lines += _eap_block(pk, policy.policy, version, files)
