@@ -129,9 +129,10 @@ def test_every_release_entry_is_read_and_downloads(cli, tmp_path):
     """Two releases: the second's previous[] holds the first and the fleet's own history."""
     robot = make_robot(tmp_path, cli)
     first, second = tmp_path / "rel1", tmp_path / "rel2"
-    assert robot.build(cli, first, "--previous", FLEET).exit_code == 0
+    assert robot.build(cli, first, "--previous", FLEET, "--import-unsigned-history").exit_code == 0
     robot.rewrite(cli, flex_version="0.3.0")
-    assert robot.build(cli, second, "--previous", first).exit_code == 0
+    # the fleet's entries stay unsigned: carried on only with the same explicit choice (issue 16 §8)
+    assert robot.build(cli, second, "--previous", first, "--import-unsigned-history").exit_code == 0
     assert check_release(second, "https://fw.example.com/r") == 2
     flex = parse((second / "mr_mcxn_t1" / "flex-io" / "latest.json").read_bytes())
     assert [r.version for r in (flex.latest, *flex.previous)] == ["0.3.0", "0.2.0", "0.1.0"]
@@ -154,7 +155,7 @@ def test_a_previous_latest_json_the_daemon_refuses_is_not_carried_over(cli, tmp_
     doc = json.loads(path.read_text())
     doc["previous"] = [{**doc["latest"], "version": "0.0.9", "date": "2025-12-01"}]
     path.write_text(json.dumps(doc))
-    r = robot.build(cli, tmp_path / "rel", "--previous", prev)
+    r = robot.build(cli, tmp_path / "rel", "--previous", prev, "--import-unsigned-history")
     assert r.exit_code == 3, r.stderr
     assert "previous[0].date is not an RFC 3339 date and time" in r.stderr
     assert "2025-12-01" in r.stderr and "flex-io/latest.json" in r.stderr
