@@ -15,7 +15,7 @@ import os
 import time
 from typing import Any
 
-from ..errors import HcdfTrustError, InputError, IntegrityError
+from ..errors import InputError, IntegrityError
 
 PAYLOAD_TYPE = "application/vnd.hcdf-trust.fleet-report+json"
 REPORT_TYPE = "hcdf-trust fleet version report v1"
@@ -156,23 +156,7 @@ def read(path: str, public_key: Any) -> dict[str, Any]:
 
 
 def _strict_json(data: bytes, source: str) -> Any:
-    """JSON without duplicate keys or NaN/Infinity (the project's one strict reader lives in
-    localfile on the otaverify branch; this becomes a call to it at merge)."""
+    """The report and its payload through the project's one strict JSON reader."""
+    from ..localfile import parse_json
 
-    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in items:
-            if k in out:
-                raise MalformedFleetReport(f"duplicate key {k!r}", file=source)
-            out[k] = v
-        return out
-
-    def constant(token: str) -> Any:
-        raise MalformedFleetReport(f"{token} is not JSON", file=source)
-
-    try:
-        return json.loads(data.decode("utf-8"), object_pairs_hook=pairs, parse_constant=constant)
-    except HcdfTrustError:
-        raise
-    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise MalformedFleetReport(f"not JSON ({exc})", file=source) from None
+    return parse_json(data, source=source, what="fleet report", limit=MAX_REPORT_BYTES)

@@ -120,28 +120,10 @@ def verify(env: Any, keys: list[Any], threshold: int, *, source: str) -> list[st
 
 
 def strict_json(data: bytes, *, source: str, what: str) -> Any:
-    """One JSON value, UTF-8, no duplicate keys, no NaN/Infinity, no trailing data.
+    """One JSON value through the project's one strict reader, bounded by the envelope's cap."""
+    from ..localfile import parse_json
 
-    A local stand-in for the project's strict JSON reader (branch otaverify) until merged.
-    """
-
-    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in items:
-            if k in out:
-                raise ValueError(f"duplicate key {k!r}")
-            out[k] = v
-        return out
-
-    def constant(name: str) -> Any:
-        raise ValueError(f"{name} is not JSON")
-
-    if len(data) > MAX_ENVELOPE_BYTES:
-        raise MalformedProvenanceError(f"{what} is over {MAX_ENVELOPE_BYTES} bytes", file=source)
-    try:
-        return json.loads(data.decode("utf-8"), object_pairs_hook=pairs, parse_constant=constant)
-    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise MalformedProvenanceError(f"{what} is not one strict JSON value: {exc}", file=source) from None
+    return parse_json(data, source=source, what=what, limit=MAX_ENVELOPE_BYTES)
 
 
 def _b64(value: Any, where: str) -> bytes:
