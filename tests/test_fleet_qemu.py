@@ -117,17 +117,19 @@ def test_status_update_reset_confirm_on_real_devices(qemu):
     # 2. update: slot 1 of the real device reports the release image's hash and version, pending
     r = run(*args(qemu, "update", "--only", "mb", "--dry-run"))
     assert r.exit_code == 0 and by_comp(r)["mb"]["result"] == "would-update", r.stdout
-    # Under load an emulated UART can lose a chunk: the device then never answers it, the run
-    # ends unreachable (exit 3), and running update again resumes where the device stopped.
+    # An emulated UART can lose a chunk or its answer: the device then never answers, the run
+    # ends unreachable (exit 3), and running update again resumes where the device says it
+    # stopped — which may be past the bytes the lost answers would have acknowledged, so the
+    # sum of bytes_sent is not the image size. The oracle is the device's own report below.
     sent = 0
-    for _ in range(3):
+    for _ in range(5):
         r = run(*args(qemu, "update", "--only", "mb"))
         sent += by_comp(r)["mb"]["bytes_sent"]
         if r.exit_code != 3:
             break
         assert r.json["errors"][0]["code"] == "unreachable", r.stdout
     assert r.exit_code == 0, r.stdout
-    assert by_comp(r)["mb"]["result"] == "updated" and sent >= len(release_image)
+    assert by_comp(r)["mb"]["result"] == "updated" and sent > 0
     mb = by_comp(run(*args(qemu, "status")))["mb"]
     slot1 = next(s for s in mb["slots"] if s["slot"] == 1)
     assert (slot1["version"], slot1["hash"]) == ("1.0.0", want)
