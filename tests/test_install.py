@@ -16,7 +16,11 @@ from .conftest import PROJECT
 
 def _make_dry_run(target: str) -> str:
     """The commands `make TARGET` would run from scratch (-B: as if nothing were installed)."""
-    r = subprocess.run(["make", "-n", "-B", target], cwd=PROJECT, capture_output=True, text=True, check=True)
+    # Under `make test` (CI) this make is a sub-make: MAKELEVEL/MAKEFLAGS would make it print
+    # "Entering/Leaving directory" lines; --no-print-directory keeps its output the commands only.
+    r = subprocess.run(
+        ["make", "--no-print-directory", "-n", "-B", target], cwd=PROJECT, capture_output=True, text=True, check=True
+    )
     return r.stdout
 
 
