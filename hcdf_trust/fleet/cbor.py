@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..errors import counted
+
 MAX_ITEMS = 4096
 MAX_DEPTH = 8
 _INDEFINITE = -1
@@ -102,7 +104,7 @@ def check(data: bytes, *, max_items: int = MAX_ITEMS, max_depth: int = MAX_DEPTH
                     raise CborError(f"container of {arg} items at byte {start} runs past the end")
                 stack.append(_Container(count, major == 5))
     if i != n:
-        raise CborError(f"{n - i} byte(s) after the item")
+        raise CborError(f"{counted(n - i, 'byte')} after the item")
 
 
 def loads(data: bytes, *, max_items: int = MAX_ITEMS, max_depth: int = MAX_DEPTH) -> Any:
