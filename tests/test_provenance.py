@@ -315,3 +315,53 @@ def test_the_library_refuses_a_threshold_its_keys_cannot_meet(built):
     assert dsse.verify(env, [key], 1, source=FILE_NAME) == [key.keyid]
     with pytest.raises(KeyFileError):
         dsse.verify(env, [key, key], 2, source=FILE_NAME)
+
+
+def test_every_firmware_input_is_a_resolved_dependency(built):
+    # the oracle: the binaries in --firmware-dir, hashed here
+    robot, out = built
+    deps = json.loads(payload(out))["predicate"]["buildDefinition"]["resolvedDependencies"]
+    firmware = {d["name"]: (d["uri"], d["digest"]["sha256"]) for d in deps if d["name"].startswith("hcdf-firmware:")}
+    sha = {
+        p.relative_to(robot.fw).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest() for p in robot.fw.rglob("*.bin")
+    }
+    assert firmware == {
+        "hcdf-firmware:mr_mcxn_t1/flex-io": ("mr_mcxn_t1/flex-io.bin", sha["mr_mcxn_t1/flex-io.bin"]),
+        "hcdf-firmware:mr_mcxn_t1/rtk-gnss": ("rtk-gnss.bin", sha["rtk-gnss.bin"]),
+        "hcdf-firmware:compute/scout-os": ("scout-os.bin", sha["scout-os.bin"]),
+    }
+    names = [d["name"] for d in deps]
+    assert names[:2] == ["hcdf-root", "hcdf-lock"] and "body.glb" in names and "ota.toml" in names
+
+
+def _edit_firmware(stmt: dict, image: str, edit) -> None:
+    deps = stmt["predicate"]["buildDefinition"]["resolvedDependencies"]
+    (i,) = [i for i, d in enumerate(deps) if d["name"] == "hcdf-firmware:" + image]
+    edit(deps, i)
+
+
+@pytest.mark.parametrize("image", ["mr_mcxn_t1/flex-io", "compute/scout-os"])  # MCUboot, raw
+def test_a_firmware_input_the_image_does_not_hold_is_refused_even_when_signed(built, cli, image):
+    robot, out = built
+    stmt = json.loads(payload(out))
+    _edit_firmware(stmt, image, lambda deps, i: deps[i]["digest"].update(sha256="2" * 64))
+    resign(out, robot, stmt)
+    errors = refused(verify(cli, robot, out), 1, f"the firmware input of {image} is not the binary")
+    assert [e["actual"] for e in errors] == ["2" * 64]
+
+
+def test_a_missing_extra_or_doubled_firmware_input_is_refused(built, cli):
+    robot, out = built
+    original = payload(out)
+    stmt = json.loads(original)
+    _edit_firmware(stmt, "mr_mcxn_t1/rtk-gnss", lambda deps, i: deps.pop(i))
+    resign(out, robot, stmt)
+    refused(verify(cli, robot, out), 1, "no firmware input for mr_mcxn_t1/rtk-gnss")
+    stmt = json.loads(original)
+    _edit_firmware(stmt, "compute/scout-os", lambda deps, i: deps.append(dict(deps[i], name="hcdf-firmware:x/y")))
+    resign(out, robot, stmt)
+    refused(verify(cli, robot, out), 1, "x/y, an image the signed manifest lacks")
+    stmt = json.loads(original)
+    _edit_firmware(stmt, "compute/scout-os", lambda deps, i: deps.append(dict(deps[i])))
+    resign(out, robot, stmt)
+    refused(verify(cli, robot, out), 1, "two firmware inputs for compute/scout-os")
