@@ -30,21 +30,39 @@ from .files import release_files
 from .statement import EXTERNAL_PARAMETERS, FIRMWARE_DEPENDENCY, LOCK_DEPENDENCY, ROOT_DEPENDENCY
 
 
-def verify_provenance(folder: str, release: Any, public_keys: list[Any], *, threshold: int = 1) -> list[HcdfTrustError]:
+def read_envelope(folder: str) -> bytes | None:
+    """The bytes of ``folder``'s ``provenance.intoto.json`` (bounded, confined), None when
+    there is none.
+
+    Raises:
+        InputError: it is a symlink, not a regular file, or too large.
+    """
+    path = os.path.join(folder, FILE_NAME)
+    if not os.path.lexists(path):
+        return None
+    fd, _ = open_checked(path, folder, file=FILE_NAME)
+    try:
+        return read_bounded(fd, dsse.MAX_ENVELOPE_BYTES, source=FILE_NAME, what="provenance")
+    finally:
+        os.close(fd)
+
+
+def verify_provenance(
+    folder: str, release: Any, public_keys: list[Any], *, threshold: int = 1, data: bytes | None = None
+) -> list[HcdfTrustError]:
     """Every violation of steps 5–7 (steps 1–4 raise: nothing after them can be trusted).
 
-    ``release`` is the SUIT manifest, already verified. Raises:
+    ``release`` is the SUIT manifest, already verified; ``data`` the envelope's bytes when
+    the caller read them (:func:`read_envelope`: checked and then used, never read twice).
+
+    Raises:
         MalformedProvenanceError: steps 1 and 4's parsing. ProvenanceError: steps 1–4.
     """
     # 1. the envelope
-    path = os.path.join(folder, FILE_NAME)
-    if not os.path.lexists(path):
+    if data is None:
+        data = read_envelope(folder)
+    if data is None:
         raise ProvenanceError("the release has no provenance", file=FILE_NAME, expected=FILE_NAME, actual="none")
-    fd, _ = open_checked(path, folder, file=FILE_NAME)
-    try:
-        data = read_bounded(fd, dsse.MAX_ENVELOPE_BYTES, source=FILE_NAME, what="provenance")
-    finally:
-        os.close(fd)
     env = dsse.parse(data, source=FILE_NAME)
     # 2. payloadType
     if env.payload_type != PAYLOAD_TYPE:
