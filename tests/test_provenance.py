@@ -365,3 +365,35 @@ def test_a_missing_extra_or_doubled_firmware_input_is_refused(built, cli):
     _edit_firmware(stmt, "compute/scout-os", lambda deps, i: deps.append(dict(deps[i])))
     resign(out, robot, stmt)
     refused(verify(cli, robot, out), 1, "two firmware inputs for compute/scout-os")
+
+
+def test_the_in_toto_attestation_validators_accept_the_statement(built):
+    # in-toto-attestation's Python bindings: the Statement and SLSA Provenance v1 protos parse
+    # the payload strictly (an unknown field, a wrong type or a malformed timestamp raises),
+    # Statement.validate and ResourceDescriptor.validate pass; the bindings have no
+    # Provenance.validate, so its Go validator's checks (SLSA Build L1's required fields)
+    # are written out here, with the Go ResourceDescriptor's digest check (sha256: 64 hex).
+    import re
+
+    from google.protobuf import json_format
+    from in_toto_attestation.predicates.provenance.v1 import provenance_pb2
+    from in_toto_attestation.v1 import statement_pb2
+    from in_toto_attestation.v1.resource_descriptor import ResourceDescriptor
+    from in_toto_attestation.v1.statement import Statement
+
+    _, out = built
+    data = payload(out)
+    Statement.copy_from_pb(json_format.Parse(data, statement_pb2.Statement())).validate()
+    predicate = json.loads(data)["predicate"]
+    prov = json_format.ParseDict(predicate, provenance_pb2.Provenance())
+    assert json_format.MessageToDict(prov) == predicate  # nothing dropped or reinterpreted
+    build, run = prov.build_definition, prov.run_details
+    assert prov.HasField("build_definition") and prov.HasField("run_details") and run.HasField("builder")
+    assert build.build_type == BUILD_TYPE and build.HasField("external_parameters") and run.builder.id
+    subjects = json_format.Parse(data, statement_pb2.Statement()).subject
+    for rd in [*build.resolved_dependencies, *subjects]:
+        ResourceDescriptor.copy_from_pb(rd).validate()
+        assert set(rd.digest) == {"sha256"} and re.fullmatch("[0-9a-f]{64}", rd.digest["sha256"]), rd
+    assert len(build.resolved_dependencies) > 3
+    with pytest.raises(json_format.ParseError):  # the oracle refuses what is not SLSA v1
+        json_format.ParseDict({**predicate, "buildConfig": {}}, provenance_pb2.Provenance())
