@@ -289,6 +289,24 @@ def test_ota_toml_page_names_every_key_and_its_example_loads(tmp_path):
     assert table("[images.APP]") == [f.name for f in fields(ImageSettings)]
 
 
+def test_validate_rules_table_is_the_codes_rules():
+    from hcdf_trust.validate.semantic import RULES
+
+    text = (DOCS / "validate-rules.md").read_text()
+    table = text.split("<!-- rules:begin -->\n", 1)[1].split("<!-- rules:end -->", 1)[0]
+    rows = ["| code | what the rule checks |", "|---|---|"]
+    rows += [f"| `{code}` | {what.replace('|', chr(92) + '|')} |" for code, what in RULES.items()]
+    assert table == "\n".join(rows) + "\n", "regenerate the table between the markers from RULES"
+
+
+def test_the_readme_stays_a_tour():
+    """Reference goes to docs/ (one page per command group), not back into the README."""
+    readme = (PROJECT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 200, "README.md is the newcomer's tour: put reference text in docs/"
+    headings = re.findall(r"^## (.*)$", readme, re.M)
+    assert headings == ["Install", "A ten-minute tour on the example robot", "Where to go next"]
+
+
 def test_audit_rules_table_is_the_codes_checks():
     from hcdf_trust.audit.policy import CHECKS
 
