@@ -364,3 +364,27 @@ def test_the_docs_mention_every_verb_and_every_option():
             if longs and not any(o in DOC_TEXT for o in longs):
                 missing.append(f"{verb} {longs[0]}")
     assert missing == []
+
+
+def _all_commands() -> list[tuple[str, click.Command]]:
+    def walk(cmd: click.Command, path: tuple[str, ...]) -> list[tuple[str, click.Command]]:
+        out = [(" ".join(("hcdf-trust", *path)), cmd)]
+        if isinstance(cmd, click.Group):
+            ctx = click.Context(cmd)
+            out += [c for name in cmd.list_commands(ctx) for c in walk(cmd.get_command(ctx, name), (*path, name))]
+        return out
+
+    return walk(main, ())
+
+
+def test_every_option_a_help_text_names_is_one_of_that_command():
+    """The raw help strings (before click wraps them, so a flag split at a line end is still
+    seen), of groups too: a help may only name the options of its own command."""
+    wrong = []
+    for path, cmd in _all_commands():
+        texts = [cmd.help or "", cmd.short_help or "", cmd.epilog or ""]
+        texts += [p.help or "" for p in cmd.params if isinstance(p, click.Option)]
+        for flag in sorted({f for text in texts for f in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", text)}):
+            if flag not in _names(cmd):
+                wrong.append(f"{path}: {flag}")
+    assert wrong == []
