@@ -155,6 +155,8 @@ ORACLES = {
     "python": "run here (test_python_examples_run)",
     "sh": "hcdf-trust lines checked against the CLI here; the tour is run by test_pipeline, "
     "registry.md's block by test_registry_readme",
+    "bash": "as sh",
+    "console": "as sh (a shell session: its hcdf-trust lines are checked)",
     "toml": "parsed here; audit.md's is the built-in policy (test_audit_policy), ota-toml.md's load as ota.toml",
     "json": "parsed here; audit.md's is the real --json shape (test_audit_policy)",
     "xml": "parsed here; macsec.md's two robots are planned and compared (test_macsec_upstream)",
@@ -186,7 +188,7 @@ def test_every_example_has_an_oracle(block):
                     assert (PROJECT / path).exists(), f"{block}: {path} does not exist"
         else:
             assert block.text.startswith("hcdf-trust "), f"{block}: not a synopsis nor the layout"
-    if block.lang in ("sh", "yaml", ""):
+    if block.lang in ("sh", "bash", "console", "yaml", ""):
         assert all(not problem for problem in command_problems(block.text)), (str(block), command_problems(block.text))
 
 
