@@ -838,6 +838,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 # it building pin's and validate's options). Name -> (module, attribute).
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
+    "bundle": (".bundle", "bundle"),
     "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),
     "ota": (".ota", "ota"),
