@@ -478,24 +478,22 @@ def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityE
     (``<stem>_<hex>.<ext>``, the hex a prefix of its SHA-256), and the document has no
     ``<include>`` (a bundle is flat). The pins themselves are the walker's (a digest mismatch).
     """
-    from .document import Kind
-
     errors: list[BundleIntegrityError] = []
     archive = files.archive
     used: dict[str, str] = {}
-    for art in res.artifacts.values():
-        path = art.location.path
-        if art.kind is Kind.INCLUDE:
-            use = art.uses[0]
+    for doc_url, edges in res.includes.items():
+        for ref, _child in edges:
             errors.append(
                 BundleIntegrityError(
-                    f"<include uri={art.uri!r}> in a bundle: a bundle holds one flattened document",
-                    file=use.doc,
-                    line=use.ref.line,
+                    f"<include uri={ref.uri!r}> in a bundle: a bundle holds one flattened document",
+                    file=res.documents[doc_url].source,
+                    line=ref.line,
                     expected="no <include>",
-                    actual=art.uri,
+                    actual=ref.uri,
                 )
             )
+    for art in res.artifacts.values():
+        path = art.location.path
         if path is None or not path.startswith(files.folder) or art.sha256 is None:
             continue
         name = path[len(files.folder) :]
