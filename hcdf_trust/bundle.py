@@ -154,6 +154,26 @@ def read_archive(
     return Archive(shown, entries, view, sha, mapped)
 
 
+def read_root_entry(path: str | os.PathLike[str]) -> tuple[str, bytes]:
+    """``(display name, bytes)`` of a bundle's root document (``X.hcdfz/robot.hcdf``), from an
+    archive checked by :func:`read_archive`: what ``validate`` reads of a bundle.
+
+    Raises:
+        BundleFormatError, InputError: as :func:`read_archive`; the root is over the document cap.
+    """
+    from .xml import MAX_DOCUMENT_BYTES
+
+    archive = read_archive(path)
+    try:
+        root = archive.root
+        source = f"{archive.path}/{root.name}"
+        if root.size > MAX_DOCUMENT_BYTES:
+            raise InputError(f"{source}: {root.size} bytes, more than the {MAX_DOCUMENT_BYTES}-byte limit", file=source)
+        return source, bytes(archive.data(root))
+    finally:
+        archive.close()
+
+
 def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = MAX_ENTRIES) -> list[Entry]:
     """The entries of a ``.hcdfz`` image, in archive order, after checking every structural rule.
 

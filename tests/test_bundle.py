@@ -9,6 +9,7 @@ The hostile archives are made here, by a ZIP builder of this file (``_zip``), in
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import struct
 import subprocess
@@ -330,3 +331,39 @@ def test_bundle_refuses_a_destination_that_is_not_hcdfz_or_an_input(cli, robot, 
 def test_tree_flags_do_not_apply_to_a_bundle(cli, bundled, tmp_path):
     r = cli("verify", bundled, "--root", tmp_path)
     assert r.exit_code == 3 and "--root does not apply to a bundle" in r.stderr
+
+
+# --- every verb that reads a description reads a bundle, with the tree's verdict -----------------
+
+
+def test_every_verb_gives_the_trees_verdict_on_the_bundle(cli, robot, bundled, tmp_path):
+    policy = robot.parent.parent / "audit-policy.toml"
+    for verb in (
+        ["resolve"],
+        ["validate"],
+        ["audit", "--policy", policy],
+        ["macsec", "plan"],
+        ["sbom", "--format", "cyclonedx"],
+    ):
+        tree, packed = cli(*verb, robot), cli(*verb, bundled)
+        assert (tree.exit_code, packed.exit_code) == (0, 0), (verb, tree.stderr, packed.stderr)
+    assert not (bundled.parent / "scout2.hcdfz.lock").exists()  # resolve writes no lock for a bundle
+    assert cli("resolve", bundled, "--out", tmp_path / "flat.hcdf").exit_code == 2
+
+
+def test_ota_build_and_the_sbom_record_the_bundles_digest(cli, robot, bundled, tmp_path):
+    digest = hashlib.sha256(bundled.read_bytes()).hexdigest()
+    sbom = cli("sbom", bundled, "--format", "cyclonedx")
+    props = {p["name"]: p["value"] for p in json.loads(sbom.stdout)["metadata"]["properties"]}
+    assert props["hcdf:bundle-sha256"] == props["hcdf:lock-sha256"] == digest
+    key = tmp_path / "k.pem"
+    assert cli("ota", "keygen", "--type", "ecdsa-p256", "-o", key).exit_code == 0
+    firmware = robot.parent / "firmware"
+    r = cli(
+        "ota", "build", bundled, "--config", robot.parent / "ota.toml", "--firmware-dir", firmware,
+        "--key", key, "--out", tmp_path / "rel", "--base-url", "https://firmware.example.com/scout2",
+    )  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    record = json.loads((tmp_path / "rel" / "release.suit.json").read_text())
+    assert record["hcdf"]["lock_sha256"] == digest
+    assert cli("ota", "verify", tmp_path / "rel", "--key", tmp_path / "k.pub.pem").exit_code == 0

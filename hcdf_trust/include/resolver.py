@@ -238,6 +238,21 @@ class Resolution:
             ]
         return entries
 
+    def pins_sha256(self, *, limit: int) -> str:
+        """The SHA-256 of what pins this tree, which a release and an SBOM record: the lock
+        file's bytes, or for a tree read from a ``.hcdfz`` the bundle's (it is its own lock).
+
+        Raises:
+            InputError: the lock file cannot be read (or is larger than ``limit``).
+        """
+        if self.bundle is not None:
+            return self.bundle[1]
+        import hashlib
+
+        from ..localfile import read_input
+
+        return hashlib.sha256(read_input(str(self.lock_path), limit=limit, what="lock file")).hexdigest()
+
     def render_lock(self, edited: dict[str, bytes] | None = None) -> bytes:
         """The lock file's bytes for this tree (what :meth:`write_lock` writes); ``edited``
         as for :meth:`lock_entries`. An unchanged lock is the bytes read (render's, by
