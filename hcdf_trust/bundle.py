@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .digest import Hashed
-from .errors import InputError, IntegrityError, display_path
+from .errors import InputError, IntegrityError, UnpinnedError, display_path
 
 if TYPE_CHECKING:
     from .include.resolver import Resolution
@@ -554,6 +554,30 @@ def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityE
 
 
 # --- writing --------------------------------------------------------------------------------
+
+
+def unpinned(res: Resolution) -> list[UnpinnedError]:
+    """What a bundle cannot carry: a reference that neither a full ``sha`` nor the lock pins
+    (a bundle pins every file it holds; it would otherwise pin what happened to be there)."""
+
+    locked = res.locked.entries if res.locked is not None else {}
+    errors = []
+    for art in res.artifacts.values():
+        if art.pin_status == "full" or res.lock_url(art.url) in locked:
+            continue
+        use = art.uses[0]
+        errors.append(
+            UnpinnedError(
+                f"{art.uri} is not pinned: a bundle carries only files pinned by a full sha256 or the lock"
+                " (`hcdf-trust resolve` writes the lock, `pin --write` the sha)",
+                file=use.doc,
+                line=use.ref.line,
+                url=art.url,
+                expected="a full sha256 or a lock entry",
+                actual=art.sha256,
+            )
+        )
+    return errors
 
 
 def encode(entries: list[tuple[str, bytes | memoryview]]) -> bytes:
