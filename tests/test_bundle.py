@@ -414,3 +414,8 @@ def test_a_reference_neither_the_document_nor_a_lock_pins_is_not_bundled(cli, tm
     assert cli("resolve", doc).exit_code == 0  # the lock now pins it (trust on first use)
     assert cli("bundle", doc, tmp_path / "x.hcdfz").exit_code == 0
     assert cli("verify", tmp_path / "x.hcdfz").exit_code == 0
+
+
+def test_pin_refuses_a_bundle_it_cannot_edit(cli, bundled):
+    r = cli("pin", "--write", bundled)
+    assert r.exit_code == 3 and "a bundle: every reference in it is pinned already" in r.stderr
