@@ -436,7 +436,6 @@ class BundleFiles:
     def __init__(self, archive: Archive, folder: str) -> None:
         self.archive = archive
         self.folder = folder.rstrip("/") + "/"
-        self.read_names: set[str] = set()  # what the walk used: check_contents' unused entries
 
     @property
     def root_path(self) -> str:
@@ -454,8 +453,12 @@ class BundleFiles:
                 expected=f"an entry of {self.archive.path}",
                 actual=shown,
             )
-        self.read_names.add(entry.name)
         return entry
+
+    def size(self, path: str) -> int:
+        """An entry's size, -1 if there is none (the resolver's hint for hashing on a thread)."""
+        entry = self.archive.by_name.get(path[len(self.folder) :]) if path.startswith(self.folder) else None
+        return entry.size if entry is not None else -1
 
     def read(
         self,

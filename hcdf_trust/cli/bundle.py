@@ -73,13 +73,13 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | No
         cache_dir=options.cache_dir,
         max_elements=max_elements,
     )
-    plan.add(out, data, flag="OUT", if_changed=True)
-    wrote = [display_path(p) for p in plan.commit()]
     import hashlib
 
     from ..bundle import check_structure
 
-    entries = check_structure(memoryview(data), shown=out)  # what we wrote reads back under our own rules
+    entries = check_structure(memoryview(data), shown=out)  # it reads back under our own rules, or is not written
+    plan.add(out, data, flag="OUT", if_changed=True)
+    wrote = [display_path(p) for p in plan.commit()]
     sha = hashlib.sha256(data).hexdigest()
     if as_json:
         emit_json(
