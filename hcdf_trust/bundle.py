@@ -379,10 +379,13 @@ def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = 
 
 
 def _decode_name(raw: bytes, flags: int, bad: _Bad) -> str:
+    """The name as UTF-8. Without the UTF-8 flag (bit 11) other tools read a non-ASCII name as
+    CP437: two readings of one name, so only ASCII is accepted there (both writers write ASCII)."""
+    if not flags & _UTF8_FLAG and not raw.isascii():
+        raise bad("an entry name is not ASCII and not flagged UTF-8 (tools read it two ways)", actual=repr(raw))
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
-        # Without bit 11 other tools read the name as CP437: two readings of one name.
         raise bad("an entry name is not UTF-8", actual=repr(raw)) from None
 
 
@@ -733,4 +736,12 @@ def build(
     xml = etree.tostring(doc.root.getroottree(), xml_declaration=True, encoding="UTF-8") + b"\n"
     entries: list[tuple[str, bytes | memoryview]] = [(root_name(doc.root.get("name"), root_loc.path), xml)]
     entries += sorted(assets.items())
+    total = sum(len(data) + 76 + 2 * len(name) for name, data in entries) + _EOCD.size  # headers: 30 + 46
+    if len(entries) > MAX_ENTRIES or total > MAX_BYTES:
+        raise BundleFormatError(
+            f"{source}: {len(entries)} entries, {total} bytes: more than a bundle holds",
+            file=source,
+            expected=f"at most {MAX_ENTRIES} entries and {MAX_BYTES} bytes",
+            actual=f"{len(entries)} entries, {total} bytes",
+        )
     return encode(entries)

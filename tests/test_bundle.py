@@ -419,3 +419,16 @@ def test_a_reference_neither_the_document_nor_a_lock_pins_is_not_bundled(cli, tm
 def test_pin_refuses_a_bundle_it_cannot_edit(cli, bundled):
     r = cli("pin", "--write", bundled)
     assert r.exit_code == 3 and "a bundle: every reference in it is pinned already" in r.stderr
+
+
+def test_a_non_ascii_name_without_the_utf8_flag_is_refused(cli, bundled, tmp_path):
+    entries = _entries(bundled)
+    r = _verify(cli, tmp_path, _zip([entries[0], ("assets/ré_0.glb", b"x")]))
+    assert r.exit_code == 3 and "not ASCII and not flagged UTF-8" in r.stderr
+
+
+def test_a_tree_too_large_for_a_bundle_is_not_written(cli, robot, tmp_path, monkeypatch):
+    monkeypatch.setattr(bundle_mod, "MAX_BYTES", 10_000)
+    r = cli("bundle", robot, tmp_path / "big.hcdfz")
+    assert r.exit_code == 3 and "more than a bundle holds" in r.stderr
+    assert not (tmp_path / "big.hcdfz").exists()
