@@ -432,3 +432,23 @@ def test_a_tree_too_large_for_a_bundle_is_not_written(cli, robot, tmp_path, monk
     r = cli("bundle", robot, tmp_path / "big.hcdfz")
     assert r.exit_code == 3 and "more than a bundle holds" in r.stderr
     assert not (tmp_path / "big.hcdfz").exists()
+
+
+@pytest.mark.parametrize("delta", [+10, -10])
+def test_a_bundle_that_changes_size_while_read_is_refused(bundled, monkeypatch, delta):
+    """The size when opened is what is read, exactly: a file that shrank (a short read) or grew
+    (a byte left after it) between the fstat and the read is refused, not checked in part."""
+    import os
+
+    from hcdf_trust import localfile
+    from hcdf_trust.errors import InputError
+
+    real = os.fstat
+
+    def fstat(fd):
+        st = real(fd)
+        return os.stat_result((*st[:6], st.st_size + delta, *st[7:]))
+
+    monkeypatch.setattr(localfile.os, "fstat", fstat)
+    with pytest.raises(InputError, match="changed size while it was read"):
+        bundle_mod.read_archive(bundled)
