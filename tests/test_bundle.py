@@ -452,3 +452,15 @@ def test_a_bundle_that_changes_size_while_read_is_refused(bundled, monkeypatch, 
     monkeypatch.setattr(localfile.os, "fstat", fstat)
     with pytest.raises(InputError, match="changed size while it was read"):
         bundle_mod.read_archive(bundled)
+
+
+def test_bundle_json_and_an_unchanged_bundle_is_left_alone(cli, robot, bundled):
+    before = bundled.stat()
+    r = cli("bundle", robot, bundled, "--json")
+    assert r.exit_code == 0, r.stderr
+    out = r.json
+    assert out["ok"] is True and out["errors"] == [] and out["wrote"] == [] and len(out["unchanged"]) == 1
+    assert out["sha256"] == hashlib.sha256(bundled.read_bytes()).hexdigest() and out["size"] == before.st_size
+    assert [e["name"] for e in out["entries"]] == [n for n, _ in _entries(bundled)]
+    after = bundled.stat()
+    assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
