@@ -464,3 +464,16 @@ def test_bundle_json_and_an_unchanged_bundle_is_left_alone(cli, robot, bundled):
     assert [e["name"] for e in out["entries"]] == [n for n, _ in _entries(bundled)]
     after = bundled.stat()
     assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
+
+
+def test_bundle_replaces_a_bundle_but_never_a_document(cli, robot, bundled, tmp_path):
+    from hcdf_trust.outputs import BUNDLE, kind_of
+
+    assert kind_of(bundled.read_bytes()) == BUNDLE
+    (robot.parent / "models" / "chassis.glb").write_bytes(b"glTF-new")  # another tree: other bytes
+    r = cli("bundle", robot, bundled)
+    assert r.exit_code == 1  # the tree no longer verifies: the old bundle stays
+    doc = tmp_path / "looks.hcdfz"
+    doc.write_text('<hcdf version="1.0"/>')
+    r = cli("bundle", robot.parent / "assemblies" / "sensor-head.hcdf", doc, "--root", robot.parent)
+    assert r.exit_code == 3 and "is an HCDF document: refusing to replace it" in r.stderr
