@@ -66,6 +66,7 @@ PRIVATE_KEY = "a private key"
 PUBLIC_KEY = "a public key"
 KEY_STORE = "a MACsec key store"
 DOCUMENT = "an HCDF document"
+BUNDLE = "an HCDF bundle"  # a .hcdfz: a ZIP whose first entry is a .hcdf (bundle.py)
 REGISTRY_SOURCE = "a registry source file"
 NEW_ONLY: tuple[str, ...] = ()  # ``replaces=NEW_ONLY``: an existing destination is never replaced
 
@@ -636,9 +637,14 @@ def _existing(folder: Path) -> tuple[str, tuple[str, ...]]:
 
 def kind_of(data: bytes) -> str:
     """What ``data`` (a file's first bytes) is, for the replace rule: :data:`PRIVATE_KEY`,
-    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, :data:`REGISTRY_SOURCE`, :data:`DOCUMENT`, else
-    :data:`ORDINARY`."""
+    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, :data:`REGISTRY_SOURCE`, :data:`BUNDLE`, :data:`DOCUMENT`,
+    else :data:`ORDINARY`."""
     head = data[:_SNIFF_BYTES]
+    # A bundle (before the marks: its first entry holds "<hcdf "): a local header whose name ends .hcdf.
+    if head[:4] == b"PK\x03\x04" and len(head) >= 30:
+        name_len = int.from_bytes(head[26:28], "little")
+        if head[30 : 30 + name_len].endswith(b".hcdf"):
+            return BUNDLE
     for mark, kind in _MARKS:
         if mark in head:
             return kind

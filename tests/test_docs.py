@@ -339,6 +339,8 @@ FOREIGN = {
     "--align": "imgtool",
     "--max-align": "imgtool",
     "--require-provenance": "ota pull, named as not yet built (issue 22)",
+    "--vendor-remote": "upstream's hcdf bundle (docs/bundles.md)",
+    "--keep-remote": "upstream's hcdf bundle (docs/bundles.md)",
 }
 DOC_TEXT = "\n".join(p.read_text() for p in ALL)
 

@@ -635,6 +635,12 @@ def resolve(
     if update and kw["locked"]:
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
+    from ..bundle import is_bundle
+
+    if is_bundle(doc):  # its pins are in it: it has no lock to write, and it is already flat
+        if out or update:
+            raise click.UsageError(f"{'--out' if out else '--update'} does not apply to a bundle ({doc})")
+        no_lock = True
     no_lock = no_lock or options.locked
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=options.offline, persist=True)
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
@@ -646,7 +652,8 @@ def resolve(
     # An output that already holds exactly these bytes is left alone (if_changed): a
     # rebuild over an unchanged tree touches no file, so a build system sees nothing new.
     if no_lock:
-        plan.protect(res.lock_path, what="the lock file")
+        if res.bundle is None:
+            plan.protect(res.lock_path, what="the lock file")
     else:
         plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
@@ -841,6 +848,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 # it building pin's and validate's options). Name -> (module, attribute).
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
+    "bundle": (".bundle", "bundle"),
     "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),
     "ota": (".ota", "ota"),

@@ -205,8 +205,13 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
-    lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
-    lock_sha = hashlib.sha256(lock_data).hexdigest()
+    if res.bundle is not None and options.update_hcdf:
+        raise InputError(
+            f"--update-hcdf edits the description in place: {res.bundle[0]} is a bundle, rebuild it instead",
+            file=res.bundle[0],
+        )
+    # What pins the tree: the lock file, or the bundle the tree was read from (recorded as the lock digest)
+    lock_sha = res.pins_sha256(limit=64 << 20)
     config_path = options.config
     if config_path is None:
         default = Path(doc_path).parent / "ota.toml"
