@@ -1,5 +1,8 @@
 """Signing a provenance: :func:`sign_provenance` for any set of files (a release, a bundle),
-:func:`release_provenance` for the release ``ota build --provenance`` is writing."""
+:func:`release_provenance` for the release ``ota build --provenance`` is writing.
+
+Public API (docs/api.md): :func:`sign_provenance` and :class:`Dependency`.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +15,8 @@ from ..errors import ErrorGroup
 from . import BUILD_TYPE, dsse
 from .files import release_files
 from .statement import FIRMWARE_DEPENDENCY, BuildFacts, Dependency, release_statement, serialize, statement
+
+__all__ = ["Dependency", "sign_provenance"]
 
 
 def sign_provenance(
@@ -32,6 +37,27 @@ def sign_provenance(
     and finish. ``signers`` are ota signers (:class:`hcdf_trust.ota.signer.FileSigner`,
     :class:`hcdf_trust.ota.hsm.HsmSigner`). The statement is serialized once (compact,
     sorted keys); those bytes are what is signed and published.
+
+    >>> import base64, hashlib, json
+    >>> from hcdf_trust.ota.keys import generate
+    >>> from hcdf_trust.ota.signer import FileSigner
+    >>> from hcdf_trust.provenance.build import Dependency, sign_provenance
+    >>> doc = open("examples/robot/robot.hcdf", "rb").read()
+    >>> sha = hashlib.sha256(doc).hexdigest()
+    >>> envelope = sign_provenance(
+    ...     {"robot.hcdf": sha},
+    ...     [Dependency("hcdf-root", sha, "robot.hcdf")],
+    ...     parameters={"root": "robot.hcdf"},
+    ...     date="2026-05-28T20:26:40Z",
+    ...     signers=[FileSigner(generate("ed25519"))],
+    ...     build_type="https://example.com/buildtypes/copy/v1",
+    ... )
+    >>> outer = json.loads(envelope)
+    >>> outer["payloadType"], len(outer["signatures"])
+    ('application/vnd.in-toto+json', 1)
+    >>> statement = json.loads(base64.b64decode(outer["payload"]))
+    >>> statement["subject"] == [{"name": "robot.hcdf", "digest": {"sha256": sha}}]
+    True
 
     Raises:
         KeyFileError: a signer that cannot sign a provenance.

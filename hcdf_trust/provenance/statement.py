@@ -34,7 +34,13 @@ FIRMWARE_DEPENDENCY = "hcdf-firmware:"  # ... and, + "board/app", of the binary 
 
 @dataclass(frozen=True)
 class Dependency:
-    """One ``resolvedDependencies`` entry: an input of the build, by name and SHA-256."""
+    """One ``resolvedDependencies`` entry: an input of the build, by name, SHA-256 and,
+    optionally, how the build spelled it (``uri``).
+
+    >>> from hcdf_trust.provenance.build import Dependency
+    >>> Dependency("hcdf-lock", "ab" * 32, "robot.hcdf.lock").to_json()["uri"]
+    'robot.hcdf.lock'
+    """
 
     name: str
     sha256: str
