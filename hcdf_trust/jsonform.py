@@ -529,3 +529,67 @@ __all__ = [
     "to_json",
     "use_schemas",
 ]
+
+
+# --- convert: one document, both ways -------------------------------------------------------
+
+
+@dataclass
+class Conversion:
+    """``convert``'s result: the output bytes and what the report says about them."""
+
+    data: bytes
+    to: str  # "json" or "xml"
+    schema: str
+    schema_sha256: str
+    references: int
+    losses: list[str]
+
+
+def _reference_key(ref: Any) -> tuple[Any, ...]:
+    return (ref.kind, ref.uri, ref.sha, ref.uri_attr, ref.name, ref.pose, ref.selected, ref.domain, ref.version)
+
+
+def convert(data: bytes, *, source: str) -> Conversion:
+    """``data`` (an HCDF document, XML or the JSON form) in the other form.
+
+    Both sides are read as every verb reads them (:class:`~hcdf_trust.document.Document`:
+    every reference seen, or the document refused), and the output is read back: a
+    conversion that would change any reference (kind, location, pin, name, order) or that
+    the strict JSON reader would not read back is refused.
+
+    Raises:
+        JsonFormError: the forms disagree on a reference, or the output would not read back.
+        InputError (XmlError, JsonError, AmbiguousReferenceError, NotHcdfError): the input.
+    """
+    from .document import Document
+
+    doc = Document.from_bytes(data, source=source)
+    if doc.is_json:
+        form: Form = doc.json.form
+        out = etree.tostring(doc.tree, xml_declaration=True, encoding="UTF-8", pretty_print=True)
+        to, losses = "xml", []
+    else:
+        form = form_for(doc.version, source=source)
+        converted = to_json(doc.root, source=source, form=form)
+        out = dumps(converted.value).encode("utf-8")
+        to, losses = "json", converted.losses
+    try:
+        back = Document.from_bytes(out, source=f"{source} (converted)")
+    except InputError as exc:
+        raise JsonFormError(f"the {to.upper()} form would not read back: {exc.message}", file=source) from None
+    before = [_reference_key(r) for r in doc.references()]
+    after = [_reference_key(r) for r in back.references()]
+    if before != after:
+        pairs = enumerate(zip(before, after, strict=False))
+        at = next((i for i, (a, b) in pairs if a != b), min(len(before), len(after)))
+        shown = doc.references()[at] if at < len(before) else None
+        raise JsonFormError(
+            f"converting would change reference {at + 1} of {len(before)}: refused (the JSON form cannot keep "
+            "what tells them apart, e.g. the order of differently named elements)",
+            file=source,
+            line=shown.line if shown is not None else None,
+            expected=repr(before[at][1:3]) if at < len(before) else "no reference",
+            actual=repr(after[at][1:3]) if at < len(after) else "no reference",
+        )
+    return Conversion(out, to, form.name, form.sha256, len(before), losses)

@@ -865,6 +865,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 # it building pin's and validate's options). Name -> (module, attribute).
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
+    "convert": (".convert", "convert"),
     "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),
     "ota": (".ota", "ota"),
