@@ -209,9 +209,10 @@ SCHEMA_HELP = (
 
 def use_schemas(ctx: click.Context, param: click.Parameter, value: tuple[str, ...] | None) -> tuple[str, ...]:
     """Record the ``--schema`` files for this run's JSON documents (:func:`hcdf_trust.jsonform.use_schemas`)."""
-    from .. import jsonform
+    if value or "hcdf_trust.jsonform" in sys.modules:  # an XML-only run never imports it
+        from .. import jsonform
 
-    jsonform.use_schemas(value or ())
+        jsonform.use_schemas(value or ())
     return value or ()
 
 
