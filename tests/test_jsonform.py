@@ -205,12 +205,19 @@ def test_a_json_run_needs_a_schema(json_robot, cli, monkeypatch):
 
 GOOD = {"hcdf": {"version": 1.0, "name": "r", "comp": {"name": "c", "visual": {"model": {"uri": "m.glb"}}}}}
 GOOD_TEXT = json.dumps(GOOD)
+# m.glb's content: its SHA-256 starts with 8 decimal digits, so that a pin written as a JSON
+# number would be a (weak) pin that matches, were numbers accepted there
+GLB = next(
+    b"glb%d" % i for i in range(10_000) if (h := hashlib.sha256(b"glb%d" % i).hexdigest())[:8].isdigit() and h[0] != "0"
+)
+DIGITS = int(hashlib.sha256(GLB).hexdigest()[:8])
+VENDOR = {"hcdf": {"version": 1.0, "name": "r", "comp": {"name": "c", "extension": {"domain": "d", "version": "1"}}}}
 
 
 def _doc(tmp_path: Path, text: str) -> Path:
     path = tmp_path / "robot.json"
     path.write_text(text)
-    (tmp_path / "m.glb").write_bytes(b"glb")
+    (tmp_path / "m.glb").write_bytes(GLB)
     return path
 
 
@@ -224,14 +231,16 @@ HOSTILE = {
     "duplicate key": GOOD_TEXT.replace('"uri": "m.glb"', '"uri": "m.glb", "uri": "x.glb"'),
     "NaN": GOOD_TEXT.replace("1.0", "NaN"),
     "infinite number": GOOD_TEXT.replace("1.0", "1e999"),
-    "deep nesting": '{"hcdf": ' + '{"comp": ' * 80 + "{}" + "}" * 80 + "}",
+    "deep nesting": json.dumps(VENDOR).replace(
+        '"version": "1"', '"version": "1", "a": ' + '{"a": ' * 80 + "{}" + "}" * 80
+    ),
     "uri as a number": _with({"uri": 12}),
     "uri as null": _with({"uri": None}),
     "uri as an object": _with({"uri": {"$text": "m.glb"}}),
     "uri as a list": _with({"uri": ["m.glb", "x.glb"]}),
-    "sha as a number": _with({"uri": "m.glb", "sha": 1234}),
+    "sha as a number": _with({"uri": "m.glb", "sha": DIGITS}),
     "sha as true": _with({"uri": "m.glb", "sha": True}),
-    "unknown key carrying a reference": _with({"url": "x.glb"}),
+    "unknown key carrying a reference": _with({"uri": "m.glb", "fallback-uri": "x.glb"}),
     "misspelled reference element": GOOD_TEXT.replace('"model"', '"modle"'),
     "text inside a reference": _with({"uri": "m.glb", "$text": "x.glb"}),
     "an empty list": GOOD_TEXT.replace('"comp": {', '"include": [], "comp": {'),
