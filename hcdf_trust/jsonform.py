@@ -34,7 +34,7 @@ import hashlib
 import re
 import threading
 from collections import OrderedDict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,14 +78,25 @@ def pointer_join(base: str, key: str | int) -> str:
 
 # --- which schema ------------------------------------------------------------------------
 
+#: Another source of the schema's bytes (``validate --registry``: the registry's core schema
+#: for a version): version -> (name, XSD bytes), None when it has none for that version.
+SchemaProvider = Callable[[str | None], tuple[str, bytes] | None]
 _schema_paths: tuple[str, ...] = ()
+_provider: SchemaProvider | None = None
 
 
 def use_schemas(paths: Sequence[str]) -> None:
     """The ``--schema`` files (or ``$HCDF_TRUST_SCHEMA``) JSON documents of this run are read
     with: the one whose ``version`` fits the document's is chosen, as ``validate`` chooses."""
-    global _schema_paths
+    global _schema_paths, _provider
     _schema_paths = tuple(str(p) for p in paths)
+    _provider = None
+
+
+def use_schema_provider(provider: SchemaProvider) -> None:
+    """Where the schema comes from when no ``--schema`` is given (a signed registry)."""
+    global _provider
+    _provider = provider
 
 
 def schema_paths() -> tuple[str, ...]:
@@ -168,6 +179,12 @@ def form_for(version: str | None, *, source: str) -> Form:
     """
     from .validate.schema import FileSchemaSource, SchemaChoiceError
 
+    if not _schema_paths and _provider is not None:
+        found = _provider(version)
+        if found is None:
+            raise JsonFormError(f"the registry has no HCDF schema for version {version}", file=source)
+        name, data = found
+        return _build(name, hashlib.sha256(data).hexdigest(), data, None)
     if not _schema_paths:
         raise JsonFormError(
             "HCDF's JSON form is read through the HCDF schema, and none was given: "
@@ -183,15 +200,30 @@ def form_for(version: str | None, *, source: str) -> Form:
     if cached is not None:
         return cached
     path, data = _schema_bytes(chosen.name, chosen.sha256)
+    return _build(chosen.name, chosen.sha256, data, path.parent)
+
+
+def _build(name: str, sha256: str, data: bytes, base: Path | None) -> Form:
+    """xmlschema's model of an XSD (cached by content). Its imports and includes, if any, are
+    read only from inside ``base`` (none at all without one); nothing from the network."""
+    with _forms_lock:
+        cached = _forms.get(sha256)
+    if cached is not None:
+        return cached
     import xmlschema
 
     try:
-        xsd = xmlschema.XMLSchema10(data.decode("utf-8"), base_url=str(path.parent), allow="sandbox", defuse="always")
+        xsd = xmlschema.XMLSchema10(
+            data.decode("utf-8"),
+            base_url=str(base) if base is not None else None,
+            allow="sandbox" if base is not None else "none",
+            defuse="always",
+        )
     except (xmlschema.XMLSchemaException, UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"xmlschema cannot build {chosen.name}: {exc}", file=chosen.name) from None
-    form = Form(name=chosen.name, sha256=chosen.sha256, xsd=xsd)
+        raise InputError(f"xmlschema cannot build {name}: {exc}", file=name) from None
+    form = Form(name=name, sha256=sha256, xsd=xsd)
     with _forms_lock:
-        _forms[chosen.sha256] = form
+        _forms[sha256] = form
         while len(_forms) > 4:
             _forms.popitem(last=False)
     return form
