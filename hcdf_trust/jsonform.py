@@ -55,7 +55,9 @@ SCHEMA_ENV = "HCDF_TRUST_SCHEMA"
 REFERENCE_ATTRIBUTES = frozenset(("uri", "href", "sha"))
 REFERENCE_TEXTS = frozenset(("hash", "firmware-manifest-uri"))
 _JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
-_NCNAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*")
+# An XML name without a colon that is not reserved (xmlns, xml:..., anything starting "xml"
+# is the XML specification's): a key that is not one cannot be an element or attribute.
+_NCNAME = re.compile(r"(?![Xx][Mm][Ll])[A-Za-z_][A-Za-z0-9_.\-]*")
 _NUMERIC = frozenset(("decimal", "double", "float"))
 _XML_SPACE = " \t\r\n"
 

@@ -251,6 +251,8 @@ HOSTILE = {
         {"hcdf": {"version": 1.0, "name": "r", "comp": {"name": "c", "extension": {"domain": "d", "version": 1.10}}}}
     ).replace("1.1", "1.10"),
     "two top-level keys": json.dumps({**GOOD, "x": {}}),
+    # vendor content is walked outside <comp>: an xmlns there would move the element into a namespace
+    "xmlns in vendor content": json.dumps(VENDOR).replace('"version": "1"', '"version": "1", "v": {"xmlns": "urn:x"}'),
     "not an object": "[]",
 }
 
@@ -333,3 +335,16 @@ def test_the_converter_refuses_an_unknown_key_in_the_library_too():
     with pytest.raises(InputError) as exc:
         Document.from_bytes(_with({"uri": "m.glb", "shaa": "x"}).encode(), source="r.json")
     assert exc.value.line is not None and str(exc.value.line) == "/hcdf/comp/visual/model/shaa"
+
+
+def test_ota_update_hcdf_refuses_to_edit_a_json_document():
+    from hcdf_trust.ota.hcdf_edit import replace_text
+
+    text = json.dumps(
+        {"hcdf": {"version": 1.0, "name": "r", "comp": {"name": "c", "software": {"name": "fw", "hash": "ab" * 32}}}}
+    )
+    doc = Document.from_bytes(text.encode(), source="r.json")
+    with pytest.raises(InputError) as exc:
+        replace_text(doc, doc.root.find("comp/software/hash"), "cd" * 32)
+    assert "does not edit in place" in exc.value.message and "hcdf-trust convert r.json r.hcdf" in exc.value.message
+    assert str(exc.value.line) == "/hcdf/comp/software/hash"
