@@ -322,6 +322,17 @@ class _Builder:
     def member(
         self, el: etree._Element, name: str, key: str, item: Any, content: _Content | None, pointer: str, *, root: bool
     ) -> None:
+        try:
+            self._member(el, name, key, item, content, pointer, root=root)
+        except ValueError as exc:  # lxml: a character XML does not allow (U+0000, U+FFFE, lone controls)
+            raise self.fail(pointer_join(pointer, key), f"{key!r}: {exc}") from None
+
+    def _member(
+        self, el: etree._Element, name: str, key: str, item: Any, content: _Content | None, pointer: str, *, root: bool
+    ) -> None:
+        if type(item) is str and content is not None and key in content.attributes:
+            el.set(key, item)  # the common case: an attribute written as a string (no Pointer needed)
+            return
         here = pointer_join(pointer, key)
         if key == TEXT:
             if content is not None and content.text is None:

@@ -251,6 +251,10 @@ HOSTILE = {
         {"hcdf": {"version": 1.0, "name": "r", "comp": {"name": "c", "extension": {"domain": "d", "version": 1.10}}}}
     ).replace("1.1", "1.10"),
     "two top-level keys": json.dumps({**GOOD, "x": {}}),
+    "a NUL character in a uri": _with({"uri": "m.glb\u0000.x"}),
+    "a control character in vendor text": json.dumps(VENDOR).replace(
+        '"version": "1"', '"version": "1", "v": "\\u0001"'
+    ),
     # vendor content is walked outside <comp>: an xmlns there would move the element into a namespace
     "xmlns in vendor content": json.dumps(VENDOR).replace('"version": "1"', '"version": "1", "v": {"xmlns": "urn:x"}'),
     "not an object": "[]",
