@@ -26,9 +26,9 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     The JSON form drops comments and the order between differently named elements: see
     docs/json-form.md.
     """
+    from ..document import is_json_form
     from ..include.locate import display_path
     from ..jsonform import convert as do_convert
-    from ..jsonform import is_json
     from ..localfile import absolute
     from ..outputs import DOCUMENT, ORDINARY, OutputPlan
     from ..validate.includes import read_local
@@ -38,7 +38,7 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     plan = OutputPlan()
     plan.protect(path, what="the input document")
     data = read_local(path, os.path.dirname(path), source=shown)
-    to = "xml" if is_json(data) else "json"
+    to = "xml" if is_json_form(data) else "json"
     if dest != "-" and dest.lower().endswith(".json") != (to == "json"):
         wanted = "a name ending in .json" if to == "json" else "a name not ending in .json (.hcdf)"
         raise click.UsageError(
