@@ -7,14 +7,14 @@ import os
 import click
 
 from ..errors import counted
-from . import SCHEMA_OPTION, emit_json, handle_errors, say
+from . import JSON_OPTION, SCHEMA_OPTION, emit_json, handle_errors, say
 
 
 @click.command()
 @click.argument("source", metavar="IN", type=click.Path(dir_okay=False))
 @click.argument("dest", metavar="OUT", type=click.Path(dir_okay=False, allow_dash=True))
 @SCHEMA_OPTION
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@JSON_OPTION
 @handle_errors
 def convert(source: str, dest: str, as_json: bool) -> None:
     """Convert IN (XML, or HCDF's JSON form) to the other form, written to OUT (- for stdout).
@@ -33,6 +33,8 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     from ..outputs import DOCUMENT, ORDINARY, OutputPlan
     from ..validate.includes import read_local
 
+    if as_json and dest == "-":
+        raise click.UsageError("--json and OUT - would both write to stdout: name an OUT file")
     path = absolute(source)
     shown = display_path(path)
     plan = OutputPlan()
