@@ -663,6 +663,12 @@ def resolve(
     if update and kw["locked"]:
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
+    from ..bundle import is_bundle
+
+    if is_bundle(doc):  # its pins are in it: it has no lock to write, and it is already flat
+        if out or update:
+            raise click.UsageError(f"{'--out' if out else '--update'} does not apply to a bundle ({doc})")
+        no_lock = True
     no_lock = no_lock or options.locked
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=options.offline, persist=True)
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
@@ -674,7 +680,8 @@ def resolve(
     # An output that already holds exactly these bytes is left alone (if_changed): a
     # rebuild over an unchanged tree touches no file, so a build system sees nothing new.
     if no_lock:
-        plan.protect(res.lock_path, what="the lock file")
+        if res.bundle is None:
+            plan.protect(res.lock_path, what="the lock file")
     else:
         plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
     if out:
@@ -713,17 +720,20 @@ def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str
     """
     from ..include.resolver import ResolveOptions
 
-    options = ResolveOptions(locked=True, offline=True, write_cache=False, **kw)
+    options = ResolveOptions(**kw)
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
-    res = _run_resolve(doc, options, as_json=as_json, registry=registry)
+    res = _run_resolve(doc, options, as_json=as_json, registry=registry, verifying=True)
     _report(res, as_json=as_json, wrote=[])
 
 
-def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None) -> Any:
-    from ..include.resolver import resolve as do_resolve
+def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None, verifying: bool = False) -> Any:
+    """The library's resolve (or, ``verifying``, its verify: locked, offline, no cache writes),
+    with a progress bar, then the registry checks; exits on any error."""
+    from ..include.resolver import resolve, verify
 
+    run = verify if verifying else resolve
     with _progress(enabled=not as_json) as (on_start, on_progress):
-        res = do_resolve(doc, options, on_start=on_start, on_progress=on_progress)
+        res = run(doc, options, on_start=on_start, on_progress=on_progress)
     if res.ok and registry is not None:  # a step after resolution: the tree verified, now its registry checks
         errors, warnings = registry.check(res, cache_dir=options.cache_dir)
         res.errors += errors
@@ -866,6 +876,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 # it building pin's and validate's options). Name -> (module, attribute).
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
+    "bundle": (".bundle", "bundle"),
     "convert": (".convert", "convert"),
     "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),

@@ -86,12 +86,18 @@ def validate_document(
         tree, source = doc.tree, doc.source
     else:
         path = Path(absolute(doc))
-        data = read_local(path, path.parent, source=display_path(path))
-        stub = link_stub_target(path, data)  # a symlink checked out as a plain file
-        if stub is not None:
-            path = stub
+        from ..bundle import is_bundle, read_root_entry
+
+        if is_bundle(path):  # its root entry, read from the checked archive; a bundle has no includes
+            source, data = read_root_entry(path)
+            path = None
+        else:
             data = read_local(path, path.parent, source=display_path(path))
-        source = display_path(path)
+            stub = link_stub_target(path, data)  # a symlink checked out as a plain file
+            if stub is not None:
+                path = stub
+                data = read_local(path, path.parent, source=display_path(path))
+            source = display_path(path)
         doc = Document.parse(data, source=source)  # XML or the JSON form
         tree = doc.tree
     root = tree.getroot()
