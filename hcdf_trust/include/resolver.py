@@ -754,9 +754,13 @@ class _Run:
         if loc.path is not None:
             root = loc.root or os.path.dirname(loc.path)
             if keep:  # an include: hash and parse the very same bytes
-                data = self.folders.read(
-                    loc.path, root, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
-                )
+                if self.bundle is not None:
+                    data = self.bundle.read(
+                        loc.path, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
+                    )
+                else:
+                    with open_local(loc.path, root, file=file, line=line) as fd:
+                        data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
                 hashed = self.folders.hash(loc.path, root, file=file, line=line)
