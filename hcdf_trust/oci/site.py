@@ -22,7 +22,8 @@ from ..errors import DigestMismatchError, HcdfTrustError, InputError
 from ..localfile import open_checked
 from .client import MANIFEST_TYPE, RegistryClient, sha256_digest
 from .reference import Reference
-from .release import EMPTY_DESCRIPTOR, ArtifactError, _Layer, check_manifest, push_blobs
+from .referrers import EMPTY_DESCRIPTOR
+from .release import ArtifactError, _Layer, check_manifest, push_blobs
 
 SITE_TYPE = "application/vnd.hcdf.registry.site.v1"
 METADATA_TYPE = "application/vnd.hcdf.tuf.metadata.v1+json"
