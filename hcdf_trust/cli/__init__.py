@@ -199,6 +199,23 @@ MIRROR_OPTION = click.option(
 )
 OFFLINE_HELP = "Use only local files, mirrors and the cache; never open a socket."
 JSON_OPTION = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+# Every verb that talks https (a registry, a site, --previous, an online tree) trusts the same
+# extra CAs, named the same way; the environment variable is the fallback of the flag.
+CA_BUNDLE_OPTION = click.option(
+    "--ca-bundle",
+    type=click.Path(dir_okay=False, exists=True),
+    envvar="HCDF_TRUST_CA_BUNDLE",
+    help="PEM file of CA certificates to trust for https, besides the system's (a loopback OCI registry "
+    "then speaks https too) [env: HCDF_TRUST_CA_BUNDLE].",
+)
+INSECURE_REGISTRY_OPTION = click.option(
+    "--insecure-registry",
+    "insecure_registries",
+    multiple=True,
+    metavar="HOST[:PORT]",
+    help="Talk plain http to this OCI registry (loopback hosts need no flag; never credentials "
+    "off this machine). Repeatable.",
+)
 _LOCATION_KEYS = ("base", "mirrors", "root")
 _TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
 
@@ -327,12 +344,7 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
             show_default=True,
             help="Parallel network fetches (local hashing uses one thread per core).",
         ),
-        click.option(
-            "--ca-bundle",
-            type=click.Path(dir_okay=False, exists=True),
-            envvar="HCDF_TRUST_CA_BUNDLE",
-            help="PEM file of CA certificates to trust for https [env: HCDF_TRUST_CA_BUNDLE].",
-        ),
+        CA_BUNDLE_OPTION,
         click.option(
             "--timeout",
             type=TIMEOUT,

@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, handle_errors, say, tree_options
+from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .params import source_date_epoch_option
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
@@ -92,12 +92,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     is_flag=True,
     help="Accept a --previous without a signed manifest; its latest.json history is taken on your word.",
 )
-@click.option(
-    "--ca-bundle",
-    type=click.Path(dir_okay=False, exists=True),
-    envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for https (--previous, --online) [env: HCDF_TRUST_CA_BUNDLE].",
-)
+@CA_BUNDLE_OPTION
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
 @click.option(
@@ -209,12 +204,7 @@ def build(
     is_flag=True,
     help="Accept a --previous without a signed manifest; its latest.json entries are taken on your word.",
 )
-@click.option(
-    "--ca-bundle",
-    type=click.Path(dir_okay=False, exists=True),
-    envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for an https --previous [env: HCDF_TRUST_CA_BUNDLE].",
-)
+@CA_BUNDLE_OPTION
 @click.option(
     "--provenance", is_flag=True, help="Also verify provenance.intoto.json (signed by --key and --provenance-key)."
 )
@@ -299,21 +289,8 @@ def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tupl
 
 
 def _registry_options(func: Any) -> Any:
-    """``--ca-bundle`` and ``--insecure-registry``, the same for push and pull."""
-    func = click.option(
-        "--insecure-registry",
-        "insecure_registries",
-        multiple=True,
-        metavar="HOST[:PORT]",
-        help="Talk plain http to this registry (loopback hosts need no flag). Repeatable.",
-    )(func)
-    return click.option(
-        "--ca-bundle",
-        type=click.Path(dir_okay=False, exists=True),
-        envvar="HCDF_TRUST_CA_BUNDLE",
-        help="PEM CA certificates for the registry's TLS (a loopback registry then speaks https too) "
-        "[env: HCDF_TRUST_CA_BUNDLE].",
-    )(func)
+    """``--ca-bundle`` and ``--insecure-registry``, the same for every verb that talks to a registry."""
+    return CA_BUNDLE_OPTION(INSECURE_REGISTRY_OPTION(func))
 
 
 def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], push: bool, need_tag: bool) -> Any:
