@@ -106,8 +106,14 @@ def test_docker_config_auths(cli, auth_registry, release, monkeypatch, tmp_path)
 @pytest.mark.parametrize("mode", [0o644, 0o640, 0o604, 0o620, 0o602])
 @pytest.mark.parametrize("entry", [{"auth": B64}, {"username": USER, "password": PASSWORD}, {"identitytoken": "tok"}])
 def test_docker_config_holding_credentials_readable_by_others_is_refused(
-    cli, auth_registry, release, monkeypatch, tmp_path, mode, entry
-):  # noqa: F811
+    cli,
+    auth_registry,  # noqa: F811
+    release,
+    monkeypatch,
+    tmp_path,
+    mode,
+    entry,
+):
     """ssh's rule for a key file: a password others can read is no longer a secret (refused
     whichever registry it is for), and a config others can write is not ours."""
     robot, rel = release
@@ -128,8 +134,14 @@ def test_docker_config_holding_credentials_readable_by_others_is_refused(
 
 @pytest.mark.parametrize("mode,ok", [(0o644, True), (0o620, False)])
 def test_docker_config_without_credentials_may_be_readable_not_writable(
-    cli, registry, release, monkeypatch, tmp_path, mode, ok
-):  # noqa: F811
+    cli,
+    registry,  # noqa: F811
+    release,
+    monkeypatch,
+    tmp_path,
+    mode,
+    ok,
+):
     robot, rel = release
     folder = tmp_path / "docker"
     folder.mkdir()

@@ -354,7 +354,7 @@ def pull_release(
     """Steps 1–6 above. ``provenance_keys``: who else may sign the provenance (``--key``
     always may), ``threshold`` signatures needed; ``require_provenance``: none is an error.
     Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
-    from ..outputs import OutputPlan
+    from ..outputs import FileContent, OutputPlan
     from ..store import ContentStore
 
     # 1. the manifest, pinned by the hash of its body
@@ -421,18 +421,17 @@ def pull_release(
             threshold=threshold,
             require_provenance=require_provenance,
         )
-        # 6. into --out, all or nothing
+        # 6. into --out, all or nothing: copied from the staged files (never all in memory),
+        # each copy hashed against the digest it was verified with
         plan = OutputPlan()
         plan.protect(key_path, what="the public key")
         plan.protect_tree(cache_dir, what="the cache")
-        titles = sorted(paths) + ([PROVENANCE_NAME] if checked.provenance else [])
-        for title in titles:
-            plan.add(
-                os.path.join(out_dir, *title.split("/")),
-                Path(staged, *title.split("/")).read_bytes(),
-                flag="--out",
-                under=out_dir,
-            )
+        digests = {x["annotations"][TITLE]: (x["digest"], x["size"]) for x in layers}
+        if checked.provenance is not None:
+            digests[PROVENANCE_NAME] = checked.provenance_blob
+        for title, (blob, size) in sorted(digests.items()):
+            staged_file = FileContent(os.path.join(staged, *title.split("/")), size, blob.split(":", 1)[1])
+            plan.add(os.path.join(out_dir, *title.split("/")), staged_file, flag="--out", under=out_dir)
         wrote = [str(p) for p in plan.commit()]
     finally:
         shutil.rmtree(stage, ignore_errors=True)
@@ -582,6 +581,7 @@ class CheckedReferrers:
     provenance: str | None  # the provenance referrer, verified and staged as provenance.intoto.json
     sboms: list[dict[str, Any]]
     notices: list[Notice]
+    provenance_blob: tuple[str, int] = ("", 0)  # its layer's digest and size
 
 
 def check_referrers(
@@ -645,6 +645,7 @@ def check_referrers(
             actual=", ".join(r.digest for r in provenances),
         )
     provenance = None
+    blob = ("", 0)
     if provenances:
         chosen = provenances[0]
         data = fetch_layer(client, chosen, limit=MAX_ENVELOPE_BYTES)
@@ -654,6 +655,7 @@ def check_referrers(
         if errors:
             raise _group(errors)
         provenance = chosen.digest
+        blob = (chosen.layer["digest"], chosen.layer["size"])
     elif require_provenance:
         raise ReferrerError(
             f"{digest}: no provenance referrer is listed (--require-provenance)",
@@ -665,7 +667,7 @@ def check_referrers(
         for r in found
         if r.artifact_type == SBOM_TYPE
     ]
-    return CheckedReferrers(signatures, provenance, sboms, notices)
+    return CheckedReferrers(signatures, provenance, sboms, notices, blob)
 
 
 def _group(errors: list[HcdfTrustError]) -> HcdfTrustError:
