@@ -312,7 +312,15 @@ registry_options = _registry_options(urls=True)
 offline_registry_options = _registry_options(urls=False)
 
 
-def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offline: bool, persist: bool) -> Any:
+def _registry(
+    site: str | None,
+    trusted_root: str | None,
+    *,
+    strict: bool,
+    offline: bool,
+    persist: bool,
+    ca_bundle: str | None = None,
+) -> Any:
     if site is None:
         if trusted_root is not None:
             raise click.UsageError("--trusted-root goes with --registry")
@@ -323,7 +331,7 @@ def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offli
         raise click.UsageError(f"--registry {site!r} is a URL, and this run is offline: give a folder copy of the site")
     from ..registry.resolution import RegistryCheck
 
-    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist)
+    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist, ca_bundle=ca_bundle)
 
 
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -648,7 +656,14 @@ def resolve(
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
     no_lock = no_lock or options.locked
-    registry = _registry(registry_site, trusted_root, strict=options.strict, offline=options.offline, persist=True)
+    registry = _registry(
+        registry_site,
+        trusted_root,
+        strict=options.strict,
+        offline=options.offline,
+        persist=True,
+        ca_bundle=options.ca_bundle,
+    )
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     # Every output is checked against every input before any is written; all land or none.
     plan = OutputPlan()
