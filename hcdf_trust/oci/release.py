@@ -1,11 +1,12 @@
 """``ota push`` / ``ota pull``: one release folder as one OCI 1.1 artifact, verified on every pull.
 
-The artifact (README, "ota push / pull"): an image manifest with ``artifactType``
+The artifact (docs/oci.md): an image manifest with ``artifactType``
 :data:`RELEASE_TYPE`, the empty config, one layer per release file (its media type below and
 its path in the release folder as ``org.opencontainers.image.title``), annotations naming each
 image's board, app, version and MCUboot hash, and the lock and root digests on the manifest.
-The signed SUIT envelope is also attached as a referrer (``subject`` = the release manifest),
-listed through the referrers API or, where the registry has none, the ``sha256-<hex>`` tag.
+The signed SUIT envelope, the provenance (when the folder has one) and each SBOM given are
+attached as referrers (``subject`` = the release manifest, :mod:`.referrers`), listed through
+the referrers API or, where the registry has none, the ``sha256-<hex>`` tag.
 
 ``pull`` trusts nothing the registry says; in order:
 
@@ -19,7 +20,9 @@ listed through the referrers API or, where the registry has none, the ``sha256-<
 4. The files are laid out in a private staging folder and ``ota verify`` runs there with the
    public key (signature, every image, latest.json, ``--previous``): a title the signed manifest
    does not account for is refused; the layer annotations must say what the signed manifest says.
-5. The SUIT referrers must point at this release and hold this release's envelope.
+5. The referrers must point at this release: the SUIT ones hold this release's envelope, a
+   provenance is fetched, hashed and verified as ``ota verify --provenance`` does (required
+   with ``require_provenance``), SBOMs are listed.
 6. Only then is the release written into ``--out`` through one OutputPlan (all or nothing).
 """
 
