@@ -613,8 +613,6 @@ def check_referrers(
     Raises:
         ReferrerError / DigestMismatchError / ProvenanceError: see :mod:`.referrers` (exit 1).
     """
-    from ..provenance.dsse import MAX_ENVELOPE_BYTES
-    from ..provenance.verify import verify_provenance
     from .referrers import (
         CYCLONEDX_TYPE,
         DSSE_TYPE,
@@ -655,6 +653,9 @@ def check_referrers(
     provenance = None
     blob = ("", 0)
     if provenances:
+        from ..provenance.dsse import MAX_ENVELOPE_BYTES  # (imported only for a release that has one)
+        from ..provenance.verify import verify_provenance
+
         chosen = provenances[0]
         data = fetch_layer(client, chosen, limit=MAX_ENVELOPE_BYTES)
         with open(os.path.join(staged, PROVENANCE_NAME), "xb") as f:  # our private staging folder
