@@ -276,3 +276,16 @@ def test_verify_of_a_bundle_checks_its_stream_profile_entry_against_the_registry
         if code:
             assert [e["code"] for e in res.json["errors"]] == ["stream-profile-digest"]
             assert f"{name}.hcdfz/assets/op.streams_" in res.json["errors"][0]["url"]
+
+
+def test_an_https_registry_is_trusted_through_resolves_ca_bundle(cli, published, tmp_path, serve, tls, monkeypatch):
+    """resolve's --ca-bundle means for --registry what it means for every other https fetch."""
+    monkeypatch.delenv("HCDF_TRUST_CA_BUNDLE", raising=False)
+    reg, _ = published
+    site = serve("good", root=reg.site)
+    doc = _robot(tmp_path, extension=_ros2())
+    r = _resolve(cli, published, doc, "--ca-bundle", tls.ca_pem, site=site.url("/"))
+    assert r.exit_code == 0, r.stderr
+    (tmp_path / "robot.hcdf.lock").unlink()
+    r = _resolve(cli, published, doc, site=site.url("/"))
+    assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.json["errors"][0]["message"], r.stdout

@@ -6,7 +6,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, say, tree_options
+from . import CA_BUNDLE_OPTION, emit_json, handle_errors, say, tree_options
 
 
 @click.command()
@@ -20,12 +20,7 @@ from . import emit_json, handle_errors, say, tree_options
     show_default=True,
     help="Most elements the bundled document may have once every include is expanded.",
 )
-@click.option(
-    "--ca-bundle",
-    type=click.Path(dir_okay=False),
-    envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for https (--online) [env: HCDF_TRUST_CA_BUNDLE].",
-)
+@CA_BUNDLE_OPTION
 @click.option(
     "--json", "as_json", is_flag=True, help="Print one JSON object on stdout: ok, bundle, sha256, size, entries, wrote."
 )

@@ -4,4 +4,6 @@
 - :mod:`.auth`: credentials (Docker config file, credential helpers, environment), never argv.
 - :mod:`.client`: a thin httpx client over the distribution-spec endpoints.
 - :mod:`.release`: ``ota push`` / ``ota pull``.
+- :mod:`.referrers`: the SUIT, provenance and SBOM referrers of a release manifest.
+- :mod:`.site`: the TUF registry site (``registry publish --oci``, ``registry verify|fetch oci://``).
 """

@@ -26,6 +26,7 @@ every violation:
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,7 +54,8 @@ class ReleaseFiles:
 
     manifest: bytes
     manifest_source: str
-    images: dict[str, bytes | None] = field(default_factory=dict)  # relative path -> bytes (None: missing)
+    # relative path -> bytes (None: missing), read when looked up (ota.release.FolderImages)
+    images: Mapping[str, bytes | None] = field(default_factory=dict)
     latest: dict[str, bytes] = field(default_factory=dict)  # "board/app/latest.json" -> bytes
     rendering: bytes | None = None  # release.suit.json, the unsigned rendering for people
     # Images whose size is not the signed one, left unread: relative path -> size on disk.
@@ -61,12 +63,15 @@ class ReleaseFiles:
     # The earlier releases this key signed (release.history, then --previous), newest first,
     # and the bytes of their images still in the folder (None: not read, its size is wrong).
     history: tuple[suit.Release, ...] = ()
-    history_images: dict[str, bytes | None] = field(default_factory=dict)
+    history_images: Mapping[str, bytes | None] = field(default_factory=dict)
     # latest.json entries taken on the user's word (--import-unsigned-history): (board, app) -> entries
     unsigned: dict[tuple[str, str], tuple[latest_json.Entry, ...]] = field(default_factory=dict)
     unaccounted: tuple[str, ...] = ()  # files and folders that no signed release accounts for
     linked: tuple[str, ...] = ()  # folders that are symlinks
     previous: suit.Release | None = None  # --previous's signed release (rollback: step 6)
+    # SHA-256s the caller already computed from exactly these files' bytes (ota pull: each blob
+    # as it arrived; what lands in --out is hashed against the same digest): not hashed again
+    sha256: Mapping[str, str] = field(default_factory=dict)
 
 
 def image_path(c: suit.Component) -> str:
@@ -401,7 +406,7 @@ def _check_image(
     if not c.uri.endswith(rel):
         return [ReleaseIntegrityError(f"{c.name}: uri does not name {rel}", file=rel, expected=rel, actual=c.uri)]
     errors: list[HcdfTrustError] = []
-    sha = hashlib.sha256(data).hexdigest()
+    sha = files.sha256.get(rel) or hashlib.sha256(data).hexdigest()
     if sha != c.sha256:
         other = by_sha.get(sha)
         why = f" (mix-and-match: it is the image of {other.name})" if other is not None and other is not c else ""
