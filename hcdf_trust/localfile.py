@@ -334,22 +334,55 @@ def read_secret(path: Path | str, *, limit: int, what: str, public_ok: bool = Fa
     fd, st = open_regular(path, file=name, what=what)
     try:
         data = read_bounded(fd, limit, source=name, what=what)
-        mode = stat.S_IMODE(st.st_mode)
-        if mode & 0o077 and not (public_ok and b"PUBLIC KEY-----" in data and b"PRIVATE KEY" not in data):
-            import shlex
-
-            raise SecretFileError(
-                f"permissions {mode:04o} are too open: a {what} must be accessible by its owner only "
-                f"(as ssh requires of a private key); run: chmod 600 {shlex.quote(display_path(name))}",
-                file=name,
-                expected="mode 0600 or 0400",
-                actual=f"mode {mode:04o}",
-            )
+        if not (public_ok and b"PUBLIC KEY-----" in data and b"PRIVATE KEY" not in data):
+            check_private(st, name, what=what)
         return data
     except OSError as exc:
         raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
     finally:
         os.close(fd)
+
+
+def read_private_config(path: Path | str, *, limit: int, what: str) -> tuple[bytes, os.stat_result]:
+    """A configuration file that may hold secrets (the Docker config's ``auths``): its bytes
+    and its ``stat``, for the caller to :func:`check_private` once it knows whether it holds a
+    secret. Refused at once when group or others may *write* it: its settings (which helper
+    runs, which credentials go where) would be theirs.
+
+    Raises:
+        SecretFileError: group- or world-writable. NotFoundError / InputError: as :func:`read_input`.
+    """
+    name = str(path)
+    fd, st = open_regular(path, file=name, what=what)
+    try:
+        data = read_bounded(fd, limit, source=name, what=what)
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read {what}: {exc.strerror}", file=name) from None
+    finally:
+        os.close(fd)
+    check_private(st, name, what=what, mask=0o022)
+    return data, st
+
+
+def check_private(st: os.stat_result, name: str, *, what: str, mask: int = 0o077) -> None:
+    """ssh's rule for a file holding a secret: neither group nor others have access (the bits
+    of ``mask``). The message names the ``chmod`` to run.
+
+    Raises:
+        SecretFileError: a bit of ``mask`` is set in the file's mode.
+    """
+    mode = stat.S_IMODE(st.st_mode)
+    if mode & mask:
+        import shlex
+
+        who = "accessible" if mask == 0o077 else "writable"
+        raise SecretFileError(
+            f"permissions {mode:04o} are too open: a {what} must be {who} by its owner only "
+            f"(as ssh requires of a private key); run: chmod 600 {shlex.quote(display_path(name))}",
+            file=name,
+            expected="mode 0600 or 0400",
+            actual=f"mode {mode:04o}",
+        )
 
 
 class TomlError(InputError):

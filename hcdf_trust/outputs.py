@@ -95,9 +95,23 @@ _LEFTOVER = None  # compiled on first use (re costs start-up)
 _LEFTOVER_PATTERN = r"\..+\.[0-9a-f]{12}\.(?:tmp|old)"
 
 
+class FileContent(NamedTuple):
+    """An output's bytes that are a file already on disk (``ota pull``'s verified blobs): copied
+    at commit a chunk at a time, never held in memory, and refused unless the copy has exactly
+    ``size`` bytes whose SHA-256 is ``sha256`` (the file may have changed since it was checked)."""
+
+    path: str
+    size: int
+    sha256: str
+
+    def read(self) -> bytes:
+        with open(self.path, "rb") as f:
+            return f.read()
+
+
 class _Output(NamedTuple):  # a tuple: a frozen dataclass costs ~1 ms of start-up to define
     path: Path  # the real folder + the name as given (a symlink at the destination is replaced, not followed)
-    data: bytes
+    data: bytes | FileContent
     mode: int
     flag: str  # how the user named it, for messages: "--lock", "--out", ...
     shown: str  # the path as the user gave it
@@ -196,7 +210,7 @@ class OutputPlan:
     def add(
         self,
         path: str | os.PathLike[str],
-        data: bytes,
+        data: bytes | FileContent,
         *,
         flag: str,
         mode: int = 0o644,
@@ -220,13 +234,18 @@ class OutputPlan:
         None is ``(ORDINARY,)`` (never a key, key store, registry source or document);
         ``NEW_ONLY`` is nothing (the destination must not exist).
         ``stdout``: ``path`` ``-`` means standard output. ``folder_mode``: of folders made.
+        ``data`` a :class:`FileContent`: copied from that file at commit (not with ``if_changed``
+        nor to standard output).
 
         Raises:
             OutputError: ``path`` is an input, inside a protected folder, another
                 output of this run, a directory or other non-regular file, under
                 a regular file or a symlinked folder of its tree, or key material.
         """
+        if isinstance(data, FileContent) and (if_changed or stdout):
+            raise ValueError("a FileContent output is written as a new file, not if_changed nor to stdout")
         if stdout and os.fspath(path) == "-":
+            assert isinstance(data, bytes)
             self._stdout.append(data)
             return
         dest, real, shown, base, parts = self._check(path, flag=flag, edit=edit, under=under, replaces=replaces)
@@ -306,7 +325,7 @@ class OutputPlan:
         for o in self._outputs.values():
             rel = os.path.relpath(o.path, root)
             if rel != ".." and not rel.startswith("../"):
-                found[rel.replace(os.sep, "/")] = o.data
+                found[rel.replace(os.sep, "/")] = o.data.read() if isinstance(o.data, FileContent) else o.data
         return found
 
     def commit(self) -> list[Path]:
@@ -731,6 +750,7 @@ def _holds(out: _Output) -> bool:
         fd = os.open(out.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError:  # missing, a symlink (ELOOP), unreadable: written as usual
         return False
+    assert isinstance(out.data, bytes)  # add() refuses if_changed with a FileContent
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode) or stat.S_IMODE(st.st_mode) != out.mode or st.st_size != len(out.data):
@@ -754,15 +774,55 @@ def _stage(out: _Output, dfd: int) -> tuple[int, str]:
     fd, tmp = create_temp(out.path.parent, f".{out.path.name}.", ".tmp", dir_fd=dfd)  # 0600
     try:
         os.fchmod(fd, out.mode)
-        view = memoryview(out.data)
-        while view:
-            view = view[os.write(fd, view) :]
+        if isinstance(out.data, FileContent):
+            _copy(out.data, fd, shown=out.shown)
+        else:
+            view = memoryview(out.data)
+            while view:
+                view = view[os.write(fd, view) :]
     except BaseException:
         os.close(fd)
         with contextlib.suppress(OSError):
             os.unlink(tmp, dir_fd=dfd)
         raise
     return fd, tmp
+
+
+_COPY_CHUNK = 1 << 20
+
+
+def _copy(source: FileContent, fd: int, *, shown: str) -> None:
+    """Copy ``source`` into ``fd`` a chunk at a time, hashing what is written.
+
+    Raises:
+        IntegrityError: the bytes copied are not ``source.size`` bytes of ``source.sha256``.
+        OSError: reading or writing failed.
+    """
+    import hashlib
+
+    from .errors import IntegrityError
+
+    h = hashlib.sha256()
+    size = 0
+    src = os.open(source.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    try:
+        while chunk := os.read(src, _COPY_CHUNK):
+            h.update(chunk)
+            size += len(chunk)
+            if size > source.size:
+                break
+            view = memoryview(chunk)
+            while view:
+                view = view[os.write(fd, view) :]
+    finally:
+        os.close(src)
+    if size != source.size or h.hexdigest() != source.sha256:
+        raise IntegrityError(
+            f"{shown}: its source {display_path(source.path)} changed after it was verified (nothing written)",
+            file=shown,
+            expected=f"{source.sha256} ({source.size} bytes)",
+            actual=f"{h.hexdigest()} ({size}{'+' if size > source.size else ''} bytes)",
+        )
 
 
 def _keep_previous(dfd: int, name: str) -> str | None:

@@ -78,9 +78,8 @@ class Registry:
             r = c.post(f"/v2/{repo}/blobs/uploads/")
             assert r.status_code == 202, r.text
             loc = r.headers["location"]
-            r = c.put(
-                loc, params={"digest": digest}, content=data, headers={"Content-Type": "application/octet-stream"}
-            )
+            sep = "&" if "?" in loc else "?"  # the upload URL's own query (_state) stays
+            r = c.put(f"{loc}{sep}digest={digest}", content=data, headers={"Content-Type": "application/octet-stream"})
             assert r.status_code == 201, r.text
         return digest
 
@@ -171,6 +170,8 @@ def mirror(srv, registry: Registry, repo: str, tag: str, *, referrers_api: bool 
     for entry in json.loads(index)["manifests"]:
         sig, _ = registry.manifest(repo, entry["digest"])
         srv.add(f"/v2/{repo}/manifests/{entry['digest']}", sig, headers={"Content-Type": MANIFEST_TYPE})
+        for layer in json.loads(sig)["layers"]:  # the provenance and SBOM blobs
+            srv.add(f"/v2/{repo}/blobs/{layer['digest']}", registry.blob_path(layer["digest"]).read_bytes())
     if referrers_api:
         srv.add(f"/v2/{repo}/referrers/{digest}", index, headers={"Content-Type": INDEX_TYPE})
     else:

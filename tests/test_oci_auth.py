@@ -96,10 +96,62 @@ def test_docker_config_auths(cli, auth_registry, release, monkeypatch, tmp_path)
     folder = tmp_path / "docker"
     folder.mkdir()
     (folder / "config.json").write_text(json.dumps({"auths": {auth_registry.netloc: {"auth": B64}}}))
+    (folder / "config.json").chmod(0o600)  # as docker login writes it
     monkeypatch.setenv("DOCKER_CONFIG", str(folder))
     r = cli("ota", "push", rel, auth_registry.ref(tag="cfg"), "--json")
     assert r.exit_code == 0, r.stderr
     _secret_free(r)
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o604, 0o620, 0o602])
+@pytest.mark.parametrize("entry", [{"auth": B64}, {"username": USER, "password": PASSWORD}, {"identitytoken": "tok"}])
+def test_docker_config_holding_credentials_readable_by_others_is_refused(
+    cli,
+    auth_registry,  # noqa: F811
+    release,
+    monkeypatch,
+    tmp_path,
+    mode,
+    entry,
+):
+    """ssh's rule for a key file: a password others can read is no longer a secret (refused
+    whichever registry it is for), and a config others can write is not ours."""
+    robot, rel = release
+    folder = tmp_path / "docker"
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps({"auths": {"other.example": entry}}))
+    (folder / "config.json").chmod(mode)
+    monkeypatch.setenv("DOCKER_CONFIG", str(folder))
+    r = cli("ota", "push", rel, auth_registry.ref(tag="cfg"), "--json")
+    assert r.exit_code == 3, r.stderr
+    (err,) = r.json["errors"]
+    assert err["code"] == "secret" and "chmod 600" in err["message"], err
+    _secret_free(r)
+    r = cli("ota", "pull", auth_registry.ref(tag="cfg"), "--key", robot.pub, "--out", tmp_path / "o")
+    assert r.exit_code == 3 and f"permissions 0{mode:o} are too open" in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("mode,ok", [(0o644, True), (0o620, False)])
+def test_docker_config_without_credentials_may_be_readable_not_writable(
+    cli,
+    registry,  # noqa: F811
+    release,
+    monkeypatch,
+    tmp_path,
+    mode,
+    ok,
+):
+    robot, rel = release
+    folder = tmp_path / "docker"
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps({"auths": {}, "credHelpers": {"other.example": "x"}}))
+    (folder / "config.json").chmod(mode)
+    monkeypatch.setenv("DOCKER_CONFIG", str(folder))
+    r = cli("ota", "push", rel, registry.ref(tag="readable"))
+    assert (r.exit_code == 0) is ok, r.stderr
+    if not ok:
+        assert "must be writable by its owner only" in r.stderr, r.stderr
 
 
 def test_docker_config_with_duplicate_keys_is_refused(cli, auth_registry, release, monkeypatch, tmp_path):  # noqa: F811

@@ -152,3 +152,50 @@ def test_a_release_with_history_pulls_and_verifies(cli, registry, tmp_path):  # 
     r = cli("ota", "pull", ref, "--key", robot.pub, "--out", pulled)
     assert r.exit_code == 0, r.stderr
     assert cli("ota", "verify", pulled, "--key", robot.pub).exit_code == 0
+
+
+def test_large_blobs_go_as_chunked_patches(cli, registry, release, tmp_path, monkeypatch):  # noqa: F811
+    """Above CHUNK_BYTES a blob is uploaded as PATCHes with Content-Range, then a closing PUT;
+    the real registry reassembles it byte for byte, and the pull verifies."""
+    from hcdf_trust.oci import client as oci_client
+
+    robot, out = release
+    monkeypatch.setattr(oci_client, "CHUNK_BYTES", 3000)  # the images are 5-10 kB: 2-4 parts each
+    sent: list[tuple[str, str]] = []
+    real = oci_client.RegistryClient.request
+
+    def spy(self, method, url, **kw):
+        if method in ("PATCH", "PUT") and "/blobs/uploads/" in url:
+            sent.append((method, (kw.get("headers") or {}).get("Content-Range", "")))
+        return real(self, method, url, **kw)
+
+    monkeypatch.setattr(oci_client.RegistryClient, "request", spy)
+    r = cli("ota", "push", out, registry.ref("chunked/scout", "1"), "--key", robot.pub)
+    assert r.exit_code == 0, r.stderr
+    patches = [rng for m, rng in sent if m == "PATCH"]
+    assert "0-2999" in patches and "3000-5999" in patches, sent
+    image = next(p for p in sorted(out.rglob("*.bin")) if p.stat().st_size > 6000)
+    digest = "sha256:" + hashlib.sha256(image.read_bytes()).hexdigest()
+    assert registry.blob_path(digest).read_bytes() == image.read_bytes()
+    dest = tmp_path / "pulled"
+    r = cli("ota", "pull", registry.ref("chunked/scout", "1"), "--key", robot.pub, "--out", dest)
+    assert r.exit_code == 0, r.stderr
+    assert tree(dest) == tree(out)
+
+
+def test_parts_split_a_stream_exactly():
+    from hcdf_trust.oci.client import RegistryError, _Parts
+
+    data = bytes(range(256)) * 40
+    chunks = [data[i : i + 777] for i in range(0, len(data), 777)]
+    parts = _Parts(iter(chunks))
+    got = [b"".join(parts.next(n)) for n in (1000, 1000, 1000, len(data) - 3000)]
+    parts.end()
+    assert b"".join(got) == data and [len(g) for g in got[:3]] == [1000, 1000, 1000]
+    short = _Parts(iter([b"abc"]))
+    with pytest.raises(RegistryError, match="ended 2 bytes before"):
+        b"".join(short.next(5))
+    long = _Parts(iter([b"abcdef"]))
+    b"".join(long.next(5))
+    with pytest.raises(RegistryError, match="longer than its declared size"):
+        long.end()

@@ -89,3 +89,63 @@ def test_release_is_not_a_site(cli, site, registry):  # noqa: F811
     registry.put_manifest(REPO, "release", json.dumps(doc).encode())
     r = reg.verify(registry.ref(REPO, "release"), cache="c6")
     assert r.exit_code == 3 and "not an hcdf-trust registry site" in r.stderr, r.stderr
+
+
+def test_tls_registry_and_https_site_trust_the_ca_bundle_only(cli, tmp_path, monkeypatch, tls, serve, tmp_path_factory):
+    """--ca-bundle on publish --oci, verify and fetch, over a TLS registry (distribution with a
+    test CA's certificate) and over an https site: trusted through it, refused without it."""
+    from tests._oci import running_registry
+
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    monkeypatch.delenv("HCDF_TRUST_CA_BUNDLE", raising=False)
+    reg = build(tmp_path, cli)
+    folder = tmp_path_factory.mktemp("registry-tls")
+    cert = tls.ca.issue_cert("127.0.0.1")
+    cert.cert_chain_pems[0].write_to_path(str(folder / "cert.pem"))
+    cert.private_key_pem.write_to_path(str(folder / "key.pem"))
+    other = tmp_path / "other-ca.pem"
+    tls.other_ca.cert_pem.write_to_path(str(other))
+    with running_registry(folder, tls=(folder / "cert.pem", folder / "key.pem")) as oci:
+        ref = oci.ref(REPO, "v1")
+        r = reg.publish("--oci", ref, "--ca-bundle", tls.ca_pem, "--json")
+        assert r.exit_code == 0, r.stderr
+        r = cli("registry", "verify", ref, "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c1",
+                "--ca-bundle", tls.ca_pem)  # fmt: skip
+        assert r.exit_code == 0, r.stderr
+        out = tmp_path / "ros2.xsd"
+        r = cli("registry", "fetch", "org.ros2", "--from", ref, "--trusted-root", reg.root_json,
+                "--cache-dir", tmp_path / "c2", "-o", out, "--ca-bundle", tls.ca_pem)  # fmt: skip
+        assert r.exit_code == 0, r.stderr
+        assert out.read_bytes() == ROS2_XSD.read_bytes()
+        # the same through the environment variable (the flag's fallback)
+        monkeypatch.setenv("HCDF_TRUST_CA_BUNDLE", str(tls.ca_pem))
+        r = cli("registry", "verify", ref, "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c3")
+        assert r.exit_code == 0, r.stderr
+        monkeypatch.delenv("HCDF_TRUST_CA_BUNDLE")
+        r = cli("registry", "verify", ref, "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c4",
+                "--ca-bundle", other)  # fmt: skip
+        assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.stderr, r.stderr
+    # an https site (python-tuf's urllib3 fetcher) trusts the same bundle
+    site = serve("good", root=reg.site)
+    r = cli("registry", "verify", site.url("/"), "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c5",
+            "--ca-bundle", tls.ca_pem)  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    r = cli("registry", "verify", site.url("/"), "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c6")
+    assert r.exit_code == 3, r.stderr
+
+
+def test_ca_bundle_and_insecure_registry_mean_the_same_in_every_verb():
+    """One option object per flag: same help, type and environment variable everywhere."""
+    from tests.test_flags_uniform import VERBS, _option
+
+    tls_verbs = ["ota build", "ota verify", "ota push", "ota pull", "registry publish", "registry verify",
+                 "registry fetch", "resolve", "pin"]  # fmt: skip
+    for verb in tls_verbs:
+        opt = _option(VERBS[verb], "--ca-bundle")
+        assert opt is not None, verb
+        assert (opt.help, opt.envvar) == (_option(VERBS["ota pull"], "--ca-bundle").help, "HCDF_TRUST_CA_BUNDLE")
+    for verb in ("ota push", "ota pull", "registry publish", "registry verify", "registry fetch"):
+        opt = _option(VERBS[verb], "--insecure-registry")
+        assert opt is not None and opt.multiple, verb
+    helps = {v: _option(c, "--ca-bundle").help for v, c in VERBS.items() if _option(c, "--ca-bundle") is not None}
+    assert len(set(helps.values())) == 1, helps

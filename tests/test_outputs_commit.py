@@ -84,3 +84,32 @@ def test_more_outputs_than_are_held_open_at_once(tmp_path, monkeypatch):
     plan.commit()
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == sorted(f"{i}.bin" for i in range(8))
     assert all((tmp_path / f"d{i % 2}" / f"{i}.bin").read_bytes() == bytes([i]) * 10 for i in range(8))
+
+
+def test_file_content_is_copied_hashed_and_refused_when_changed(tmp_path):
+    """FileContent (ota pull's staged blobs): copied chunk by chunk at commit, never held whole;
+    a source whose bytes are no longer the ones verified fails the commit with nothing written."""
+    import hashlib
+
+    from hcdf_trust.errors import IntegrityError
+    from hcdf_trust.outputs import FileContent
+
+    data = os.urandom(3 << 20)  # several copy chunks
+    src = tmp_path / "blob"
+    src.write_bytes(data)
+    good = FileContent(str(src), len(data), hashlib.sha256(data).hexdigest())
+    plan = OutputPlan()
+    plan.add(tmp_path / "out" / "a.bin", good, flag="--out", under=tmp_path / "out")
+    plan.add(tmp_path / "out" / "b.txt", b"small", flag="--out", under=tmp_path / "out")
+    plan.commit()
+    assert (tmp_path / "out" / "a.bin").read_bytes() == data
+    for changed in (data[:-1] + bytes([data[-1] ^ 1]), data + b"x", data[:-1]):
+        src.write_bytes(changed)
+        plan = OutputPlan()
+        plan.add(tmp_path / "out2" / "b.txt", b"small", flag="--out", under=tmp_path / "out2")
+        plan.add(tmp_path / "out2" / "a.bin", good, flag="--out", under=tmp_path / "out2")
+        with pytest.raises(IntegrityError, match="changed after it was verified"):
+            plan.commit()
+        assert not (tmp_path / "out2").exists()
+    with pytest.raises(ValueError):
+        OutputPlan().add(tmp_path / "x", good, flag="--out", if_changed=True)

@@ -259,3 +259,16 @@ def test_a_tampered_registry_is_an_attack(cli, published, tmp_path):
     res = cli("resolve", doc, "--registry", site, "--trusted-root", reg.root_json)
     assert res.exit_code == 1 and "arbitrary content" in res.stderr
     assert not (tmp_path / "r" / "robot.hcdf.lock").exists()
+
+
+def test_an_https_registry_is_trusted_through_resolves_ca_bundle(cli, published, tmp_path, serve, tls, monkeypatch):
+    """resolve's --ca-bundle means for --registry what it means for every other https fetch."""
+    monkeypatch.delenv("HCDF_TRUST_CA_BUNDLE", raising=False)
+    reg, _ = published
+    site = serve("good", root=reg.site)
+    doc = _robot(tmp_path, extension=_ros2())
+    r = _resolve(cli, published, doc, "--ca-bundle", tls.ca_pem, site=site.url("/"))
+    assert r.exit_code == 0, r.stderr
+    (tmp_path / "robot.hcdf.lock").unlink()
+    r = _resolve(cli, published, doc, site=site.url("/"))
+    assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.json["errors"][0]["message"], r.stdout

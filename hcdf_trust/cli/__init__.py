@@ -199,6 +199,23 @@ MIRROR_OPTION = click.option(
 )
 OFFLINE_HELP = "Use only local files, mirrors and the cache; never open a socket."
 JSON_OPTION = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+# Every verb that talks https (a registry, a site, --previous, an online tree) trusts the same
+# extra CAs, named the same way; the environment variable is the fallback of the flag.
+CA_BUNDLE_OPTION = click.option(
+    "--ca-bundle",
+    type=click.Path(dir_okay=False, exists=True),
+    envvar="HCDF_TRUST_CA_BUNDLE",
+    help="PEM file of CA certificates to trust for https, besides the system's (a loopback OCI registry "
+    "then speaks https too) [env: HCDF_TRUST_CA_BUNDLE].",
+)
+INSECURE_REGISTRY_OPTION = click.option(
+    "--insecure-registry",
+    "insecure_registries",
+    multiple=True,
+    metavar="HOST[:PORT]",
+    help="Talk plain http to this OCI registry (loopback hosts need no flag; never credentials "
+    "off this machine). Repeatable.",
+)
 _LOCATION_KEYS = ("base", "mirrors", "root")
 _TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
 
@@ -295,7 +312,15 @@ registry_options = _registry_options(urls=True)
 offline_registry_options = _registry_options(urls=False)
 
 
-def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offline: bool, persist: bool) -> Any:
+def _registry(
+    site: str | None,
+    trusted_root: str | None,
+    *,
+    strict: bool,
+    offline: bool,
+    persist: bool,
+    ca_bundle: str | None = None,
+) -> Any:
     if site is None:
         if trusted_root is not None:
             raise click.UsageError("--trusted-root goes with --registry")
@@ -306,7 +331,7 @@ def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offli
         raise click.UsageError(f"--registry {site!r} is a URL, and this run is offline: give a folder copy of the site")
     from ..registry.resolution import RegistryCheck
 
-    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist)
+    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist, ca_bundle=ca_bundle)
 
 
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -327,12 +352,7 @@ def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
             show_default=True,
             help="Parallel network fetches (local hashing uses one thread per core).",
         ),
-        click.option(
-            "--ca-bundle",
-            type=click.Path(dir_okay=False, exists=True),
-            envvar="HCDF_TRUST_CA_BUNDLE",
-            help="PEM file of CA certificates to trust for https [env: HCDF_TRUST_CA_BUNDLE].",
-        ),
+        CA_BUNDLE_OPTION,
         click.option(
             "--timeout",
             type=TIMEOUT,
@@ -642,7 +662,14 @@ def resolve(
             raise click.UsageError(f"{'--out' if out else '--update'} does not apply to a bundle ({doc})")
         no_lock = True
     no_lock = no_lock or options.locked
-    registry = _registry(registry_site, trusted_root, strict=options.strict, offline=options.offline, persist=True)
+    registry = _registry(
+        registry_site,
+        trusted_root,
+        strict=options.strict,
+        offline=options.offline,
+        persist=True,
+        ca_bundle=options.ca_bundle,
+    )
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     # Every output is checked against every input before any is written; all land or none.
     plan = OutputPlan()

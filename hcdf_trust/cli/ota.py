@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, handle_errors, say, tree_options
+from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .params import source_date_epoch_option
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
@@ -92,12 +92,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     is_flag=True,
     help="Accept a --previous without a signed manifest; its latest.json history is taken on your word.",
 )
-@click.option(
-    "--ca-bundle",
-    type=click.Path(dir_okay=False, exists=True),
-    envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for https (--previous, --online) [env: HCDF_TRUST_CA_BUNDLE].",
-)
+@CA_BUNDLE_OPTION
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
 @click.option(
@@ -209,12 +204,7 @@ def build(
     is_flag=True,
     help="Accept a --previous without a signed manifest; its latest.json entries are taken on your word.",
 )
-@click.option(
-    "--ca-bundle",
-    type=click.Path(dir_okay=False, exists=True),
-    envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for an https --previous [env: HCDF_TRUST_CA_BUNDLE].",
-)
+@CA_BUNDLE_OPTION
 @click.option(
     "--provenance", is_flag=True, help="Also verify provenance.intoto.json (signed by --key and --provenance-key)."
 )
@@ -299,21 +289,8 @@ def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tupl
 
 
 def _registry_options(func: Any) -> Any:
-    """``--ca-bundle`` and ``--insecure-registry``, the same for push and pull."""
-    func = click.option(
-        "--insecure-registry",
-        "insecure_registries",
-        multiple=True,
-        metavar="HOST[:PORT]",
-        help="Talk plain http to this registry (loopback hosts need no flag). Repeatable.",
-    )(func)
-    return click.option(
-        "--ca-bundle",
-        type=click.Path(dir_okay=False, exists=True),
-        envvar="HCDF_TRUST_CA_BUNDLE",
-        help="PEM CA certificates for the registry's TLS (a loopback registry then speaks https too) "
-        "[env: HCDF_TRUST_CA_BUNDLE].",
-    )(func)
+    """``--ca-bundle`` and ``--insecure-registry``, the same for every verb that talks to a registry."""
+    return CA_BUNDLE_OPTION(INSECURE_REGISTRY_OPTION(func))
 
 
 def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], push: bool, need_tag: bool) -> Any:
@@ -329,7 +306,17 @@ def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], pu
 @ota.command()
 @click.argument("release_dir", type=click.Path(file_okay=False))
 @click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
-@click.option("--key", type=click.Path(dir_okay=False), help="Public key: run `ota verify` before pushing.")
+@click.option(
+    "--key", type=click.Path(dir_okay=False), help="Public key: run `ota verify` (and --provenance) before pushing."
+)
+@click.option(
+    "--sbom",
+    "sboms",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    help="A CycloneDX or SPDX 3 JSON SBOM of this release (`hcdf-trust sbom --release`) to attach as a "
+    "referrer. Repeatable.",
+)
 @_registry_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
@@ -337,19 +324,23 @@ def push(
     release_dir: str,
     target: str,
     key: str | None,
+    sboms: tuple[str, ...],
     ca_bundle: str | None,
     insecure_registries: tuple[str, ...],
     as_json: bool,
 ) -> None:
     """Push RELEASE_DIR to an OCI registry as one artifact (one layer per file) and attach its
-    SUIT envelope as a referrer. Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
-    from ..oci.release import push_release
+    SUIT envelope, its provenance.intoto.json (if any) and each --sbom as referrers.
+    Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
+    from ..oci.release import push_release, read_sbom
     from ..ota.release import MANIFEST_NAME
     from . import fail
 
+    attached = [read_sbom(path) for path in sboms]  # refused before anything is sent
     ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
     with client:
         if key is not None:
+            from ..oci.release import read_provenance
             from ..ota.keys import load_public
             from ..ota.release import read_release
             from ..ota.verify import check_release
@@ -357,6 +348,10 @@ def push(
             public = load_public(key)
             release, files = read_release(release_dir, public)
             errors = check_release(release, files, public)
+            if not errors and read_provenance(release_dir) is not None:
+                from ..provenance.verify import verify_provenance
+
+                errors = verify_provenance(release_dir, release, [public])
             if errors:
                 fail(errors, as_json=as_json)
         else:
@@ -368,7 +363,7 @@ def push(
             path = os.path.join(release_dir, MANIFEST_NAME)
             data = read_input(path, limit=suit.MAX_MANIFEST_BYTES, what="release manifest")
             release = suit.parse_release(suit.parse_envelope(data, source=path), source=path)
-        result = push_release(release_dir, ref, client, release)
+        result = push_release(release_dir, ref, client, release, sboms=attached)
     warnings = []
     if key is None:
         from ..errors import Notice
@@ -409,6 +404,21 @@ def push(
     help="Content store of verified blobs (a resumed pull fetches only what is missing) "
     "[default: $XDG_CACHE_HOME/hcdf-trust].",
 )
+@click.option(
+    "--require-provenance",
+    is_flag=True,
+    help="Fail unless a provenance referrer of this release is listed (it is verified whenever one is).",
+)
+@click.option(
+    "--provenance-key",
+    "provenance_keys",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    help="Another public key (PEM) that may sign the provenance (repeatable).",
+)
+@click.option(
+    "--threshold", type=click.IntRange(1, 64), default=1, show_default=True, help="Provenance signatures needed."
+)
 @_registry_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
@@ -418,18 +428,26 @@ def pull(
     out_dir: str,
     previous: str | None,
     cache_dir: str | None,
+    require_provenance: bool,
+    provenance_keys: tuple[str, ...],
+    threshold: int,
     ca_bundle: str | None,
     insecure_registries: tuple[str, ...],
     as_json: bool,
 ) -> None:
     """Pull a release from an OCI registry: every blob hashed against the manifest, `ota verify`
-    run on the result in a staging folder, and only then written to --out (all or nothing)."""
+    run on the result in a staging folder (and `--provenance` on its provenance referrer, when
+    listed), and only then written to --out (all or nothing)."""
     from ..oci.release import pull_release
     from ..ota.keys import load_public
     from ..ota.release import previous_manifest
+    from ..ota.signer import key_id
     from ..store import default_cache_dir
 
     public = load_public(key)
+    others = tuple(load_public(k) for k in provenance_keys)
+    if len({key_id(k) for k in (public, *others)}) < threshold:
+        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--key, --provenance-key)")
     before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
     ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
     with client:
@@ -441,6 +459,9 @@ def pull(
             cache_dir=cache_dir or str(default_cache_dir()),
             key_path=key,
             previous=before,
+            provenance_keys=others,
+            threshold=threshold,
+            require_provenance=require_provenance,
         )
     release = report.release
     if as_json:
@@ -453,6 +474,8 @@ def pull(
                 "files": report.files,
                 "from_cache": report.from_cache,
                 "referrers": report.referrers,
+                "provenance": report.provenance,
+                "sboms": report.sboms,
                 "warnings": [n.to_dict() for n in report.notices],
                 "wrote": report.wrote,
                 "errors": [],
@@ -463,5 +486,6 @@ def pull(
         say(f"warning: {n}", always=True)
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
-        f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache), written to {out_dir}"
+        f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache)"
+        f"{', provenance verified' if report.provenance else ''}, written to {out_dir}"
     )

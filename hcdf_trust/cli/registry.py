@@ -13,7 +13,7 @@ import click
 
 from ..errors import counted
 from ..outputs import OutputPlan
-from . import JSON_OPTION, emit_json, handle_errors, say
+from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, JSON_OPTION, emit_json, handle_errors, say
 from .params import TIMEOUT, Duration
 
 passphrase_option = click.option(
@@ -355,9 +355,10 @@ def rotate(
     "--oci",
     "oci_target",
     metavar="oci://HOST[:PORT]/REPO:TAG",
-    help="Also push the site to this OCI registry (one layer per file; credentials as for `ota push`; "
-    "plain http to loopback only; TLS CAs from $HCDF_TRUST_CA_BUNDLE).",
+    help="Also push the site to this OCI registry (one layer per file; credentials as for `ota push`).",
 )
+@CA_BUNDLE_OPTION
+@INSECURE_REGISTRY_OPTION
 @JSON_OPTION
 @handle_errors
 def publish(
@@ -369,6 +370,8 @@ def publish(
     sigstore_root: str | None,
     passphrase_file: str | None,
     oci_target: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
     as_json: bool,
 ) -> None:
     """Write a static TUF repository (consistent snapshots) for DIR into --out (and, with --oci,
@@ -399,15 +402,13 @@ def publish(
     plan.commit()
     pushed = None
     if ref is not None:
-        import os
-
         from ..oci.auth import find_credentials
         from ..oci.client import RegistryClient
         from ..oci.site import push_site
 
         creds = find_credentials(ref.netloc)
         with RegistryClient(
-            ref, credentials=creds, ca_bundle=os.environ.get("HCDF_TRUST_CA_BUNDLE") or None, push=True
+            ref, credentials=creds, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True
         ) as client:
             pushed = push_site(site, ref, client)
     if as_json:
@@ -428,10 +429,25 @@ def publish(
             say(f"pushed {counted(pushed['files'], 'file')} to {ref} ({pushed['digest']})")
 
 
-def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
+def _client(
+    site: str,
+    trusted_root: str,
+    cache_dir: str | None,
+    timeout: float = 30.0,
+    *,
+    ca_bundle: str | None = None,
+    insecure_registries: tuple[str, ...] = (),
+) -> Any:
     from ..registry.client import RegistryClient
 
-    return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
+    return RegistryClient.open(
+        site,
+        trusted_root,
+        cache_dir=Path(cache_dir) if cache_dir else None,
+        timeout=timeout,
+        ca_bundle=ca_bundle,
+        insecure_registries=insecure_registries,
+    )
 
 
 client_options = [
@@ -453,6 +469,8 @@ client_options = [
         type=click.Path(file_okay=False),
         help="Client metadata cache [default: ~/.cache/hcdf-trust/registry/…].",
     ),
+    CA_BUNDLE_OPTION,
+    INSECURE_REGISTRY_OPTION,
 ]
 
 
@@ -467,13 +485,23 @@ def _with_client_options(func: Any) -> Any:
 @_with_client_options
 @JSON_OPTION
 @handle_errors
-def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, as_json: bool) -> None:
+def verify(
+    site: str,
+    trusted_root: str,
+    cache_dir: str | None,
+    timeout: float,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
     """Refresh from SITE and check every role and every file it publishes."""
     from ..registry.client import verify as do_verify
     from ..registry.errors import AttackError
     from . import fail
 
-    report = do_verify(_client(site, trusted_root, cache_dir, timeout))
+    report = do_verify(
+        _client(site, trusted_root, cache_dir, timeout, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
+    )
     errors = [
         AttackError(
             f"cross-domain signing: {s.role} lists {s.path}, outside its delegation (ignored by clients)"
@@ -510,7 +538,15 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
 @JSON_OPTION
 @handle_errors
 def fetch(
-    what: tuple[str, ...], site: str, trusted_root: str, cache_dir: str | None, timeout: float, out: str, as_json: bool
+    what: tuple[str, ...],
+    site: str,
+    trusted_root: str,
+    cache_dir: str | None,
+    timeout: float,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    out: str,
+    as_json: bool,
 ) -> None:
     """Write one verified file from the registry: a domain's schema, a stream profile or a core schema."""
     from ..errors import NotFoundError
@@ -523,7 +559,9 @@ def fetch(
     else:
         raise click.UsageError("give DOMAIN[@VERSION], profile NAME[@VERSION] or schema NAME[@VERSION]")
     name, _, version = spec.partition("@")
-    client = _client(site, trusted_root, cache_dir, timeout)
+    client = _client(
+        site, trusted_root, cache_dir, timeout, ca_bundle=ca_bundle, insecure_registries=insecure_registries
+    )
     if kind == "domain":
         versions = client.versions(name)
     else:

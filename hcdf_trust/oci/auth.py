@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..errors import InputError
-from ..localfile import read_input
 from ..scrub import remember
 
 USER_ENV = "HCDF_TRUST_OCI_USERNAME"
@@ -96,20 +95,23 @@ def find_credentials(netloc: str) -> Credentials | None:
 
 
 def _docker_config() -> tuple[str, dict[str, Any]] | None:
-    from ..localfile import MAX_JSON_BYTES, parse_json
+    """The Docker config file's object; refused (as a key file is) when others may write it,
+    or may read it while it holds a password or token (``auths``), whichever registry that is for."""
+    from ..localfile import MAX_JSON_BYTES, check_private, parse_json, read_private_config
 
     folder = os.environ.get("DOCKER_CONFIG") or os.path.join(os.path.expanduser("~"), ".docker")
     path = os.path.join(folder, "config.json")
     if not os.path.lexists(path):
         return None
-    doc = parse_json(
-        read_input(path, limit=MAX_CONFIG_BYTES, what="Docker config"),
-        source=path,
-        what="Docker config",
-        limit=MAX_JSON_BYTES,
-    )
+    data, st = read_private_config(path, limit=MAX_CONFIG_BYTES, what="Docker config")
+    doc = parse_json(data, source=path, what="Docker config", limit=MAX_JSON_BYTES)
     if not isinstance(doc, dict):
         raise RegistryCredentialsError("the Docker config is not a JSON object", file=path)
+    auths = doc.get("auths")
+    if isinstance(auths, dict) and any(
+        isinstance(e, dict) and any(e.get(k) for k in ("auth", "password", "identitytoken")) for e in auths.values()
+    ):
+        check_private(st, path, what="Docker config holding credentials (auths)")
     return path, doc
 
 

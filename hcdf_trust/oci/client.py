@@ -40,6 +40,7 @@ if TYPE_CHECKING:
 
 MAX_MANIFEST_BYTES = 4 << 20  # the distribution spec's recommended limit
 MAX_TOKEN_BYTES = 1 << 20
+CHUNK_BYTES = 16 << 20  # larger blobs are uploaded as PATCHes of this size
 MANIFEST_TYPE = "application/vnd.oci.image.manifest.v1+json"
 INDEX_TYPE = "application/vnd.oci.image.index.v1+json"
 
@@ -312,22 +313,47 @@ class RegistryClient:
             return r.status_code == 200 and r.headers.get("content-length") == str(size)
 
     def push_blob(self, digest: str, size: int, chunks: Iterable[bytes]) -> None:
-        """Upload one blob, streamed (POST a session, PUT the body with ``?digest=``)."""
+        """Upload one blob, streamed: POST a session, then PUT the body with ``?digest=``; a blob
+        larger than :data:`CHUNK_BYTES` goes as PATCHes of that size (``Content-Range``) and a
+        closing PUT, so no request body is larger (proxies and registries cap them) and no part
+        is ever held whole in memory."""
         if self.has_blob(digest, size):
             return
         url = self._url("blobs/uploads/")
         with self.request("POST", url, content=b"", what="POST blob upload") as r:
             if r.status_code != 202 or not r.headers.get("location"):
                 raise RegistryError(f"{url}: HTTP {r.status_code}: {_error_text(r)}", url=url)
-            location = urljoin(url, r.headers["location"])
-        if not location.startswith(self.origin + "/"):
-            raise RegistryError(f"{url}: upload location on another host is refused ({location})", url=url)
+            location = self._upload_location(url, r)
+        body = iter(chunks)
+        if size > CHUNK_BYTES:
+            parts = _Parts(body)
+            for start in range(0, size, CHUNK_BYTES):
+                n = min(CHUNK_BYTES, size - start)
+                headers = {
+                    "Content-Type": "application/octet-stream",
+                    "Content-Length": str(n),
+                    "Content-Range": f"{start}-{start + n - 1}",
+                }
+                with self.request("PATCH", location, headers=headers, content=parts.next(n), what="PATCH blob") as r:
+                    if r.status_code != 202:
+                        where = f"PATCH blob {digest} bytes {start}-{start + n - 1}"
+                        raise RegistryError(f"{where}: HTTP {r.status_code}: {_error_text(r)}", url=url)
+                    location = self._upload_location(url, r)
+            parts.end()
+            body, size = iter([b""]), 0
         sep = "&" if urlsplit(location).query else "?"
         put = f"{location}{sep}{urlencode({'digest': digest})}"
         headers = {"Content-Type": "application/octet-stream", "Content-Length": str(size)}
-        with self.request("PUT", put, headers=headers, content=iter(chunks), what="PUT blob") as r:
+        with self.request("PUT", put, headers=headers, content=body, what="PUT blob") as r:
             if r.status_code != 201:
                 raise RegistryError(f"PUT blob {digest}: HTTP {r.status_code}: {_error_text(r)}", url=url)
+
+    def _upload_location(self, url: str, r: httpx.Response) -> str:
+        """The upload session's next URL (``Location``), on this registry only."""
+        location: str = urljoin(url, r.headers.get("location", ""))
+        if not r.headers.get("location") or not location.startswith(self.origin + "/"):
+            raise RegistryError(f"{url}: upload location missing or on another host ({location})", url=url)
+        return location
 
     @contextlib.contextmanager
     def blob(self, digest: str, size: int) -> Iterator[Iterator[bytes]]:
@@ -391,6 +417,28 @@ class RegistryClient:
         body, _, _ = got
         source = self._url(f"manifests/{fallback_tag(digest)}")
         return _manifests(parse_json(body, source=source, what="referrers tag", limit=MAX_JSON_BYTES), source), False
+
+
+class _Parts:
+    """A stream of chunks cut into consecutive parts of given sizes, each a generator of the
+    stream's own chunks (split at a part's end): nothing is joined or held."""
+
+    def __init__(self, chunks: Iterator[bytes]) -> None:
+        self._chunks = chunks
+        self._rest = b""
+
+    def next(self, n: int) -> Iterator[bytes]:
+        while n > 0:
+            chunk = self._rest or next(self._chunks, b"")
+            if not chunk:
+                raise RegistryError(f"the blob ended {n} bytes before its declared size")
+            self._rest = chunk[n:]
+            yield chunk[:n]
+            n -= min(n, len(chunk))
+
+    def end(self) -> None:
+        if self._rest or next(self._chunks, b""):
+            raise RegistryError("the blob is longer than its declared size")
 
 
 def fallback_tag(digest: str) -> str:

@@ -40,11 +40,11 @@ from ..digest import hash_fd
 from ..errors import DigestMismatchError, HcdfTrustError, InputError, IntegrityError, Notice
 from ..flock import flock
 from ..localfile import open_checked, read_chunks
-from .client import INDEX_TYPE, MANIFEST_TYPE, RegistryClient, fallback_tag, sha256_digest
+from .client import MANIFEST_TYPE, RegistryClient, sha256_digest
 from .reference import Reference
+from .referrers import EMPTY_DESCRIPTOR, ReferrerError
 
 RELEASE_TYPE = "application/vnd.hcdf.release.v1"
-SIGNATURE_TYPE = "application/vnd.hcdf.release.signature.v1"  # artifactType of the SUIT referrer
 MCUBOOT_TYPE = "application/vnd.hcdf.mcuboot.image.v1"
 RAW_TYPE = "application/vnd.hcdf.raw.image.v1"
 LATEST_TYPE = "application/vnd.hcdf.dendrite.latest.v1+json"
@@ -52,14 +52,11 @@ SUIT_TYPE = "application/suit-envelope+cose"
 RENDERING_TYPE = "application/vnd.hcdf.release.suit.v1+json"
 HISTORY_TYPE = "application/vnd.hcdf.release.history.v1+cbor"  # the earlier signed envelopes
 LAYER_TYPES = frozenset({MCUBOOT_TYPE, RAW_TYPE, LATEST_TYPE, SUIT_TYPE, RENDERING_TYPE, HISTORY_TYPE})
-EMPTY_TYPE = "application/vnd.oci.empty.v1+json"
 EMPTY = b"{}"
-EMPTY_DESCRIPTOR = {"mediaType": EMPTY_TYPE, "digest": sha256_digest(EMPTY), "size": 2}
 TITLE = "org.opencontainers.image.title"
 A = "dev.hcdf."  # our annotation prefix
 MAX_LAYERS = 1024
 FETCH_THREADS = 4
-MAX_REFERRERS = 16
 MAX_TOTAL_BYTES = 8 << 30
 _SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,254}")
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
@@ -69,10 +66,6 @@ class ArtifactError(InputError):
     """The registry's manifest is not a release artifact we can read (exit 3)."""
 
     code = "oci-artifact"
-
-
-class ReferrerError(IntegrityError):
-    code = "oci-referrer"
 
 
 @dataclass
@@ -85,6 +78,8 @@ class PullReport:
     referrers: list[str]
     notices: list[Notice] = field(default_factory=list)
     wrote: list[str] = field(default_factory=list)
+    provenance: str | None = None  # the provenance referrer verified and written, if any
+    sboms: list[dict[str, Any]] = field(default_factory=list)  # SBOM referrers listed (checked, not fetched)
 
 
 # -- push ------------------------------------------------------------------------------
@@ -154,22 +149,103 @@ def manifest_for(release: Any, layers: list[_Layer]) -> bytes:
     return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
 
 
-def push_release(folder: str, ref: Reference, client: RegistryClient, release: Any) -> dict[str, Any]:
-    """Upload every blob (streamed), the manifest under the tag, and the SUIT referrer."""
+def push_release(
+    folder: str, ref: Reference, client: RegistryClient, release: Any, *, sboms: list[Sbom] | None = None
+) -> dict[str, Any]:
+    """Upload every blob (streamed), the manifest under the tag, and its referrers: the SUIT
+    envelope, the provenance when the folder has one, and each SBOM given."""
+    from .referrers import DSSE_TYPE, PREDICATE_ANNOTATION, PROVENANCE_TYPE, SBOM_TYPE, SIGNATURE_TYPE, attach
+
     layers = release_layers(folder, release)
     push_blobs(client, folder, layers)
     body = manifest_for(release, layers)
     digest = sha256_digest(body)
     client.put_manifest(ref.tag or digest, body, MANIFEST_TYPE)
     envelope = next(layer for layer in layers if layer.media_type == SUIT_TYPE)
-    referrer = attach_signature(client, subject=(digest, len(body)), envelope=envelope)
-    return {"digest": digest, "layers": [x.descriptor() for x in layers], "referrers": [referrer]}
+    items: list[tuple[str, dict[str, Any]]] = [(SIGNATURE_TYPE, envelope.descriptor())]
+    provenance = read_provenance(folder)
+    if provenance is not None:
+        from ..provenance import FILE_NAME, PREDICATE_TYPE
+
+        items.append(
+            (PROVENANCE_TYPE, _blob(client, provenance, DSSE_TYPE, FILE_NAME, {PREDICATE_ANNOTATION: PREDICATE_TYPE}))
+        )
+    for sbom in sboms or []:
+        items.append((SBOM_TYPE, _blob(client, sbom.data, sbom.media_type, sbom.title, {})))
+    referrers = attach(client, (digest, len(body)), items)
+    return {
+        "digest": digest,
+        "layers": [x.descriptor() for x in layers],
+        "referrers": [{"digest": d, "artifactType": t} for d, (t, _) in zip(referrers, items, strict=True)],
+    }
+
+
+def _blob(client: RegistryClient, data: bytes, media_type: str, title: str, about: dict[str, str]) -> dict[str, Any]:
+    """Push a small blob held in memory (a provenance, an SBOM); its descriptor."""
+    digest = sha256_digest(data)
+    client.push_blob(digest, len(data), [data])
+    return {"mediaType": media_type, "digest": digest, "size": len(data), "annotations": {TITLE: title, **about}}
+
+
+def read_provenance(folder: str) -> bytes | None:
+    """The folder's ``provenance.intoto.json`` (ota build --provenance), bounded; None without one."""
+    from ..localfile import read_bounded
+    from ..provenance import FILE_NAME
+    from ..provenance.dsse import MAX_ENVELOPE_BYTES
+
+    if not os.path.lexists(os.path.join(folder, FILE_NAME)):
+        return None
+    fd, _ = open_checked(os.path.join(folder, FILE_NAME), folder, file=FILE_NAME)
+    try:
+        return read_bounded(fd, MAX_ENVELOPE_BYTES, source=FILE_NAME, what="provenance")
+    finally:
+        os.close(fd)
+
+
+MAX_SBOM_BYTES = 64 << 20
+
+
+@dataclass(frozen=True)
+class Sbom:
+    """An SBOM file for ``ota push --sbom``: its bytes, its IANA media type, its file name."""
+
+    data: bytes
+    media_type: str
+    title: str
+
+
+def read_sbom(path: str) -> Sbom:
+    """A CycloneDX or SPDX 3 JSON SBOM (``hcdf-trust sbom``), told apart by its content.
+
+    Raises:
+        InputError: unreadable, not strict JSON, or neither CycloneDX nor SPDX (exit 3).
+    """
+    from ..localfile import parse_json, read_input
+    from .referrers import CYCLONEDX_TYPE, SPDX_TYPE
+
+    data = read_input(path, limit=MAX_SBOM_BYTES, what="SBOM")
+    doc = parse_json(data, source=path, what="SBOM", limit=MAX_SBOM_BYTES)
+    context = doc.get("@context") if isinstance(doc, dict) else None
+    if isinstance(doc, dict) and doc.get("bomFormat") == "CycloneDX":
+        media_type = CYCLONEDX_TYPE
+    elif isinstance(context, str) and context.startswith("https://spdx.org/rdf/3."):
+        media_type = SPDX_TYPE
+    else:
+        raise InputError(
+            f"{path}: not a CycloneDX (bomFormat) or SPDX 3 (@context) JSON SBOM",
+            file=path,
+            expected='"bomFormat": "CycloneDX" or an spdx.org/rdf/3 @context',
+        )
+    name = os.path.basename(path)
+    if not _SEGMENT.fullmatch(name):
+        name = "sbom.cdx.json" if media_type == CYCLONEDX_TYPE else "sbom.spdx.json"
+    return Sbom(data, media_type, name)
 
 
 def push_blobs(client: RegistryClient, folder: str, layers: list[_Layer]) -> None:
     """The empty config and every layer's file, streamed from ``folder``."""
     client.check()
-    client.push_blob(str(EMPTY_DESCRIPTOR["digest"]), 2, [EMPTY])
+    client.push_blob(str(EMPTY_DESCRIPTOR["digest"]), 2, [EMPTY])  # the config of every manifest here
     for layer in layers:
         fd, _ = open_checked(os.path.join(folder, layer.rel), folder, file=layer.rel)
         try:
@@ -190,49 +266,6 @@ def _checked(chunks: Iterator[bytes], layer: _Layer) -> Iterator[bytes]:
         yield chunk
     if h.hexdigest() != layer.sha256 or size != layer.size:
         raise InputError(f"{layer.rel} changed while it was being pushed", file=layer.rel)
-
-
-def attach_signature(client: RegistryClient, *, subject: tuple[str, int], envelope: _Layer) -> str:
-    """Push the SUIT envelope as a referrer of the release manifest; keep the fallback tag
-    index up to date when the registry does not say it indexed the subject itself."""
-    digest, size = subject
-    doc = {
-        "schemaVersion": 2,
-        "mediaType": MANIFEST_TYPE,
-        "artifactType": SIGNATURE_TYPE,
-        "config": EMPTY_DESCRIPTOR,
-        "layers": [envelope.descriptor()],
-        "subject": {"mediaType": MANIFEST_TYPE, "digest": digest, "size": size},
-    }
-    body = json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
-    ref_digest = sha256_digest(body)
-    headers = client.put_manifest(ref_digest, body, MANIFEST_TYPE)
-    if not any(k.lower() == "oci-subject" for k in headers):
-        _update_fallback(
-            client,
-            digest,
-            {
-                "mediaType": MANIFEST_TYPE,
-                "digest": ref_digest,
-                "size": len(body),
-                "artifactType": SIGNATURE_TYPE,
-            },
-        )
-    return ref_digest
-
-
-def _update_fallback(client: RegistryClient, subject: str, descriptor: dict[str, Any]) -> None:
-    from ..localfile import MAX_JSON_BYTES, parse_json
-
-    tag = fallback_tag(subject)
-    got = client.get_manifest(tag, accept=INDEX_TYPE)
-    manifests: list[Any] = []
-    if got is not None:
-        doc = parse_json(got[0], source=tag, what="referrers tag", limit=MAX_JSON_BYTES)
-        if isinstance(doc, dict) and isinstance(doc.get("manifests"), list):
-            manifests = [m for m in doc["manifests"] if isinstance(m, dict) and m.get("digest") != descriptor["digest"]]
-    index = {"schemaVersion": 2, "mediaType": INDEX_TYPE, "manifests": [*manifests, descriptor]}
-    client.put_manifest(tag, json.dumps(index, sort_keys=True, separators=(",", ":")).encode(), INDEX_TYPE)
 
 
 # -- pull ------------------------------------------------------------------------------
@@ -314,9 +347,14 @@ def pull_release(
     cache_dir: str,
     key_path: str,
     previous: Any = None,
+    provenance_keys: tuple[Any, ...] = (),
+    threshold: int = 1,
+    require_provenance: bool = False,
 ) -> PullReport:
-    """Steps 1–6 above. Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
-    from ..outputs import OutputPlan
+    """Steps 1–6 above. ``provenance_keys``: who else may sign the provenance (``--key``
+    always may), ``threshold`` signatures needed; ``require_provenance``: none is an error.
+    Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
+    from ..outputs import FileContent, OutputPlan
     from ..store import ContentStore
 
     # 1. the manifest, pinned by the hash of its body
@@ -353,36 +391,47 @@ def pull_release(
         )
         for (_, layer), path in zip(todo, list(fetched), strict=True):
             paths[layer["annotations"][TITLE]] = path
-    # 4. ota verify in a staging folder beside the store (hard links to the verified blobs)
+    # 4. ota verify in a staging folder beside the store (hard links to the verified blobs);
+    # the folder's lock lies beside the release, not in it (it is no file of the release)
     os.makedirs(cache_dir, exist_ok=True)
     sweep_stages(cache_dir)
     stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
     lock = _hold(stage)
+    staged = os.path.join(stage, "release")
     try:
         for title, path in paths.items():
-            dest = os.path.join(stage, *title.split("/"))
+            dest = os.path.join(staged, *title.split("/"))
             os.makedirs(os.path.dirname(dest), exist_ok=True)
             try:
                 os.link(path, dest, follow_symlinks=False)
             except OSError:  # another filesystem, or links not allowed
                 shutil.copyfile(path, dest, follow_symlinks=False)
-        release, errors = _verify_staged(stage, public_key, previous, set(paths), layers)
+        release, errors = _verify_staged(staged, public_key, previous, set(paths), layers)
         if errors:
             raise _group(errors)
-        # 5. the SUIT referrers
+        # 5. the referrers: SUIT envelopes, the provenance (verified here), SBOMs
         envelope = next(x for x in layers if x["mediaType"] == SUIT_TYPE)
-        referrers, notices = check_referrers(client, digest, envelope["digest"])
-        # 6. into --out, all or nothing
+        checked = check_referrers(
+            client,
+            digest,
+            envelope["digest"],
+            staged=staged,
+            release=release,
+            keys=(public_key, *provenance_keys),
+            threshold=threshold,
+            require_provenance=require_provenance,
+        )
+        # 6. into --out, all or nothing: copied from the staged files (never all in memory),
+        # each copy hashed against the digest it was verified with
         plan = OutputPlan()
         plan.protect(key_path, what="the public key")
         plan.protect_tree(cache_dir, what="the cache")
-        for title in sorted(paths):
-            plan.add(
-                os.path.join(out_dir, *title.split("/")),
-                Path(stage, *title.split("/")).read_bytes(),
-                flag="--out",
-                under=out_dir,
-            )
+        digests = {x["annotations"][TITLE]: (x["digest"], x["size"]) for x in layers}
+        if checked.provenance is not None:
+            digests[PROVENANCE_NAME] = checked.provenance_blob
+        for title, (blob, size) in sorted(digests.items()):
+            staged_file = FileContent(os.path.join(staged, *title.split("/")), size, blob.split(":", 1)[1])
+            plan.add(os.path.join(out_dir, *title.split("/")), staged_file, flag="--out", under=out_dir)
         wrote = [str(p) for p in plan.commit()]
     finally:
         shutil.rmtree(stage, ignore_errors=True)
@@ -391,11 +440,23 @@ def pull_release(
         {"title": x["annotations"][TITLE], "mediaType": x["mediaType"], "digest": x["digest"], "size": x["size"]}
         for x in layers
     ]
-    return PullReport(str(ref), digest, release, files, cached, referrers, notices, wrote)
+    return PullReport(
+        str(ref),
+        digest,
+        release,
+        files,
+        cached,
+        checked.signatures,
+        checked.notices,
+        wrote,
+        checked.provenance,
+        checked.sboms,
+    )
 
 
 STAGE_PREFIX = ".oci-pull-"
 _STAGE_LOCK = ".lock"
+PROVENANCE_NAME = "provenance.intoto.json"  # == provenance.FILE_NAME (not imported: that package loads lazily)
 _STALE_UNLOCKED = 600.0  # a staging folder with no lock file yet, older than this: its pull died
 
 
@@ -463,14 +524,10 @@ def _fetch_blob(client: RegistryClient, store: Any, layer: dict[str, Any], *, ti
 def _verify_staged(
     stage: str, public_key: Any, previous: Any, titles: set[str], layers: list[dict[str, Any]]
 ) -> tuple[Any, list[HcdfTrustError]]:
-    import dataclasses
-
     from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
     from ..ota.verify import check_release, image_path
 
     release, files = read_release(stage, public_key)
-    # the staging folder's own lock is this pull's, not a file of the release
-    files = dataclasses.replace(files, unaccounted=tuple(u for u in files.unaccounted if u != _STAGE_LOCK))
     errors = check_release(release, files, public_key, previous=previous)
     accounted = {MANIFEST_NAME, *files.latest}
     if files.rendering is not None:
@@ -518,51 +575,99 @@ def _verify_staged(
     return release, errors
 
 
-def check_referrers(client: RegistryClient, digest: str, envelope_digest: str) -> tuple[list[str], list[Notice]]:
-    """Step 5: every SUIT referrer listed for ``digest`` has it as subject and carries this
-    release's envelope; none at all is a notice (the release itself verified)."""
-    from ..localfile import MAX_JSON_BYTES, parse_json
+@dataclass
+class CheckedReferrers:
+    signatures: list[str]  # the SUIT envelope referrers, each carrying this release's envelope
+    provenance: str | None  # the provenance referrer, verified and staged as provenance.intoto.json
+    sboms: list[dict[str, Any]]
+    notices: list[Notice]
+    provenance_blob: tuple[str, int] = ("", 0)  # its layer's digest and size
 
-    listed, _api = client.referrers(digest, artifact_type=SIGNATURE_TYPE)
-    ours = [x for x in listed if isinstance(x, dict) and x.get("artifactType") == SIGNATURE_TYPE]
-    if len(ours) > MAX_REFERRERS:
-        raise ReferrerError(f"referrers of {digest}: more than {MAX_REFERRERS} signature referrers listed")
-    found: list[str] = []
-    for item in listed:
-        if not isinstance(item, dict) or item.get("artifactType") != SIGNATURE_TYPE:
-            continue
-        rd = item.get("digest")
-        if not isinstance(rd, str) or not _DIGEST.fullmatch(rd):
-            raise ReferrerError(f"referrers of {digest}: a descriptor with no valid digest")
-        got = client.get_manifest(rd)
-        if got is None:
-            raise ReferrerError(f"referrer {rd} is listed but the registry does not have it")
-        body, actual, _ = got
-        if actual != rd:
-            raise ReferrerError(f"referrer {rd}: the manifest received hashes otherwise", expected=rd, actual=actual)
-        doc = parse_json(body, source=rd, what="referrer manifest", limit=MAX_JSON_BYTES)
-        subject = doc.get("subject") if isinstance(doc, dict) else None
-        if not isinstance(subject, dict) or subject.get("digest") != digest:
-            raise ReferrerError(
-                f"referrer {rd} points at another release",
-                expected=digest,
-                actual=str(subject.get("digest") if isinstance(subject, dict) else None),
-            )
-        layers = doc.get("layers")
-        if (
-            not isinstance(layers, list)
-            or len(layers) != 1
-            or not isinstance(layers[0], dict)
-            or layers[0].get("digest") != envelope_digest
-        ):
-            raise ReferrerError(f"referrer {rd} does not carry this release's SUIT envelope", expected=envelope_digest)
-        found.append(rd)
-    notices = (
-        []
-        if found
-        else [Notice("oci-no-referrer", f"{digest}: no SUIT envelope referrer is listed (the release itself verified)")]
+
+def check_referrers(
+    client: RegistryClient,
+    digest: str,
+    envelope_digest: str,
+    *,
+    staged: str,
+    release: Any,
+    keys: tuple[Any, ...],
+    threshold: int = 1,
+    require_provenance: bool = False,
+) -> CheckedReferrers:
+    """Step 5, over one listing of the referrers of ``digest``: every SUIT referrer carries
+    this release's envelope; the provenance (at most one envelope) is fetched, hashed, staged
+    beside the release in ``staged`` and checked as ``ota verify --provenance`` checks it;
+    an SBOM referrer is checked for its subject and type only. A missing SUIT referrer is a
+    notice (the release itself verified); a missing provenance is an error when required
+    (else the report's ``provenance`` is None).
+
+    Raises:
+        ReferrerError / DigestMismatchError / ProvenanceError: see :mod:`.referrers` (exit 1).
+    """
+    from ..provenance.dsse import MAX_ENVELOPE_BYTES
+    from ..provenance.verify import verify_provenance
+    from .referrers import (
+        CYCLONEDX_TYPE,
+        DSSE_TYPE,
+        PROVENANCE_TYPE,
+        SBOM_TYPE,
+        SIGNATURE_TYPE,
+        SPDX_TYPE,
+        fetch_layer,
+        listed,
     )
-    return found, notices
+
+    types = {
+        SIGNATURE_TYPE: frozenset({SUIT_TYPE}),
+        PROVENANCE_TYPE: frozenset({DSSE_TYPE}),
+        SBOM_TYPE: frozenset({CYCLONEDX_TYPE, SPDX_TYPE}),
+    }
+    found = listed(client, digest, types)
+    notices: list[Notice] = []
+    signatures = [r.digest for r in found if r.artifact_type == SIGNATURE_TYPE]
+    for r in found:
+        if r.artifact_type == SIGNATURE_TYPE and r.layer["digest"] != envelope_digest:
+            raise ReferrerError(
+                f"referrer {r.digest} does not carry this release's SUIT envelope",
+                expected=envelope_digest,
+                actual=str(r.layer["digest"]),
+            )
+    if not signatures:
+        notices.append(
+            Notice("oci-no-referrer", f"{digest}: no SUIT envelope referrer is listed (the release itself verified)")
+        )
+    provenances = [r for r in found if r.artifact_type == PROVENANCE_TYPE]
+    if len({r.layer["digest"] for r in provenances}) > 1:
+        raise ReferrerError(
+            f"{digest}: {len(provenances)} provenance referrers with different envelopes: which one is meant?",
+            expected="one provenance",
+            actual=", ".join(r.digest for r in provenances),
+        )
+    provenance = None
+    blob = ("", 0)
+    if provenances:
+        chosen = provenances[0]
+        data = fetch_layer(client, chosen, limit=MAX_ENVELOPE_BYTES)
+        with open(os.path.join(staged, PROVENANCE_NAME), "xb") as f:  # our private staging folder
+            f.write(data)
+        errors = verify_provenance(staged, release, list(keys), threshold=threshold)
+        if errors:
+            raise _group(errors)
+        provenance = chosen.digest
+        blob = (chosen.layer["digest"], chosen.layer["size"])
+    elif require_provenance:
+        raise ReferrerError(
+            f"{digest}: no provenance referrer is listed (--require-provenance)",
+            expected=f"a referrer of type {PROVENANCE_TYPE}",
+            actual="none",
+        )
+    sboms = [
+        {"digest": r.digest, "mediaType": r.layer["mediaType"], "blob": r.layer["digest"], "size": r.layer["size"]}
+        for r in found
+        if r.artifact_type == SBOM_TYPE
+    ]
+    return CheckedReferrers(signatures, provenance, sboms, notices, blob)
 
 
 def _group(errors: list[HcdfTrustError]) -> HcdfTrustError:

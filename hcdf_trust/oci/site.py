@@ -22,7 +22,8 @@ from ..errors import DigestMismatchError, HcdfTrustError, InputError
 from ..localfile import open_checked
 from .client import MANIFEST_TYPE, RegistryClient, sha256_digest
 from .reference import Reference
-from .release import EMPTY_DESCRIPTOR, ArtifactError, _Layer, check_manifest, push_blobs
+from .referrers import EMPTY_DESCRIPTOR
+from .release import ArtifactError, _Layer, check_manifest, push_blobs
 
 SITE_TYPE = "application/vnd.hcdf.registry.site.v1"
 METADATA_TYPE = "application/vnd.hcdf.tuf.metadata.v1+json"
@@ -70,8 +71,9 @@ def push_site(folder: str, ref: Reference, client: RegistryClient) -> dict[str, 
     return {"digest": digest, "files": len(layers)}
 
 
-def oci_fetcher(site: str) -> Any:
-    """A python-tuf fetcher serving the site artifact ``site`` (``oci://…:TAG|@sha256:…``).
+def oci_fetcher(site: str, *, ca_bundle: str | None = None, insecure_registries: tuple[str, ...] = ()) -> Any:
+    """A python-tuf fetcher serving the site artifact ``site`` (``oci://…:TAG|@sha256:…``),
+    talking to the registry as ``ota pull`` does (``--ca-bundle``, ``--insecure-registry``).
 
     Raises:
         ArtifactError / RegistryError / DigestMismatchError: the manifest cannot be used.
@@ -84,7 +86,7 @@ def oci_fetcher(site: str) -> Any:
 
     ref = parse_reference(site)
     client = RegistryClient(
-        ref, credentials=find_credentials(ref.netloc), ca_bundle=os.environ.get("HCDF_TRUST_CA_BUNDLE") or None
+        ref, credentials=find_credentials(ref.netloc), ca_bundle=ca_bundle, insecure_registries=insecure_registries
     )
     got = client.get_manifest(ref.reference)
     if got is None:

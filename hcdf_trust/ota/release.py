@@ -20,6 +20,7 @@ import os
 import re
 import stat
 import time
+from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -898,7 +899,7 @@ def read_release(
         history += [r for r in given.signed if r not in history]  # it may hold release.history's too
         if given.imported:
             unsigned = {k: (doc.latest, *doc.previous) for k, doc in given.latest.items()}
-    images: dict[str, bytes | None] = {}
+    images = FolderImages(folder)
     sizes: dict[str, int] = {}
     entries = _walk(folder)
     linked = [rel for rel, kind in entries if kind == "link"]  # refused; nothing is read through them
@@ -909,14 +910,14 @@ def read_release(
     signed_sizes = {c.size for c in release.components}
     for c in release.components:
         rel = image_path(c)
-        images[rel] = None if through_link(rel) else _read_image(folder, rel, c.size, sizes, signed_sizes)
-    history_images: dict[str, bytes | None] = {}
+        images.add(rel, not through_link(rel) and _image_readable(folder, rel, c.size, sizes, signed_sizes))
+    history_images = FolderImages(folder)
     for r in history:
         for c in r.components:
             rel = image_path(c)
             if rel not in images and rel not in history_images and os.path.lexists(os.path.join(folder, rel)):
                 if not through_link(rel):
-                    history_images[rel] = _read_image(folder, rel, c.size, sizes, set())
+                    history_images.add(rel, _image_readable(folder, rel, c.size, sizes, set()))
     from ..provenance import FILE_NAME as PROVENANCE_NAME  # checked by verify --provenance
 
     accounted = {MANIFEST_NAME, MANIFEST_JSON_NAME, HISTORY_NAME, PROVENANCE_NAME, *images, *history_images}
@@ -961,24 +962,51 @@ def _read_in(path: str, folder: str, rel: str, limit: int, what: str) -> bytes:
         os.close(fd)
 
 
-def _read_image(folder: str, rel: str, size: int, sizes: dict[str, int], signed: set[int]) -> bytes | None:
-    """An image's bytes (None: missing or not read). A size other than the signed ``size``
-    goes into ``sizes``, and the file is read only if its size is another signed image's
-    (to name a mix-and-match): a sparse 2 GB file in place of an image is what it is, not
-    what was signed (exit 1), never "over a limit"."""
-    path = os.path.join(folder, rel)
+def _image_readable(folder: str, rel: str, size: int, sizes: dict[str, int], signed: set[int]) -> bool:
+    """Is the image at ``rel`` to be read (it exists, and has the signed ``size``)? A size other
+    than the signed ``size`` goes into ``sizes``, and the file is read only if its size is
+    another signed image's (to name a mix-and-match): a sparse 2 GB file in place of an image
+    is what it is, not what was signed (exit 1), never "over a limit"."""
     try:
-        fd, st = open_checked(path, folder, file=rel)
+        fd, st = open_checked(os.path.join(folder, rel), folder, file=rel)
     except NotFoundError:
-        return None
-    try:
-        if st.st_size != size:
-            sizes[rel] = st.st_size
-            if st.st_size not in signed:
-                return None
-        return read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image")
-    finally:
-        os.close(fd)
+        return False
+    os.close(fd)
+    if st.st_size != size:
+        sizes[rel] = st.st_size
+        return st.st_size in signed
+    return True
+
+
+class FolderImages(Mapping[str, "bytes | None"]):
+    """The images of a release folder, each read (bounded, confined) only when it is checked,
+    and not kept: ``ota verify`` holds one image at a time, whatever the release's size.
+    A key mapped to None was missing or not to be read (see :func:`_image_readable`)."""
+
+    def __init__(self, folder: str) -> None:
+        self.folder = folder
+        self._readable: dict[str, bool] = {}
+
+    def add(self, rel: str, readable: bool) -> None:
+        self._readable[rel] = readable
+
+    def __getitem__(self, rel: str) -> bytes | None:
+        if not self._readable[rel]:
+            return None
+        try:
+            fd, _ = open_checked(os.path.join(self.folder, rel), self.folder, file=rel)
+        except NotFoundError:  # removed since it was listed: missing
+            return None
+        try:
+            return read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image")
+        finally:
+            os.close(fd)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._readable)
+
+    def __len__(self) -> int:
+        return len(self._readable)
 
 
 def _walk(folder: str) -> list[tuple[str, str]]:

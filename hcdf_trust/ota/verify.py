@@ -26,6 +26,7 @@ every violation:
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,7 +54,8 @@ class ReleaseFiles:
 
     manifest: bytes
     manifest_source: str
-    images: dict[str, bytes | None] = field(default_factory=dict)  # relative path -> bytes (None: missing)
+    # relative path -> bytes (None: missing), read when looked up (ota.release.FolderImages)
+    images: Mapping[str, bytes | None] = field(default_factory=dict)
     latest: dict[str, bytes] = field(default_factory=dict)  # "board/app/latest.json" -> bytes
     rendering: bytes | None = None  # release.suit.json, the unsigned rendering for people
     # Images whose size is not the signed one, left unread: relative path -> size on disk.
@@ -61,7 +63,7 @@ class ReleaseFiles:
     # The earlier releases this key signed (release.history, then --previous), newest first,
     # and the bytes of their images still in the folder (None: not read, its size is wrong).
     history: tuple[suit.Release, ...] = ()
-    history_images: dict[str, bytes | None] = field(default_factory=dict)
+    history_images: Mapping[str, bytes | None] = field(default_factory=dict)
     # latest.json entries taken on the user's word (--import-unsigned-history): (board, app) -> entries
     unsigned: dict[tuple[str, str], tuple[latest_json.Entry, ...]] = field(default_factory=dict)
     unaccounted: tuple[str, ...] = ()  # files and folders that no signed release accounts for

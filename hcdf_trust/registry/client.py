@@ -74,6 +74,28 @@ def _fetcher_base() -> type:
     return _strict(FetcherInterface)
 
 
+def _https_fetcher(timeout: float, ca_bundle: str | None) -> Any:
+    """python-tuf's urllib3 fetcher (strict metadata), trusting ``ca_bundle``'s CAs too.
+
+    ``Urllib3Fetcher`` takes no TLS argument; its pool manager (``_proxy_env``, a
+    ``ProxyEnvironment`` handing its keyword arguments to every urllib3 ``PoolManager``) is
+    replaced by one built with the same ``ssl.SSLContext`` every other https fetch here uses
+    (:func:`hcdf_trust.include.fetch.load_ca_bundle`).
+    """
+    from tuf.ngclient import Urllib3Fetcher
+
+    fetcher = _strict(Urllib3Fetcher)(socket_timeout=timeout)
+    if ca_bundle:
+        from tuf.ngclient._internal.proxy import ProxyEnvironment
+
+        from ..include.fetch import load_ca_bundle
+
+        fetcher._proxy_env = ProxyEnvironment(
+            headers={"User-Agent": "hcdf-trust python-tuf"}, ssl_context=load_ca_bundle(ca_bundle)
+        )
+    return fetcher
+
+
 def make_directory_fetcher(root: Path) -> Any:
     """A ``FetcherInterface`` serving ``file://`` URLs from the folder ``root``."""
     from tuf.api.exceptions import DownloadError, DownloadHTTPError
@@ -192,8 +214,16 @@ class RegistryClient:
         ['operational']
     """
 
-    def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
-        from tuf.ngclient import Urllib3Fetcher
+    def __init__(
+        self,
+        site: str,
+        *,
+        trusted_root: bytes,
+        cache_dir: Path | None = None,
+        timeout: float = 30.0,
+        ca_bundle: str | None = None,
+        insecure_registries: tuple[str, ...] = (),
+    ) -> None:
 
         try:
             parse_json(trusted_root, source="the trusted root", what="the trusted root", limit=ROOT_LIMIT)
@@ -209,7 +239,10 @@ class RegistryClient:
         if site.startswith("oci://"):  # an OCI artifact (registry publish --oci): transport only
             from ..oci.site import BASE, oci_fetcher
 
-            base, fetcher = BASE.rstrip("/"), oci_fetcher(site)
+            base, fetcher = (
+                BASE.rstrip("/"),
+                oci_fetcher(site, ca_bundle=ca_bundle, insecure_registries=insecure_registries),
+            )
         elif local:
             folder = Path(site).resolve()
             if not folder.is_dir():
@@ -219,7 +252,7 @@ class RegistryClient:
             scheme = urlsplit(site).scheme
             if scheme not in ("http", "https"):
                 raise InputError(f"{site}: a registry is an http(s) URL or a folder", file=site)
-            base, fetcher = site.rstrip("/"), _strict(Urllib3Fetcher)(socket_timeout=timeout)
+            base, fetcher = site.rstrip("/"), _https_fetcher(timeout, ca_bundle)
         try:
             self.updater: Updater = _planned_updater()(
                 str(self.metadata_dir),
@@ -235,11 +268,26 @@ class RegistryClient:
 
     @classmethod
     def open(
-        cls, site: str, trusted_root: str, *, cache_dir: Path | None = None, timeout: float = 30.0
+        cls,
+        site: str,
+        trusted_root: str,
+        *,
+        cache_dir: Path | None = None,
+        timeout: float = 30.0,
+        ca_bundle: str | None = None,
+        insecure_registries: tuple[str, ...] = (),
     ) -> RegistryClient:
-        """A client whose trust anchor is the root metadata file ``trusted_root``."""
+        """A client whose trust anchor is the root metadata file ``trusted_root``
+        (``ca_bundle``, ``insecure_registries``: as ``--ca-bundle``, ``--insecure-registry``)."""
         root = read_input(trusted_root, limit=ROOT_LIMIT, what="trusted root")
-        return cls(site, trusted_root=root, cache_dir=cache_dir, timeout=timeout)
+        return cls(
+            site,
+            trusted_root=root,
+            cache_dir=cache_dir,
+            timeout=timeout,
+            ca_bundle=ca_bundle,
+            insecure_registries=insecure_registries,
+        )
 
     # -- loading ------------------------------------------------------------------------
 
