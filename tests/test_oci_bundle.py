@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._oci import MANIFEST_TYPE, PASSWORD, USER, auth_registry, registry  # noqa: F401 -- fixtures
+from tests._oci import MANIFEST_TYPE, PASSWORD, USER, auth_registry, registry, running_registry  # noqa: F401 -- fixtures
 from tests.test_bundle import _entries, _hostile_cases, _zip
 
 PROJECT = Path(__file__).resolve().parent.parent
@@ -141,6 +141,53 @@ def test_bundle_doc_out_still_writes_and_help_lists_push_pull(cli, bundles, tmp_
     r = cli("bundle", "--help")
     assert r.exit_code == 0 and "push" in r.stdout and "pull" in r.stdout and "DOC OUT.hcdfz" in r.stdout
     assert cli("bundle", "push", "--help").exit_code == 0
+    one, _ = bundles
+    doc = one.parent / "examples" / "robot" / "robot.hcdf"
+    for args in (["--json", doc, tmp_path / "a.hcdfz"], ["write", doc, tmp_path / "b.hcdfz"]):
+        r = cli("bundle", *args)  # options first, and the verb's own name: the same writer
+        assert r.exit_code == 0, r.stderr
+    assert (tmp_path / "a.hcdfz").read_bytes() == (tmp_path / "b.hcdfz").read_bytes()  # (the fixture made b2 last)
+
+
+def test_tls_registry_trusted_through_ca_bundle_only(cli, bundles, tls, tmp_path_factory, tmp_path):
+    """distribution serving TLS with a test CA's certificate: the same --ca-bundle as ota push/pull."""
+    one, _ = bundles
+    folder = tmp_path_factory.mktemp("registry-tls")
+    cert = tls.ca.issue_cert("127.0.0.1")
+    cert.cert_chain_pems[0].write_to_path(str(folder / "cert.pem"))
+    cert.private_key_pem.write_to_path(str(folder / "key.pem"))
+    with running_registry(folder, tls=(folder / "cert.pem", folder / "key.pem")) as reg:
+        ref = reg.ref(REPO, "tls")
+        r = cli("bundle", "push", one, ref, "--ca-bundle", tls.ca_pem)
+        assert r.exit_code == 0, r.stderr
+        r = cli("bundle", "pull", ref, "--out", tmp_path / "o.hcdfz", "--ca-bundle", tls.ca_pem)
+        assert r.exit_code == 0, r.stderr
+        assert (tmp_path / "o.hcdfz").read_bytes() == one.read_bytes()
+        other = tmp_path / "other-ca.pem"
+        tls.other_ca.cert_pem.write_to_path(str(other))
+        r = cli("bundle", "pull", ref, "--out", tmp_path / "o2.hcdfz", "--ca-bundle", other)
+        assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.stderr, r.stderr
+        r = cli("bundle", "pull", ref, "--out", tmp_path / "o2.hcdfz")  # loopback without a CA: plain http
+        assert r.exit_code == 3, r.stderr
+        assert not (tmp_path / "o2.hcdfz").exists()
+
+
+def test_a_bundle_changed_while_pushed_is_refused_and_its_manifest_not_pushed(cli, registry, bundles, monkeypatch):  # noqa: F811
+    import hcdf_trust.localfile as localfile
+
+    one, _ = bundles
+    real = localfile.read_chunks
+
+    def swapped(fd):  # the file as read for the upload differs from the file verified
+        for chunk in real(fd):
+            yield chunk[:-1] + bytes([chunk[-1] ^ 1])
+
+    monkeypatch.setattr(localfile, "read_chunks", swapped)
+    r = cli("bundle", "push", one, registry.ref("robots/changed", "changed"))  # a repository without the blob
+    assert r.exit_code != 0
+    assert "changed while it was being pushed" in r.stderr, r.stderr
+    with registry.http() as c:
+        assert c.get("/v2/robots/changed/manifests/changed").status_code == 404
 
 
 # --- attacks: each refused, nothing written --------------------------------------------------
