@@ -70,24 +70,17 @@ def verify_bundle(path: str) -> Checked:
     Raises:
         BundleFormatError (exit 3), ErrorGroup of the walk's errors (exit 1 for a mismatch).
     """
-    from ..bundle import read_archive
     from ..include.resolver import ResolveOptions, verify
 
     res = verify(path, ResolveOptions())
     if not res.ok:
         raise ErrorGroup(res.errors)
     assert res.bundle is not None  # a .hcdfz name is always read as a bundle
-    archive = read_archive(path)  # the root entry's name and digest, for the annotations
-    try:
-        if archive.sha256 != res.bundle[1]:  # our own file changed between the two reads
-            raise IntegrityError(
-                f"{archive.path} changed while it was verified", file=archive.path, expected=res.bundle[1]
-            )
-        root = archive.root
-        root_sha = hashlib.sha256(archive.data(root)).hexdigest()
-        return Checked(root.name, root_sha, archive.sha256, archive.size, list(res.warnings))
-    finally:
-        archive.close()
+    shown, sha256, size = res.bundle
+    # the root entry as the walk read it (its source is "X.hcdfz/<entry>"): no second read
+    root = res.root.source[len(shown) + 1 :] if res.root.source.startswith(shown + "/") else res.root.source
+    root_sha = hashlib.sha256(res.root.data).hexdigest()
+    return Checked(root, root_sha, sha256, size, list(res.warnings))
 
 
 def manifest_for(checked: Checked, title: str) -> bytes:
