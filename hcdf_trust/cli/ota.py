@@ -307,14 +307,16 @@ def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], pu
 @click.argument("release_dir", type=click.Path(file_okay=False))
 @click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
 @click.option(
-    "--key", type=click.Path(dir_okay=False), help="Public key: run `ota verify` (and --provenance) before pushing."
+    "--key",
+    type=click.Path(dir_okay=False),
+    help="Public key: verify the release (and its provenance.intoto.json) before pushing.",
 )
 @click.option(
     "--sbom",
     "sboms",
     multiple=True,
     type=click.Path(dir_okay=False),
-    help="A CycloneDX or SPDX 3 JSON SBOM of this release (`hcdf-trust sbom --release`) to attach as a "
+    help="A CycloneDX or SPDX 3 JSON SBOM of this release (from `hcdf-trust sbom`) to attach as a "
     "referrer. Repeatable.",
 )
 @_registry_options
@@ -436,8 +438,8 @@ def pull(
     as_json: bool,
 ) -> None:
     """Pull a release from an OCI registry: every blob hashed against the manifest, `ota verify`
-    run on the result in a staging folder (and `--provenance` on its provenance referrer, when
-    listed), and only then written to --out (all or nothing)."""
+    run on the result in a staging folder (and its provenance referrer, when listed, verified as
+    `ota verify` verifies a provenance), and only then written to --out (all or nothing)."""
     from ..oci.release import pull_release
     from ..ota.keys import load_public
     from ..ota.release import previous_manifest

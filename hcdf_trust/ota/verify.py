@@ -69,6 +69,9 @@ class ReleaseFiles:
     unaccounted: tuple[str, ...] = ()  # files and folders that no signed release accounts for
     linked: tuple[str, ...] = ()  # folders that are symlinks
     previous: suit.Release | None = None  # --previous's signed release (rollback: step 6)
+    # SHA-256s the caller already computed from exactly these files' bytes (ota pull: each blob
+    # as it arrived; what lands in --out is hashed against the same digest): not hashed again
+    sha256: Mapping[str, str] = field(default_factory=dict)
 
 
 def image_path(c: suit.Component) -> str:
@@ -403,7 +406,7 @@ def _check_image(
     if not c.uri.endswith(rel):
         return [ReleaseIntegrityError(f"{c.name}: uri does not name {rel}", file=rel, expected=rel, actual=c.uri)]
     errors: list[HcdfTrustError] = []
-    sha = hashlib.sha256(data).hexdigest()
+    sha = files.sha256.get(rel) or hashlib.sha256(data).hexdigest()
     if sha != c.sha256:
         other = by_sha.get(sha)
         why = f" (mix-and-match: it is the image of {other.name})" if other is not None and other is not c else ""
