@@ -272,3 +272,20 @@ def test_an_https_registry_is_trusted_through_resolves_ca_bundle(cli, published,
     (tmp_path / "robot.hcdf.lock").unlink()
     r = _resolve(cli, published, doc, site=site.url("/"))
     assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.json["errors"][0]["message"], r.stdout
+
+
+def test_verify_of_a_bundle_checks_its_stream_profile_entry_against_the_registry(cli, published, tmp_path):
+    """The registry check reads the profile again after resolution: from the bundle, not a file."""
+    reg, _ = published
+    changed = PROFILE.read_bytes().replace(b'max-latency-us="200"', b'max-latency-us="900"', 1)
+    registry = ("--registry", reg.site, "--trusted-root", reg.root_json, "--json")
+    for name, profile, code in (("good", None, 0), ("bad", changed, 1)):
+        doc = _robot(tmp_path / name, profile=profile)
+        out = tmp_path / f"{name}.hcdfz"
+        assert cli("bundle", doc, out).exit_code == 0
+        shutil.rmtree(tmp_path / name)  # nothing left to read but the bundle
+        res = cli("verify", out, *registry)
+        assert res.exit_code == code, res.stdout
+        if code:
+            assert [e["code"] for e in res.json["errors"]] == ["stream-profile-digest"]
+            assert f"{name}.hcdfz/assets/op.streams_" in res.json["errors"][0]["url"]

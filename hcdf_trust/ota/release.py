@@ -208,8 +208,8 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         raise ErrorGroup(res.errors)
     if res.bundle is not None and options.update_hcdf:
         raise InputError(
-            f"--update-hcdf edits the description in place: {res.bundle[0]} is a bundle, rebuild it instead",
-            file=res.bundle[0],
+            f"--update-hcdf edits the description in place: {res.bundle.archive.path} is a bundle, rebuild it instead",
+            file=res.bundle.archive.path,
         )
     # What pins the tree: the lock file, or the bundle the tree was read from (recorded as the lock digest)
     lock_sha = res.pins_sha256(limit=64 << 20)
