@@ -76,11 +76,10 @@ def verify_bundle(path: str) -> Checked:
     if not res.ok:
         raise ErrorGroup(res.errors)
     assert res.bundle is not None  # a .hcdfz name is always read as a bundle
-    shown, sha256, size = res.bundle
-    # the root entry as the walk read it (its source is "X.hcdfz/<entry>"): no second read
-    root = res.root.source[len(shown) + 1 :] if res.root.source.startswith(shown + "/") else res.root.source
-    root_sha = hashlib.sha256(res.root.data).hexdigest()
-    return Checked(root, root_sha, sha256, size, list(res.warnings))
+    archive = res.bundle.archive  # the bytes the walk checked (no second read)
+    root = archive.root
+    root_sha = hashlib.sha256(archive.data(root)).hexdigest()
+    return Checked(root.name, root_sha, archive.sha256, archive.size, list(res.warnings))
 
 
 def manifest_for(checked: Checked, title: str) -> bytes:
