@@ -47,12 +47,7 @@ def bundle() -> None:
     show_default=True,
     help="Most elements the bundled document may have once every include is expanded.",
 )
-@click.option(
-    "--ca-bundle",
-    type=click.Path(dir_okay=False),
-    envvar="HCDF_TRUST_CA_BUNDLE",
-    help="PEM CA certificates for https (--online) [env: HCDF_TRUST_CA_BUNDLE].",
-)
+@CA_BUNDLE_OPTION  # one --ca-bundle, one meaning, in every verb that talks https
 @click.option(
     "--json", "as_json", is_flag=True, help="Print one JSON object on stdout: ok, bundle, sha256, size, entries, wrote."
 )

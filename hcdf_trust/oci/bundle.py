@@ -175,7 +175,7 @@ class BundlePullReport:
 
 def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: str) -> BundlePullReport:
     """Steps 1-5 above. Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
-    from ..bundle import MAX_BYTES
+    from ..bundle import MAX_BYTES, is_bundle
     from ..outputs import BUNDLE, ORDINARY, FileContent, OutputPlan
     from ..store import ContentStore
     from .release import STAGE_PREFIX, _fetch_blob, _hold, sweep_stages
@@ -218,7 +218,7 @@ def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: 
     stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
     lock = _hold(stage)
     try:
-        staged = os.path.join(stage, os.path.basename(out))
+        staged = os.path.join(stage, os.path.basename(out) if is_bundle(out) else "bundle.hcdfz")
         try:
             os.link(blob, staged, follow_symlinks=False)
         except OSError:  # another filesystem, or links not allowed
