@@ -237,6 +237,10 @@ def _check_invocation(args: list[str], line: str) -> list[str]:
     i = 0
     while isinstance(cmd, click.Group) and i < len(words):
         word = words[i]
+        default = getattr(cmd, "default_command", None)  # `bundle DOC OUT` is `bundle write DOC OUT`
+        if default and word not in cmd.list_commands(click.Context(cmd)) and word not in ("-h", "--help"):
+            cmd, path = cmd.get_command(click.Context(cmd), default), [*path, default]
+            break
         if word.startswith("-"):
             if word.split("=")[0] not in _names(cmd):
                 problems.append(f"{' '.join(path)}: no option {word} ({line.strip()})")

@@ -35,7 +35,7 @@ def _leaves(cmd: click.Command, path: tuple[str, ...] = ()) -> list[tuple[str, c
 
 VERBS = dict(_leaves(main))
 TREE_VERBS = [
-    "bundle",
+    "bundle write",  # also `bundle DOC OUT`
     "audit",
     "sbom",
     "ota build",

@@ -1,4 +1,11 @@
-"""``hcdf-trust bundle``: resolve and verify a tree, then write it as one ``.hcdfz`` (hcdf_trust.bundle)."""
+"""``hcdf-trust bundle``: resolve and verify a tree, then write it as one ``.hcdfz`` (hcdf_trust.bundle);
+``bundle push`` / ``bundle pull``: a bundle through an OCI registry (hcdf_trust.oci.bundle).
+
+``bundle DOC OUT`` stays the writer: ``bundle`` is a group whose first argument, unless it is
+``push``, ``pull`` or ``write``, is the writer's (a document named ``push`` is written ``./push``). The
+registry verbs are ``ota push``/``ota pull``'s: the same reference grammar, credentials,
+``--ca-bundle`` and ``--insecure-registry``.
+"""
 
 from __future__ import annotations
 
@@ -6,10 +13,30 @@ from typing import Any
 
 import click
 
-from . import CA_BUNDLE_OPTION, emit_json, handle_errors, say, tree_options
+from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 
 
-@click.command()
+class _WriterByDefault(click.Group):
+    """A group whose arguments, when they do not start with a subcommand's name, go to ``write``."""
+
+    default_command = "write"  # (tests/test_docs.py's command checker reads it too)
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if args and args[0] not in self.commands and args[0] not in ctx.help_option_names:
+            args = [self.default_command, *args]
+        return super().parse_args(ctx, args)
+
+    def format_usage(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        formatter.write_usage(ctx.command_path, "DOC OUT.hcdfz [OPTIONS] | push ... | pull ...")
+
+
+@click.group(cls=_WriterByDefault)
+def bundle() -> None:
+    """Write a verified tree as one .hcdfz (`bundle DOC OUT.hcdfz`, short for `bundle write DOC
+    OUT.hcdfz`), or push / pull a bundle through an OCI registry, verified on every pull."""
+
+
+@bundle.command("write")
 @click.argument("doc", type=click.Path(dir_okay=False))
 @click.argument("out", type=click.Path(dir_okay=False))
 @tree_options
@@ -20,12 +47,12 @@ from . import CA_BUNDLE_OPTION, emit_json, handle_errors, say, tree_options
     show_default=True,
     help="Most elements the bundled document may have once every include is expanded.",
 )
-@CA_BUNDLE_OPTION
+@CA_BUNDLE_OPTION  # one --ca-bundle, one meaning, in every verb that talks https
 @click.option(
     "--json", "as_json", is_flag=True, help="Print one JSON object on stdout: ok, bundle, sha256, size, entries, wrote."
 )
 @handle_errors
-def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | None, as_json: bool) -> None:
+def write(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | None, as_json: bool) -> None:
     """Write DOC's verified tree as OUT, one self-contained .hcdfz (upstream's format).
 
     The tree is verified first, under its lock (offline unless --online, which fetches what the
@@ -34,6 +61,7 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | No
     referenced file follows as assets/<name>_<sha>.<ext> with its full sha256 pin. Every entry is
     stored, the same tree gives the same bytes, and nothing is written unless all of it verified.
     `verify OUT` (and resolve, validate, audit, sbom, macsec, ota build) read it without extracting.
+    `hcdf-trust bundle DOC OUT` is short for `hcdf-trust bundle write DOC OUT`.
     """
     import os
 
@@ -93,3 +121,99 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | No
         return
     state = "wrote" if wrote else "unchanged"
     say(f"{state} {display_path(out)}: {len(entries)} entries, {len(data)} bytes, sha256 {sha}")
+
+
+@bundle.command()
+@click.argument("path", metavar="X.hcdfz", type=click.Path(dir_okay=False))
+@click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
+@CA_BUNDLE_OPTION
+@INSECURE_REGISTRY_OPTION
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def push(path: str, target: str, ca_bundle: str | None, insecure_registries: tuple[str, ...], as_json: bool) -> None:
+    """Verify X.hcdfz as `verify` does, then push it to an OCI registry as one artifact (the
+    bundle as its one layer). Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
+    from ..bundle import is_bundle
+    from ..oci.bundle import push_bundle
+    from .ota import _client
+
+    if not is_bundle(path):
+        raise click.BadParameter(f"{path}: a bundle's name ends in .hcdfz", param_hint="X.hcdfz")
+    ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
+    with client:
+        result = push_bundle(path, ref, client)
+    warnings = result.pop("warnings")
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "reference": str(ref),
+                **result,
+                "warnings": [n.to_dict() for n in warnings],
+                "errors": [],
+            }
+        )
+        return
+    for n in warnings:
+        say(f"warning: {n}", always=True)
+    say(f"pushed {path} ({result['size']} bytes, sha256 {result['sha256']}) to {ref} ({result['digest']})")
+    say(f"pull it with: hcdf-trust bundle pull {ref.with_digest(result['digest'])} --out X.hcdfz")
+
+
+@bundle.command()
+@click.argument("source", metavar="oci://HOST[:PORT]/REPO:TAG|@sha256:HEX")
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="The bundle to write (*.hcdfz).")
+@click.option(
+    "--cache-dir",
+    type=click.Path(file_okay=False),
+    help="Content store of verified blobs [default: $XDG_CACHE_HOME/hcdf-trust].",
+)
+@CA_BUNDLE_OPTION
+@INSECURE_REGISTRY_OPTION
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def pull(
+    source: str,
+    out: str,
+    cache_dir: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Pull a bundle from an OCI registry: the manifest pinned by its body's hash, the blob hashed
+    while it streams, then verified as `verify X.hcdfz` verifies it in a staging folder, and only
+    then written to --out."""
+    from ..bundle import is_bundle
+    from ..errors import display_path
+    from ..oci.bundle import pull_bundle
+    from ..store import default_cache_dir
+    from .ota import _client
+
+    if not is_bundle(out):
+        raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="--out")
+    ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
+    with client:
+        report = pull_bundle(ref, client, out=out, cache_dir=cache_dir or str(default_cache_dir()))
+    checked = report.checked
+    if as_json:
+        emit_json(
+            {
+                "ok": True,
+                "reference": report.reference,
+                "digest": report.digest,
+                "sha256": checked.sha256,
+                "size": checked.size,
+                "root": checked.root,
+                "from_cache": report.from_cache,
+                "warnings": [n.to_dict() for n in checked.warnings],
+                "wrote": [display_path(p) for p in report.wrote],
+                "errors": [],
+            }
+        )
+        return
+    for n in checked.warnings:
+        say(f"warning: {n}", always=True)
+    say(
+        f"bundle {checked.root} from {report.reference} ({report.digest}): {checked.size} bytes verified"
+        f"{' (from the cache)' if report.from_cache else ''}, written to {display_path(out)}"
+    )

@@ -61,6 +61,7 @@ A = "dev.hcdf."  # our annotation prefix
 MAX_LAYERS = 1024
 FETCH_THREADS = 4
 MAX_TOTAL_BYTES = 8 << 30
+MAX_LAYER_BYTES = 256 << 20  # one release file (a bundle layer has the bundle's own cap)
 _SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,254}")
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
 
@@ -282,6 +283,7 @@ def check_manifest(
     layer_types: frozenset[str] = LAYER_TYPES,
     max_segments: int = 3,
     what: str = "an hcdf-trust release",
+    max_layer_bytes: int = MAX_LAYER_BYTES,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Step 2: the manifest document and its layers, each checked. Pure.
 
@@ -313,8 +315,8 @@ def check_manifest(
         if not isinstance(layer.get("digest"), str) or not _DIGEST.fullmatch(layer["digest"]):
             raise ArtifactError(f"{where}: digest is not sha256: and 64 lower-case hex digits", file=source)
         size = layer.get("size")
-        if type(size) is not int or size < 0 or size > (256 << 20):
-            raise ArtifactError(f"{where}: size is not an integer from 0 to 256 MiB", file=source)
+        if type(size) is not int or size < 0 or size > max_layer_bytes:
+            raise ArtifactError(f"{where}: size is not an integer from 0 to {max_layer_bytes} bytes", file=source)
         total += size
         annotations = layer.get("annotations")
         title = annotations.get(TITLE) if isinstance(annotations, dict) else None
