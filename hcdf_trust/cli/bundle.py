@@ -62,7 +62,7 @@ def bundle(
     referenced file follows as assets/<name>_<sha>.<ext> with its full sha256 pin. Every entry is
     stored, the same tree gives the same bytes, and nothing is written unless all of it verified.
     --provenance also writes OUT.intoto.json beside it, signed with --key (`verify OUT
-    --provenance --provenance-key PUB` checks it); both are written, or neither.
+    --provenance` checks it); both are written, or neither.
     `verify OUT` (and resolve, validate, audit, sbom, macsec, ota build) read it without extracting.
     """
     import os
