@@ -737,20 +737,81 @@ def resolve(
 @click.argument("doc", type=click.Path(dir_okay=False))
 @resolve_options
 @offline_registry_options
+@click.option(
+    "--provenance",
+    is_flag=True,
+    help="Also verify DOC.intoto.json, a bundle's provenance (signed by --provenance-key).",
+)
+@click.option(
+    "--provenance-key",
+    "provenance_keys",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    help="A public key (PEM) that may sign the provenance (repeatable).",
+)
+@click.option(
+    "--threshold", type=click.IntRange(1, 64), default=1, show_default=True, help="Provenance signatures needed."
+)
 @handle_errors
-def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str | None, **kw: Any) -> None:
+def verify(
+    doc: str,
+    as_json: bool,
+    registry_site: str | None,
+    trusted_root: str | None,
+    provenance: bool,
+    provenance_keys: tuple[str, ...],
+    threshold: int,
+    **kw: Any,
+) -> None:
     """Check DOC's tree against its lock file, offline; write nothing.
 
     Every file must be present locally, in a mirror or in the cache, and match
     both its pin and the lock. --registry (a folder) also checks the tree's
-    extensions and stream profiles against a signed registry.
+    extensions and stream profiles against a signed registry. For a bundle,
+    --provenance also checks DOC.intoto.json (`bundle --provenance`): its
+    signatures, that its subject is this bundle and its dependencies its assets.
     """
     from ..include.resolver import ResolveOptions
 
+    if not provenance and (provenance_keys or threshold != 1):
+        raise click.UsageError("--provenance-key and --threshold need --provenance")
+    if provenance:
+        from ..bundle import is_bundle
+
+        if not is_bundle(doc):
+            raise click.UsageError("--provenance verifies a bundle's (DOC.hcdfz); a release's is `ota verify`'s")
+        if not provenance_keys:
+            raise click.UsageError("--provenance needs --provenance-key (the public key that signed it)")
     options = ResolveOptions(**kw)
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
     res = _run_resolve(doc, options, as_json=as_json, registry=registry, verifying=True)
+    if provenance:
+        errors = _verify_bundle_provenance(doc, provenance_keys, threshold)
+        if errors:
+            fail(errors, as_json=as_json, payload=_payload(res))
     _report(res, as_json=as_json, wrote=[])
+
+
+def _verify_bundle_provenance(doc: str, key_files: tuple[str, ...], threshold: int) -> list[Any]:
+    """The violations of ``doc``'s provenance (``doc.intoto.json``), keys read from ``key_files``."""
+    from ..bundle import read_archive
+    from ..errors import display_path
+    from ..localfile import read_input
+    from ..ota.keys import load_public
+    from ..ota.signer import key_id
+    from ..provenance import dsse
+    from ..provenance.bundle import envelope_path, verify_bundle_provenance
+
+    keys = [load_public(k) for k in key_files]
+    if len({key_id(k) for k in keys}) < threshold:
+        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--provenance-key)")
+    path = envelope_path(doc)
+    data = read_input(path, limit=dsse.MAX_ENVELOPE_BYTES, what="provenance")
+    archive = read_archive(doc)
+    try:
+        return verify_bundle_provenance(archive, data, keys, threshold=threshold, source=display_path(path))
+    finally:
+        archive.close()
 
 
 def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None, verifying: bool = False) -> Any:

@@ -14,6 +14,8 @@ from typing import Any
 import click
 
 from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
+from .ota import signing_key_options
+from .params import source_date_epoch_option
 
 
 class _WriterByDefault(click.Group):
@@ -49,10 +51,31 @@ def bundle() -> None:
 )
 @CA_BUNDLE_OPTION  # one --ca-bundle, one meaning, in every verb that talks https
 @click.option(
+    "--provenance",
+    is_flag=True,
+    help="Also write OUT.intoto.json (in-toto/SLSA, DSSE, signed with --key): the bundle and what it was built from.",
+)
+@signing_key_options(required=False)
+@click.option("--builder-id", help="The provenance's runDetails.builder.id [default: the CI workflow, else ours].")
+@source_date_epoch_option
+@click.option(
     "--json", "as_json", is_flag=True, help="Print one JSON object on stdout: ok, bundle, sha256, size, entries, wrote."
 )
 @handle_errors
-def write(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | None, as_json: bool) -> None:
+def write(
+    doc: str,
+    out: str,
+    tree: Any,
+    max_elements: int,
+    ca_bundle: str | None,
+    provenance: bool,
+    key: str | None,
+    passphrase_file: str | None,
+    pin_file: str | None,
+    builder_id: str | None,
+    source_date: Any,
+    as_json: bool,
+) -> None:
     """Write DOC's verified tree as OUT, one self-contained .hcdfz (upstream's format).
 
     The tree is verified first, under its lock (offline unless --online, which fetches what the
@@ -60,10 +83,13 @@ def write(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | Non
     document (a full sha256) or the lock. The includes are flattened into one document, the first entry; each
     referenced file follows as assets/<name>_<sha>.<ext> with its full sha256 pin. Every entry is
     stored, the same tree gives the same bytes, and nothing is written unless all of it verified.
+    --provenance also writes OUT.intoto.json beside it, signed with --key (`verify OUT
+    --provenance` checks it); both are written, or neither.
     `verify OUT` (and resolve, validate, audit, sbom, macsec, ota build) read it without extracting.
     `hcdf-trust bundle DOC OUT` is short for `hcdf-trust bundle write DOC OUT`.
     """
     import os
+    import time
 
     from ..bundle import build, is_bundle, unpinned
     from ..errors import ErrorGroup, display_path
@@ -73,6 +99,10 @@ def write(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | Non
 
     if not is_bundle(out):
         raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="OUT")
+    if provenance and key is None:
+        raise click.UsageError("--provenance needs --key (the key that signs it)")
+    if not provenance and (key or passphrase_file or pin_file or builder_id):
+        raise click.UsageError("--key, --passphrase-file, --pin-file and --builder-id need --provenance")
 
     # Under the lock when there is one; a tree whose document pins everything needs none.
     locked = tree.lock_path is not None or os.path.lexists(default_path(os.path.abspath(doc)))
@@ -103,6 +133,21 @@ def write(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | Non
 
     entries = check_structure(memoryview(data), shown=out)  # it reads back under our own rules, or is not written
     plan.add(out, data, flag="OUT", if_changed=True, replaces=replaces)
+    if provenance:
+        assert key is not None
+        from ..ota.release import format_date
+        from ..provenance.bundle import bundle_provenance, envelope_path
+        from .ota import open_signer
+
+        signer, inputs = open_signer(key, passphrase_file, pin_file)
+        try:
+            for path, what in inputs:
+                plan.protect(path, what=what)
+            date = format_date(source_date.timestamp() if source_date is not None else time.time())
+            envelope = bundle_provenance(res, bundle=out, data=data, date=date, signers=[signer], builder_id=builder_id)
+        finally:
+            signer.close()
+        plan.add(envelope_path(out), envelope, flag="--provenance", if_changed=True, replaces=(ORDINARY,))
     wrote = [display_path(p) for p in plan.commit()]
     sha = hashlib.sha256(data).hexdigest()
     if as_json:

@@ -5,6 +5,7 @@ imgtool, cbor2 and the COSE library are imported inside the commands only.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import click
@@ -12,6 +13,33 @@ import click
 from ..errors import counted
 from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .params import source_date_epoch_option
+
+
+def signing_key_options(*, required: bool) -> Callable[[Any], Any]:
+    """``--key``, ``--passphrase-file`` and ``--pin-file``: the same for every verb that signs
+    (ota build, ota sign-provenance, bundle --provenance)."""
+
+    def apply(func: Any) -> Any:
+        func = click.option(
+            "--pin-file",
+            type=click.Path(dir_okay=False),
+            help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; "
+            "never on the command line.",
+        )(func)
+        func = click.option(
+            "--passphrase-file",
+            type=click.Path(dir_okay=False),
+            help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
+        )(func)
+        return click.option(
+            "--key",
+            "key",
+            required=required,
+            help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…).",
+        )(func)
+
+    return apply
+
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
 
@@ -64,19 +92,7 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
 @ota.command()
 @click.argument("doc", type=click.Path(dir_okay=False))
 @click.option("--firmware-dir", required=True, type=click.Path(file_okay=False), help="Where the binaries are.")
-@click.option(
-    "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
-)
-@click.option(
-    "--passphrase-file",
-    type=click.Path(dir_okay=False),
-    help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
-)
-@click.option(
-    "--pin-file",
-    type=click.Path(dir_okay=False),
-    help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
-)
+@signing_key_options(required=True)
 @click.option(
     "-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Release folder to write."
 )
@@ -138,7 +154,7 @@ def build(
     """
     from ..ota.release import BuildOptions, build_release, format_date
 
-    signer, inputs = _signer(key, passphrase_file, pin_file)
+    signer, inputs = open_signer(key, passphrase_file, pin_file)
     try:
         report = build_release(
             doc,
@@ -271,19 +287,7 @@ def verify_cmd(
 
 @ota.command(name="sign-provenance")
 @click.argument("release_dir", type=click.Path(file_okay=False))
-@click.option(
-    "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
-)
-@click.option(
-    "--passphrase-file",
-    type=click.Path(dir_okay=False),
-    help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
-)
-@click.option(
-    "--pin-file",
-    type=click.Path(dir_okay=False),
-    help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
-)
+@signing_key_options(required=True)
 @click.option(
     "--release-key",
     required=True,
@@ -313,7 +317,7 @@ def sign_provenance_cmd(
     from . import fail
 
     public = load_public(release_key)
-    signer, inputs = _signer(key, passphrase_file, pin_file)
+    signer, inputs = open_signer(key, passphrase_file, pin_file)
     try:
         release, files = read_release(release_dir, public)
         errors = check_release(release, files, public)
@@ -341,7 +345,8 @@ def sign_provenance_cmd(
         say(f"{out}: {counted(len(keyids), 'signature')} ({', '.join(keyids)})")
 
 
-def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
+def open_signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:
+    """The signer of ``--key`` and the inputs it read (to protect from being overwritten)."""
     from ..ota.keys import load_private
     from ..ota.signer import FileSigner
     from ..passphrase import read_passphrase
