@@ -420,3 +420,47 @@ def test_another_components_image_in_place_is_named_with_both_sizes(built):
         ),
         ("mr_mcxn_t1/flex-io: size differs from the signed manifest", rel, str(flex.size), str(gnss.size)),
     ]
+
+
+# --- _check_rendering: a release.suit.json that is not what the envelope renders ----------
+
+
+def test_a_rendering_that_is_not_utf8_is_named_at_its_line_not_a_crash(built, cli):
+    """Bytes that do not decode are shown replaced (U+FFFD), on the line where they are."""
+    robot, out = built
+    path = out / "release.suit.json"
+    lines = path.read_bytes().split(b"\n")
+    want = lines[2].decode().strip()
+    lines[2] = lines[2].replace(b'"', b'"\xff', 1)
+    path.write_bytes(b"\n".join(lines))
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1
+    assert [(e["message"], e["file"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
+        (
+            "release.suit.json is not the rendering of the signed manifest (delete it, or rebuild the release)",
+            "release.suit.json",
+            3,
+            want,
+            want.replace('"', '"\ufffd', 1),
+        )
+    ]
+
+
+def test_a_truncated_or_extended_rendering_is_named_at_the_first_line_past_the_shorter(built, cli):
+    robot, out = built
+    path = out / "release.suit.json"
+    full = path.read_bytes()
+    lines = full.decode().splitlines()
+    message = "release.suit.json is not the rendering of the signed manifest (delete it, or rebuild the release)"
+    path.write_text("\n".join(lines[:4]) + "\n")
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1
+    assert [(e["message"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
+        (message, 5, lines[4].strip(), "end of file")
+    ]
+    path.write_bytes(full + b'{"extra": 1}\n')
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1
+    assert [(e["message"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
+        (message, len(lines) + 1, "end of file", '{"extra": 1}')
+    ]
