@@ -464,3 +464,21 @@ def test_a_truncated_or_extended_rendering_is_named_at_the_first_line_past_the_s
     assert [(e["message"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
         (message, len(lines) + 1, "end of file", '{"extra": 1}')
     ]
+
+
+def test_a_long_line_of_the_rendering_is_cut_to_200_characters_each_side(built):
+    """The signed changelog is long (the expected line), the tampered line longer (the actual one)."""
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    long = tuple(dataclasses.replace(c, changelog="c" * 300) for c in release.components)
+    lines = files.rendering.decode().splitlines()
+    i = next(n for n, text in enumerate(lines) if '"changelog"' in text)
+    lines[i] = '    "changelog": "' + "d" * 300 + '",'
+    tampered = dataclasses.replace(files, rendering=("\n".join(lines) + "\n").encode())
+    errors = check_release(dataclasses.replace(release, components=long), tampered, pub)
+    [e] = [e for e in errors if e.file == "release.suit.json"]
+    want, got = '"changelog": "' + "c" * 300, '"changelog": "' + "d" * 300
+    assert (e.line, e.expected, e.actual) == (i + 1, want[:200], got[:200])
