@@ -482,3 +482,40 @@ def test_a_long_line_of_the_rendering_is_cut_to_200_characters_each_side(built):
     [e] = [e for e in errors if e.file == "release.suit.json"]
     want, got = '"changelog": "' + "c" * 300, '"changelog": "' + "d" * 300
     assert (e.line, e.expected, e.actual) == (i + 1, want[:200], got[:200])
+
+
+# --- check_history: every previous[] entry is a release this key signed --------------------
+
+
+def _entry(release, c, **changes):
+    from hcdf_trust.ota.latest import Entry
+
+    entry = Entry(c.version, release.date, c.mcuboot_hash, c.size, c.uri, c.changelog)
+    return dataclasses.replace(entry, **changes)
+
+
+def test_a_signed_previous_entry_does_not_end_the_checks_of_the_ones_after_it(signed):
+    from hcdf_trust.ota.latest import Latest
+    from hcdf_trust.ota.verify import check_history
+
+    release, _, _ = signed
+    c = release.component("mr_mcxn_t1", "flex-io")
+    good, forged = _entry(release, c), _entry(release, c, url="https://evil.example/x.bin")
+    doc = Latest(c.board, c.app, good, (good, forged))
+    entries = (("previous[0]", good), ("previous[1]", forged))
+    errors = check_history(doc, (release,), rel="mr_mcxn_t1/flex-io/latest.json", entries=entries)
+    assert [e.to_dict() for e in errors] == [
+        {
+            "code": "release",
+            "message": f"mr_mcxn_t1/flex-io: latest.json previous[1] ({c.version}) is not a release this key signed",
+            "file": "mr_mcxn_t1/flex-io/latest.json",
+            "line": None,
+            "expected": "an image of an earlier signed release (release.history or --previous); history "
+            "imported from an unsigned folder needs --previous DIR --import-unsigned-history",
+            "actual": f"{c.version} {c.mcuboot_hash} {c.size} https://evil.example/x.bin",
+        }
+    ]
+    assert errors[0].exit_code == 1
+    # an entry the user chose to import unsigned is taken on their word, and only that one
+    assert check_history(doc, (release,), rel="r", entries=entries, unsigned=(forged,)) == []
+    assert len(check_history(doc, (), rel="r", entries=entries, unsigned=(forged,))) == 1
