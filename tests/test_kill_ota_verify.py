@@ -519,3 +519,89 @@ def test_a_signed_previous_entry_does_not_end_the_checks_of_the_ones_after_it(si
     # an entry the user chose to import unsigned is taken on their word, and only that one
     assert check_history(doc, (release,), rel="r", entries=entries, unsigned=(forged,)) == []
     assert len(check_history(doc, (), rel="r", entries=entries, unsigned=(forged,))) == 1
+
+
+# --- _check_latest: every field of latest.json, named in full ------------------------------
+
+FLEX_LATEST = "mr_mcxn_t1/flex-io/latest.json"
+
+
+def _latest_errors(built, change, changelog=None):
+    """check_release's errors about flex-io's latest.json after ``change(doc)`` edited it
+    (and, given ``changelog``, with the signed release's flex-io changelog that one)."""
+    import json
+
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    if changelog is not None:
+        changed = (dataclasses.replace(c, changelog=changelog) if c.app == "flex-io" else c for c in release.components)
+        release = dataclasses.replace(release, components=tuple(changed))
+    doc = json.loads(files.latest[FLEX_LATEST])
+    change(doc)
+    edited = dataclasses.replace(files, latest={**files.latest, FLEX_LATEST: json.dumps(doc).encode()})
+    errors = [e for e in check_release(release, edited, pub) if e.file == FLEX_LATEST]
+    return release, [(e.code, e.message, e.file, e.expected, e.actual) for e in errors]
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("board", "other_board"),
+        ("app", "other-app"),
+        ("latest.version", "9.9.9"),
+        ("latest.mcuboot_hash", "ab" * 32),
+        ("latest.size", 7),
+        ("latest.url", "https://evil.example/x.bin"),
+        ("latest.date", "2020-01-01T00:00:00Z"),
+        ("latest.changelog", "rewritten"),
+    ],
+)
+def test_each_latest_json_field_that_differs_is_named_with_both_values(built, name, value):
+    def change(doc):
+        *parents, key = name.split(".")
+        for p in parents:
+            doc = doc[p]
+        doc[key] = value
+
+    release, got = _latest_errors(built, change)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    signed = {
+        "board": flex.board,
+        "app": flex.app,
+        "latest.version": flex.version,
+        "latest.mcuboot_hash": flex.mcuboot_hash,
+        "latest.size": str(flex.size),
+        "latest.url": flex.uri,
+        "latest.date": release.date,
+        "latest.changelog": "(absent)",  # the test robot's releases have no changelog
+    }[name]
+    assert got == [
+        (
+            "release",
+            f"mr_mcxn_t1/flex-io: latest.json {name} differs from the signed manifest",
+            FLEX_LATEST,
+            signed,
+            str(value),
+        )
+    ]
+
+
+def test_an_absent_changelog_is_named_absent_not_none(built):
+    _, got = _latest_errors(built, lambda doc: doc["latest"].pop("changelog", None), changelog="fixes")
+    assert got == [
+        (
+            "release",
+            "mr_mcxn_t1/flex-io: latest.json latest.changelog differs from the signed manifest",
+            FLEX_LATEST,
+            "fixes",
+            "(absent)",
+        )
+    ]
+
+
+def test_a_latest_json_that_does_not_parse_is_its_own_error_and_the_others_are_checked(built):
+    _, got = _latest_errors(built, lambda doc: doc["latest"].update(size=-1))
+    assert got == [("malformed-release", "latest.size is not a u64", FLEX_LATEST, None, "-1")]
