@@ -163,3 +163,13 @@ def test_an_upper_case_prefix_is_kept_as_a_prefix_and_no_prefix_stays_none():
     assert out == data.replace(b"sha='0'", b"sha='" + A.encode() + b"'").replace(
         b'sha=" SHA256:0"', b'sha="sha256:' + A.encode() + b'"'
     )
+
+
+def test_a_uri_written_over_lines_is_located_as_the_parser_reads_it():
+    """Attribute-value normalisation: CRLF, CR, LF and tab are one space each, as the parser reports."""
+    data = b'<hcdf>\r\n  <visual><model uri="m\r\nx\ry\nz\tw&#x61;.glb"/></visual>\r\n</hcdf>\r\n'
+    doc = _doc(data)
+    [ref] = doc.references()
+    assert ref.uri == "m x y z wa.glb"
+    out = apply_pins(doc, [(ref, A)])
+    assert out == data.replace(b'.glb"', b'.glb" sha="' + A.encode() + b'"')
