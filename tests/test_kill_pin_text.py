@@ -173,3 +173,11 @@ def test_a_uri_written_over_lines_is_located_as_the_parser_reads_it():
     assert ref.uri == "m x y z wa.glb"
     out = apply_pins(doc, [(ref, A)])
     assert out == data.replace(b'.glb"', b'.glb" sha="' + A.encode() + b'"')
+
+
+def test_a_document_starting_with_a_newline_is_counted_from_its_first_byte():
+    data = b"\n<hcdf>\n  <visual><model uri='m.glb'/></visual>\n</hcdf>\n"
+    assert [(t.name, t.first_line) for t in scan_start_tags(data)] == [(b"hcdf", 2), (b"visual", 3), (b"model", 3)]
+    doc = _doc(data)
+    [ref] = doc.references()
+    assert apply_pins(doc, [(ref, A)]) == data.replace(b"'m.glb'", b"'m.glb' sha='" + A.encode() + b"'")
