@@ -181,3 +181,10 @@ def test_a_document_starting_with_a_newline_is_counted_from_its_first_byte():
     doc = _doc(data)
     [ref] = doc.references()
     assert apply_pins(doc, [(ref, A)]) == data.replace(b"'m.glb'", b"'m.glb' sha='" + A.encode() + b"'")
+
+
+def test_a_utf16_document_without_a_byte_order_mark_is_refused_by_its_encoding():
+    data = '<?xml version="1.0" encoding="UTF-16"?>\n<hcdf><visual><model uri="a"/></visual></hcdf>'.encode("utf-16-le")
+    doc = _doc(data)
+    e = _refused(doc, [(doc.references()[0], A)])
+    assert (e.message, e.file) == ("cannot edit a document encoded as UTF-16", "t.hcdf")
