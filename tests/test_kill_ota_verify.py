@@ -605,3 +605,19 @@ def test_an_absent_changelog_is_named_absent_not_none(built):
 def test_a_latest_json_that_does_not_parse_is_its_own_error_and_the_others_are_checked(built):
     _, got = _latest_errors(built, lambda doc: doc["latest"].update(size=-1))
     assert got == [("malformed-release", "latest.size is not a u64", FLEX_LATEST, None, "-1")]
+
+
+def test_a_previous_entry_no_release_signed_is_named_with_its_latest_json(built):
+    def forge(doc):
+        doc["previous"] = [dict(doc["latest"], version="0.0.1", url="https://evil.example/x.bin")]
+
+    release, got = _latest_errors(built, forge)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    assert [(code, message, file, actual) for code, message, file, _, actual in got] == [
+        (
+            "release",
+            "mr_mcxn_t1/flex-io: latest.json previous[0] (0.0.1) is not a release this key signed",
+            FLEX_LATEST,
+            f"0.0.1 {flex.mcuboot_hash} {flex.size} https://evil.example/x.bin",
+        )
+    ]
