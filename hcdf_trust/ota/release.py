@@ -23,7 +23,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
@@ -50,9 +50,33 @@ HISTORY_NAME = "release.history"  # the earlier signed envelopes, newest first (
 MAX_HISTORY_BYTES = 64 << 20
 _SAFE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["BuildOptions", "BuildReport", "build_release", "read_release"]
+
 
 @dataclass(frozen=True)
 class BuildOptions:
+    """What an ``ota build`` run is told; each field is the flag of the same name (docs/ota.md).
+
+    Attributes:
+        firmware_dir: ``--firmware-dir``: where each image's binary is found.
+        out_dir: ``--out``: the release folder (an earlier release there is the previous one).
+        signer: who signs: :class:`~hcdf_trust.ota.signer.FileSigner` or a PKCS#11 signer.
+        inputs: (path, what) of key, passphrase and PIN files, which no output may replace.
+        base_url, previous, config, changelog, update_hcdf, jobs, ca_bundle, provenance,
+        builder_id, allow_http, import_unsigned_history: as the flags.
+        date: the release date (RFC 3339; default ``SOURCE_DATE_EPOCH``, else now).
+        tree: where the description tree is found (resolve's ``--base``, ``--root``, ...).
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate
+        >>> from hcdf_trust.ota.release import BuildOptions
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> options = BuildOptions(firmware_dir="fw", out_dir="release", signer=FileSigner(generate("ed25519")))
+        >>> options.previous is None, options.tree.offline
+        (True, True)
+    """
+
     firmware_dir: str
     out_dir: str
     signer: Signer
@@ -99,6 +123,28 @@ class Planned:
 
 @dataclass
 class BuildReport:
+    """What :func:`build_release` built and wrote.
+
+    Attributes:
+        release: the signed release (``sequence_number``, ``components`` with ``board``,
+            ``app``, ``version``, ``mcuboot_hash``, ``sha256``…, ``lock_sha256``).
+        notices: warnings (e.g. ``unsigned-history``).
+        wrote: the paths written.
+        excluded: ``board/app`` of the images ``ota.toml`` excluded.
+        hcdf_changes: the ``<hash>`` edits ``update_hcdf`` made (file, line, comp, old, new).
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> report = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(generate("ed25519"))))
+        >>> report.release.sequence_number, [c.name for c in report.release.components]
+        (1, ['compute/scout-os', 'scout2_arm/arm-ctrl'])
+        >>> len(report.wrote), report.excluded, report.notices
+        (5, [], [])
+    """
+
     release: suit.Release
     notices: list[Notice]
     wrote: list[str]
@@ -118,7 +164,36 @@ class PreviousRelease:
 
 
 def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
-    """Build and write a release; raise on any error with nothing written.
+    """Build and write a release from ``doc_path``'s verified tree, as ``ota build`` does:
+    one MCUboot (or raw) image per ``<comp>`` with ``<software>``, ``latest.json`` per
+    device, and one signed SUIT manifest over all of them; all or nothing.
+
+    Args:
+        doc_path: the root HCDF document (its tree is resolved under its lock).
+        options: :class:`BuildOptions`.
+
+    Returns:
+        A :class:`BuildReport`.
+
+    Example (build, then verify as ``ota verify`` does, then tamper):
+
+        >>> from hcdf_trust.ota.keys import generate, load_public, public_pem
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release, read_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> from hcdf_trust.ota.verify import check_release
+        >>> key = generate("ed25519")
+        >>> _ = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(key)))
+        >>> _ = open("fw.pub.pem", "wb").write(public_pem(key))
+        >>> public = load_public("fw.pub.pem")
+        >>> release, files = read_release("release", public)
+        >>> check_release(release, files, public)
+        []
+        >>> with open("release/scout2_arm/arm-ctrl/1.4.2.bin", "r+b") as image:
+        ...     _ = image.seek(600), image.write(b"\\xff")
+        >>> release, files = read_release("release", public)
+        >>> [(e.code, e.exit_code) for e in check_release(release, files, public)]
+        [('release', 1)]
 
     Raises:
         ErrorGroup / HcdfTrustError: the tree does not verify, an input is missing or
@@ -130,8 +205,13 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
-    lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
-    lock_sha = hashlib.sha256(lock_data).hexdigest()
+    if res.bundle is not None and options.update_hcdf:
+        raise InputError(
+            f"--update-hcdf edits the description in place: {res.bundle.archive.path} is a bundle, rebuild it instead",
+            file=res.bundle.archive.path,
+        )
+    # What pins the tree: the lock file, or the bundle the tree was read from (recorded as the lock digest)
+    lock_sha = res.pins_sha256(limit=64 << 20)
     config_path = options.config
     if config_path is None:
         default = Path(doc_path).parent / "ota.toml"
@@ -191,7 +271,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     hash_edits: list[HashEdit] = []
     changes: list[dict[str, Any]] = []
     components: list[suit.Component] = []
-    for p, (image, version_name) in zip(todo, built, strict=True):
+    for p, (image, version_name, _) in zip(todo, built, strict=True):
         is_raw = p.settings.type == "raw"
         computed = image.image_hash  # for a raw image: its file's SHA-256
         for use in p.uses:
@@ -333,6 +413,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
             lock_name=os.path.basename(res.lock_path),
             lock_entries=res.lock_entries(edited),
             images=[f"{p.board}/{p.app}" for p in todo],
+            firmware={f"{p.board}/{p.app}": (fw.path, fw.sha256) for p, (_, _, fw) in zip(todo, built, strict=True)},
             date=date,
             base_url=base_url,
             config_path=config_path,
@@ -432,15 +513,27 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     return list(plans.values())
 
 
-def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig) -> list[tuple[SignedImage, str]]:
+class FirmwareInput(NamedTuple):
+    """The binary an image was built from: its path under ``--firmware-dir`` and SHA-256
+    (computed only for ``--provenance``, whose resolvedDependencies list it)."""
+
+    path: str
+    sha256: str | None
+
+
+def _build_images(
+    todo: list[Planned], options: BuildOptions, config: OtaConfig
+) -> list[tuple[SignedImage, str, FirmwareInput]]:
     """Read and sign every binary in parallel; results in ``todo`` order, errors all collected."""
     jobs = options.jobs or len(os.sched_getaffinity(0))
 
-    def one(p: Planned) -> tuple[SignedImage, str]:
-        payload, intel_hex = _read_firmware(p, options.firmware_dir)
+    def one(p: Planned) -> tuple[SignedImage, str, FirmwareInput]:
+        payload, rel, intel_hex = _read_firmware(p, options.firmware_dir)
         use = p.first
+        payload_sha = hashlib.sha256(payload).hexdigest() if options.provenance or p.settings.type == "raw" else None
+        source = FirmwareInput(rel, payload_sha)
         if p.settings.type == "raw":
-            payload_sha = hashlib.sha256(payload).hexdigest()
+            assert payload_sha is not None
             name = (p.version_text or "").strip()
             if not _SAFE.fullmatch(name):
                 raise FirmwareError(
@@ -456,7 +549,7 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
                 security_counter=None,
                 sha256=payload_sha,
             )
-            return image, name
+            return image, name, source
         if p.settings.mcuboot_version is not None:
             version = parse_version(
                 p.settings.mcuboot_version, comp=use.comp, app=p.app, file=config.source, source="mcuboot_version"
@@ -474,11 +567,11 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
             intel_hex=intel_hex,
             comp=use.comp,
         )
-        return image, str(version)
+        return image, str(version), source
 
     with quiet(), ThreadPoolExecutor(max_workers=max(1, min(jobs, len(todo)))) as pool:
         futures = [pool.submit(one, p) for p in todo]
-        results: list[tuple[SignedImage, str]] = []
+        results: list[tuple[SignedImage, str, FirmwareInput]] = []
         errors: list[HcdfTrustError] = []
         for f in futures:
             try:
@@ -490,8 +583,9 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
     return results
 
 
-def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
-    """The binary for ``p`` (confined to the firmware folder): bytes and whether it is Intel HEX."""
+def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, str, bool]:
+    """The binary for ``p`` (confined to the firmware folder): bytes, path under the folder
+    and whether it is Intel HEX."""
     use = p.first
     if p.settings.file is not None:
         candidates = [p.settings.file]
@@ -507,7 +601,7 @@ def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
             data = read_bounded(fd, MAX_FIRMWARE_BYTES, source=path, what="firmware binary")
         finally:
             os.close(fd)
-        return data, rel.lower().endswith(".hex")
+        return data, rel, rel.lower().endswith(".hex")
     raise FirmwareError(
         f"comp {use.comp!r}: no binary for {p.board}/{p.app} in {firmware_dir}",
         file=use.file,
@@ -769,6 +863,30 @@ def read_release(
     releases to the history (and, imported on the user's word, its latest.json entries).
 
     An image whose size is not the signed one is not read (``ReleaseFiles.sizes``).
+
+    Returns:
+        The verified :class:`~hcdf_trust.ota.suit.Release` and the folder's
+        :class:`~hcdf_trust.ota.verify.ReleaseFiles`, for :func:`~hcdf_trust.ota.verify.check_release`.
+
+    Example:
+
+        >>> from hcdf_trust.ota.keys import generate, load_public, public_pem
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release, read_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> from hcdf_trust.ota.verify import check_release
+        >>> key = generate("ed25519")
+        >>> _ = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(key)))
+        >>> _ = open("fw.pub.pem", "wb").write(public_pem(key))
+        >>> public = load_public("fw.pub.pem")
+        >>> release, files = read_release("release", public)
+        >>> check_release(release, files, public)
+        []
+        >>> with open("release/scout2_arm/arm-ctrl/1.4.2.bin", "r+b") as image:
+        ...     _ = image.seek(600), image.write(b"\\xff")
+        >>> release, files = read_release("release", public)
+        >>> [(e.code, e.exit_code) for e in check_release(release, files, public)]
+        [('release', 1)]
 
     Raises:
         NotFoundError / InputError: no manifest, or a file that cannot be read.
