@@ -420,3 +420,204 @@ def test_another_components_image_in_place_is_named_with_both_sizes(built):
         ),
         ("mr_mcxn_t1/flex-io: size differs from the signed manifest", rel, str(flex.size), str(gnss.size)),
     ]
+
+
+# --- _check_rendering: a release.suit.json that is not what the envelope renders ----------
+
+
+def test_a_rendering_that_is_not_utf8_is_named_at_its_line_not_a_crash(built, cli):
+    """Bytes that do not decode are shown replaced (U+FFFD), on the line where they are."""
+    robot, out = built
+    path = out / "release.suit.json"
+    lines = path.read_bytes().split(b"\n")
+    want = lines[2].decode().strip()
+    lines[2] = lines[2].replace(b'"', b'"\xff', 1)
+    path.write_bytes(b"\n".join(lines))
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1
+    assert [(e["message"], e["file"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
+        (
+            "release.suit.json is not the rendering of the signed manifest (delete it, or rebuild the release)",
+            "release.suit.json",
+            3,
+            want,
+            want.replace('"', '"\ufffd', 1),
+        )
+    ]
+
+
+def test_a_truncated_or_extended_rendering_is_named_at_the_first_line_past_the_shorter(built, cli):
+    robot, out = built
+    path = out / "release.suit.json"
+    full = path.read_bytes()
+    lines = full.decode().splitlines()
+    message = "release.suit.json is not the rendering of the signed manifest (delete it, or rebuild the release)"
+    path.write_text("\n".join(lines[:4]) + "\n")
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1
+    assert [(e["message"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
+        (message, 5, lines[4].strip(), "end of file")
+    ]
+    path.write_bytes(full + b'{"extra": 1}\n')
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1
+    assert [(e["message"], e["line"], e["expected"], e["actual"]) for e in r.json["errors"]] == [
+        (message, len(lines) + 1, "end of file", '{"extra": 1}')
+    ]
+
+
+def test_a_long_line_of_the_rendering_is_cut_to_200_characters_each_side(built):
+    """The signed changelog is long (the expected line), the tampered line longer (the actual one)."""
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    long = tuple(dataclasses.replace(c, changelog="c" * 300) for c in release.components)
+    lines = files.rendering.decode().splitlines()
+    i = next(n for n, text in enumerate(lines) if '"changelog"' in text)
+    lines[i] = '    "changelog": "' + "d" * 300 + '",'
+    tampered = dataclasses.replace(files, rendering=("\n".join(lines) + "\n").encode())
+    errors = check_release(dataclasses.replace(release, components=long), tampered, pub)
+    [e] = [e for e in errors if e.file == "release.suit.json"]
+    want, got = '"changelog": "' + "c" * 300, '"changelog": "' + "d" * 300
+    assert (e.line, e.expected, e.actual) == (i + 1, want[:200], got[:200])
+
+
+# --- check_history: every previous[] entry is a release this key signed --------------------
+
+
+def _entry(release, c, **changes):
+    from hcdf_trust.ota.latest import Entry
+
+    entry = Entry(c.version, release.date, c.mcuboot_hash, c.size, c.uri, c.changelog)
+    return dataclasses.replace(entry, **changes)
+
+
+def test_a_signed_previous_entry_does_not_end_the_checks_of_the_ones_after_it(signed):
+    from hcdf_trust.ota.latest import Latest
+    from hcdf_trust.ota.verify import check_history
+
+    release, _, _ = signed
+    c = release.component("mr_mcxn_t1", "flex-io")
+    good, forged = _entry(release, c), _entry(release, c, url="https://evil.example/x.bin")
+    doc = Latest(c.board, c.app, good, (good, forged))
+    entries = (("previous[0]", good), ("previous[1]", forged))
+    errors = check_history(doc, (release,), rel="mr_mcxn_t1/flex-io/latest.json", entries=entries)
+    assert [e.to_dict() for e in errors] == [
+        {
+            "code": "release",
+            "message": f"mr_mcxn_t1/flex-io: latest.json previous[1] ({c.version}) is not a release this key signed",
+            "file": "mr_mcxn_t1/flex-io/latest.json",
+            "line": None,
+            "expected": "an image of an earlier signed release (release.history or --previous); history "
+            "imported from an unsigned folder needs --previous DIR --import-unsigned-history",
+            "actual": f"{c.version} {c.mcuboot_hash} {c.size} https://evil.example/x.bin",
+        }
+    ]
+    assert errors[0].exit_code == 1
+    # an entry the user chose to import unsigned is taken on their word, and only that one
+    assert check_history(doc, (release,), rel="r", entries=entries, unsigned=(forged,)) == []
+    assert len(check_history(doc, (), rel="r", entries=entries, unsigned=(forged,))) == 1
+
+
+# --- _check_latest: every field of latest.json, named in full ------------------------------
+
+FLEX_LATEST = "mr_mcxn_t1/flex-io/latest.json"
+
+
+def _latest_errors(built, change, changelog=None):
+    """check_release's errors about flex-io's latest.json after ``change(doc)`` edited it
+    (and, given ``changelog``, with the signed release's flex-io changelog that one)."""
+    import json
+
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    if changelog is not None:
+        changed = (dataclasses.replace(c, changelog=changelog) if c.app == "flex-io" else c for c in release.components)
+        release = dataclasses.replace(release, components=tuple(changed))
+    doc = json.loads(files.latest[FLEX_LATEST])
+    change(doc)
+    edited = dataclasses.replace(files, latest={**files.latest, FLEX_LATEST: json.dumps(doc).encode()})
+    errors = [e for e in check_release(release, edited, pub) if e.file == FLEX_LATEST]
+    return release, [(e.code, e.message, e.file, e.expected, e.actual) for e in errors]
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("board", "other_board"),
+        ("app", "other-app"),
+        ("latest.version", "9.9.9"),
+        ("latest.mcuboot_hash", "ab" * 32),
+        ("latest.size", 7),
+        ("latest.url", "https://evil.example/x.bin"),
+        ("latest.date", "2020-01-01T00:00:00Z"),
+        ("latest.changelog", "rewritten"),
+    ],
+)
+def test_each_latest_json_field_that_differs_is_named_with_both_values(built, name, value):
+    def change(doc):
+        *parents, key = name.split(".")
+        for p in parents:
+            doc = doc[p]
+        doc[key] = value
+
+    release, got = _latest_errors(built, change)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    signed = {
+        "board": flex.board,
+        "app": flex.app,
+        "latest.version": flex.version,
+        "latest.mcuboot_hash": flex.mcuboot_hash,
+        "latest.size": str(flex.size),
+        "latest.url": flex.uri,
+        "latest.date": release.date,
+        "latest.changelog": "(absent)",  # the test robot's releases have no changelog
+    }[name]
+    assert got == [
+        (
+            "release",
+            f"mr_mcxn_t1/flex-io: latest.json {name} differs from the signed manifest",
+            FLEX_LATEST,
+            signed,
+            str(value),
+        )
+    ]
+
+
+def test_an_absent_changelog_is_named_absent_not_none(built):
+    _, got = _latest_errors(built, lambda doc: doc["latest"].pop("changelog", None), changelog="fixes")
+    assert got == [
+        (
+            "release",
+            "mr_mcxn_t1/flex-io: latest.json latest.changelog differs from the signed manifest",
+            FLEX_LATEST,
+            "fixes",
+            "(absent)",
+        )
+    ]
+
+
+def test_a_latest_json_that_does_not_parse_is_its_own_error_and_the_others_are_checked(built):
+    _, got = _latest_errors(built, lambda doc: doc["latest"].update(size=-1))
+    assert got == [("malformed-release", "latest.size is not a u64", FLEX_LATEST, None, "-1")]
+
+
+def test_a_previous_entry_no_release_signed_is_named_with_its_latest_json(built):
+    def forge(doc):
+        doc["previous"] = [dict(doc["latest"], version="0.0.1", url="https://evil.example/x.bin")]
+
+    release, got = _latest_errors(built, forge)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    assert [(code, message, file, actual) for code, message, file, _, actual in got] == [
+        (
+            "release",
+            "mr_mcxn_t1/flex-io: latest.json previous[0] (0.0.1) is not a release this key signed",
+            FLEX_LATEST,
+            f"0.0.1 {flex.mcuboot_hash} {flex.size} https://evil.example/x.bin",
+        )
+    ]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -171,3 +172,28 @@ def test_a_document_in_an_encoding_pin_cannot_edit_is_refused_by_name(cli, tmp_p
     assert [(e["code"], e["file"], e["message"]) for e in r.json["errors"]] == [
         ("pin-edit", "robot.hcdf", "cannot edit a document encoded as UTF-16")
     ]
+
+
+def test_a_remote_file_that_changed_since_it_was_locked_is_refused_not_pinned(cli, tmp_path, https_server, tls):
+    """The lock's entry for a remote URL is its pin (no sha in the document): pin must find it
+    under the URL, as written, and refuse the new content unless told to accept it."""
+    from ._kill import hcdf, model
+
+    old, new = os.urandom(300), os.urandom(300)
+    url = https_server.add("/pkg/m.glb", old)
+    doc = tmp_path / "robot.hcdf"
+    doc.write_text(hcdf(model(url)))
+    args = ("pin", doc, "--json", "--cache-dir", tmp_path / "c2", "--ca-bundle", tls.ca_pem)  # not the first cache
+    assert cli("resolve", doc, "--cache-dir", tmp_path / "c", "--ca-bundle", tls.ca_pem).exit_code == 0
+    assert url in (tmp_path / "robot.hcdf.lock").read_text()
+    https_server.add("/pkg/m.glb", new)
+    before = doc.read_bytes()
+    r = cli(*args, "--write")
+    assert r.exit_code == 1, r.stdout
+    [err] = r.json["errors"]
+    assert err["message"].startswith(f"{url} changed since it was locked in ")
+    assert (err["expected"], err["actual"]) == (hashlib.sha256(old).hexdigest(), hashlib.sha256(new).hexdigest())
+    assert doc.read_bytes() == before
+    r = cli(*args, "--write", "--update", url)
+    assert r.exit_code == 0, r.stdout
+    assert hashlib.sha256(new).hexdigest() in doc.read_text()
