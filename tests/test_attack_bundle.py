@@ -1,0 +1,287 @@
+"""Attacks on ``.hcdfz`` bundles (issue 19 §2), through the CLI, beyond tests/test_bundle.py.
+
+The archives are built here by ``_archive``, a ZIP writer of this file that can get every field
+wrong on purpose (it shares no code with ``hcdf_trust.bundle``). A case that passes documents a
+defence; a case marked ``xfail(strict=True)`` is a hole found by this attack, with the finding in
+its reason: the builder drops the mark when the hole is closed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import unicodedata
+import zipfile
+import zlib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import pytest
+
+from .conftest import PROJECT
+
+ROOT = "scout2.hcdf"
+CHASSIS = "assets/chassis_14662db9eb3d.glb"
+
+
+# --- a ZIP writer that can lie ------------------------------------------------------------------
+
+
+@dataclass
+class Z:
+    """One entry and every field of its two headers; ``None`` means "what a honest writer writes"."""
+
+    name: str | bytes
+    data: bytes
+    local_name: bytes | None = None
+    flags: int = 0
+    local_flags: int | None = None
+    method: int = 0
+    made_by: int = 20
+    needed: int = 20
+    external: int = 0
+    internal: int = 0
+    time: int = 0
+    date: int = 0
+    crc: int | None = None
+    size: int | None = None  # both sizes, both headers
+    central_extra: bytes = b""
+    local_extra: bytes = b""
+    comment: bytes = b""
+    before: bytes = b""  # bytes before its local header (offsets kept right)
+
+    @property
+    def raw(self) -> bytes:
+        return self.name if isinstance(self.name, bytes) else self.name.encode()
+
+
+@dataclass
+class Tail:
+    """What follows the entries: extra records between them and the end record, the end record's fields."""
+
+    between: bytes = b""  # after the central directory, before the end record (cd_size keeps honest)
+    count: int | None = None
+    count_disk: int | None = None
+    cd_size_delta: int = 0
+    comment: bytes = b""
+    comment_len: int | None = None
+    after: bytes = b""
+    extra: list[bytes] = field(default_factory=list)
+
+
+def _archive(entries: list[Z], tail: Tail | None = None) -> bytes:
+    tail = tail or Tail()
+    out, central = b"", b""
+    for e in entries:
+        out += e.before
+        offset = len(out)
+        crc = zlib.crc32(e.data) if e.crc is None else e.crc
+        n = len(e.data) if e.size is None else e.size
+        lname = e.raw if e.local_name is None else e.local_name
+        lflags = e.flags if e.local_flags is None else e.local_flags
+        out += struct.pack(
+            "<IHHHHHIIIHH", 0x04034B50, e.needed, lflags, e.method, e.time, e.date, crc, n, n, len(lname),
+            len(e.local_extra),
+        )  # fmt: skip
+        out += lname + e.local_extra + e.data
+        central += struct.pack(
+            "<IHHHHHHIIIHHHHHII", 0x02014B50, e.made_by, e.needed, e.flags, e.method, e.time, e.date, crc, n, n,
+            len(e.raw), len(e.central_extra), len(e.comment), 0, e.internal, e.external, offset,
+        )  # fmt: skip
+        central += e.raw + e.central_extra + e.comment
+    cd_offset = len(out)
+    count = len(entries) if tail.count is None else tail.count
+    disk = count if tail.count_disk is None else tail.count_disk
+    comment_len = len(tail.comment) if tail.comment_len is None else tail.comment_len
+    end = struct.pack(
+        "<IHHHHIIH", 0x06054B50, 0, 0, disk, count, len(central) + tail.cd_size_delta, cd_offset, comment_len
+    )
+    return out + central + tail.between + end + tail.comment + tail.after
+
+
+def _zip64_eocd(count: int, cd_size: int, cd_offset: int, at: int) -> bytes:
+    """A ZIP64 end record at offset ``at`` and its locator (APPNOTE 4.3.14, 4.3.15)."""
+    record = struct.pack("<IQHHIIQQQQ", 0x06064B50, 44, 45, 45, 0, 0, count, count, cd_size, cd_offset)
+    return record + struct.pack("<IIQI", 0x07064B50, 0, at, 1)
+
+
+# --- fixtures -------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    """The example robot bundled once, as (name, bytes) entries; and its tree, for the tree's verdicts."""
+    from click.testing import CliRunner
+
+    from hcdf_trust.cli import main
+
+    base = tmp_path_factory.mktemp("pristine")
+    shutil.copytree(PROJECT / "examples", base / "examples", ignore=shutil.ignore_patterns("out"))
+    out = base / "scout2.hcdfz"
+    env = {"XDG_CACHE_HOME": str(base / "cache")}
+    r = CliRunner().invoke(main, ["bundle", str(base / "examples" / "robot" / "robot.hcdf"), str(out)], env=env)
+    assert r.exit_code == 0, r.output
+    with zipfile.ZipFile(out) as z:
+        return [(i.filename, z.read(i)) for i in z.infolist()]
+
+
+@pytest.fixture
+def robot(tmp_path):
+    shutil.copytree(PROJECT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("out"))
+    return tmp_path / "examples" / "robot" / "robot.hcdf"
+
+
+def _zs(pristine) -> list[Z]:
+    return [Z(n, d) for n, d in pristine]
+
+
+def _root(pristine) -> bytes:
+    return pristine[0][1]
+
+
+def _renamed(pristine, old: str, new: str | bytes, **fields) -> list[Z]:
+    """The pristine bundle with entry ``old`` renamed to ``new`` everywhere (entry and reference)."""
+    shown = new if isinstance(new, str) else new.decode("utf-8", "surrogateescape")
+    root = _root(pristine).replace(f'"{old}"'.encode(), f'"{shown}"'.encode("utf-8", "surrogateescape"))
+    assert root != _root(pristine)
+    zs = [Z(ROOT, root)]
+    for n, d in pristine[1:]:
+        zs.append(Z(new, d, **fields) if n == old else Z(n, d))
+    return zs
+
+
+def _verify(cli, tmp_path, data: bytes, *extra, name: str = "hostile.hcdfz"):
+    path = tmp_path / name
+    path.write_bytes(data)
+    return cli("verify", path, "--json", *extra)
+
+
+def _refused(r, code: str = "bundle-format", exit_code: int = 3) -> dict:
+    assert r.exit_code == exit_code, (r.exit_code, r.stdout, r.stderr)
+    errors = r.json["errors"]
+    assert errors and all(e["code"] == code for e in errors), errors
+    assert all("hostile.hcdfz" in e["message"] for e in errors), errors
+    return errors[0]
+
+
+def test_the_writer_of_this_file_writes_what_the_bundle_verb_writes(cli, pristine, tmp_path):
+    """No defect asked, no defect written: each case below differs from a good bundle in what it names."""
+    good = _archive(_zs(pristine))
+    r = _verify(cli, tmp_path, good)
+    assert r.exit_code == 0, r.stderr
+    from hcdf_trust.bundle import encode
+
+    assert good == encode(list(pristine))
+
+
+# --- structure the builder's tests do not cover: exit 3, bundle-format ----------------------------
+
+ZIP64_EXTRA = struct.pack("<HHQQ", 0x0001, 16, 0, 0)  # sizes in the ZIP64 field, as zip -fz writes them
+
+
+def _zip64_record(zs: list[Z]) -> bytes:
+    """The honest archive with a ZIP64 end record and locator between the central directory and the end record."""
+    plain = _archive(zs)
+    cd_offset, cd_size = struct.unpack_from("<II", plain, len(plain) - 10)
+    return _archive(zs, Tail(between=_zip64_eocd(len(zs), cd_size, cd_offset, cd_offset + cd_size)))
+
+
+def _two_end_records(zs: list[Z]) -> bytes:
+    """The real end record, whose comment is a second, fake end record with no comment (the last 22 bytes)."""
+    plain = _archive(zs)
+    return plain[:-2] + struct.pack("<H", 22) + plain[-22:]
+
+
+def _structure_cases(pristine):
+    zs = _zs(pristine)
+    root, chassis = zs[0], next(z for z in zs if z.name == CHASSIS)
+    i = zs.index(chassis)
+
+    def one(**fields):
+        return [*zs[:i], replace(chassis, **fields), *zs[i + 1 :]]
+
+    nfd = unicodedata.normalize("NFD", "é")
+    return {
+        # ZIP64, however it is spelt
+        "zip64-extra-central": (_archive(one(central_extra=ZIP64_EXTRA)), "extra field"),
+        "zip64-extra-local": (_archive(one(local_extra=ZIP64_EXTRA)), "extra field length"),
+        "zip64-end-record": (_zip64_record(zs), "does not end where the end record starts"),
+        "zip64-count": (_archive(zs, Tail(count=0xFFFF, count_disk=0xFFFF)), "ZIP64"),
+        "unknown-extra-field": (_archive(one(central_extra=b"UT\x05\x00\x01\x00\x00\x00\x00")), "extra field"),
+        # the end record lies
+        "count-low": (_archive(zs, Tail(count=len(zs) - 1, count_disk=len(zs) - 1)), "more than its records"),
+        "count-high": (_archive(zs, Tail(count=len(zs) + 1, count_disk=len(zs) + 1)), "truncated"),
+        "count-disk-differs": (_archive(zs, Tail(count_disk=len(zs) - 1)), "multi-disk"),
+        "cd-size-short": (_archive(zs, Tail(cd_size_delta=-46)), "does not end where"),
+        "two-end-records": (_two_end_records(zs), "does not end where"),
+        "second-archive-appended": (_archive(zs) + _archive(zs[:1]), "does not end where"),
+        "entry-comment": (_archive(one(comment=b"hidden")), "comment"),
+        # the two headers name the entry differently
+        "local-name-case": (_archive(one(local_name=CHASSIS.upper().encode())), "name"),
+        "local-name-nfd": (
+            _archive(_renamed(pristine, CHASSIS, f"assets/caf{'é'}_14662db9eb3d.glb", local_name=(
+                f"assets/caf{nfd}_14662db9eb3d.glb".encode()))),
+            "name",
+        ),  # fmt: skip
+        "local-name-fullwidth-dot": (_archive(one(local_name=CHASSIS.replace(".", "\uff0e").encode())), "name"),
+        "local-name-nul-suffix": (_archive(one(local_name=CHASSIS.encode() + b"\0")), "name"),
+        "local-utf8-flag-only": (_archive(one(local_flags=0x800)), "flags"),
+        # names a honest writer never writes
+        "nul": (_archive(_renamed(pristine, CHASSIS, "assets/chassis\0_14662db9eb3d.glb")), "control character"),
+        "newline": (_archive(_renamed(pristine, CHASSIS, "assets/chassis\n_14662db9eb3d.glb")), "control"),
+        "dot-segment": (_archive(_renamed(pristine, CHASSIS, "assets/./chassis_14662db9eb3d.glb")), "'.'"),
+        "empty-segment": (_archive(_renamed(pristine, CHASSIS, "assets//chassis_14662db9eb3d.glb")), "empty"),
+        "trailing-slash": (_archive([*zs, Z("assets/dir/", b"")]), "directory entry"),
+        "directory-attribute": (_archive(one(external=0x10)), "a directory"),
+        "not-utf8": (_archive(_renamed(pristine, CHASSIS, b"assets/caf\xe9_14662db9eb3d.glb")), "not UTF-8"),
+        # flags
+        "encrypted": (_archive(one(flags=0x1)), "flags"),
+        "data-descriptor": (_archive(one(flags=0x8)), "flags"),
+        "strong-encryption": (_archive(one(flags=0x41)), "flags"),
+        "aes-method": (_archive(one(method=99)), "compressed"),
+        # sizes and checksums
+        "crc-wrong-size-right": (_archive(one(crc=zlib.crc32(chassis.data) ^ 1)), "CRC-32"),
+        "huge-declared-size": (_archive(one(size=0xFFFFFFFE)), "runs past"),
+        "zip64-entry-sizes": (_archive(one(size=0xFFFFFFFF, central_extra=ZIP64_EXTRA)), "stored sizes"),
+        "size-0xfffffff0": (_archive(one(size=0xFFFFFFF0)), "runs past"),
+        "size-short": (_archive(one(size=len(chassis.data) - 1)), "CRC-32"),
+        "root-only-local-header": (_archive([root])[:30 + len(ROOT)], "not the end-of-central-directory"),
+        "truncated-last-byte": (_archive(zs)[:-1], "not the end-of-central-directory"),
+    }
+
+
+STRUCTURE = [
+    "zip64-extra-central", "zip64-extra-local", "zip64-end-record", "zip64-count", "unknown-extra-field",
+    "count-low", "count-high", "count-disk-differs", "cd-size-short", "two-end-records", "second-archive-appended",
+    "entry-comment", "local-name-case", "local-name-nfd", "local-name-fullwidth-dot", "local-name-nul-suffix",
+    "local-utf8-flag-only", "nul", "newline", "dot-segment", "empty-segment", "trailing-slash",
+    "directory-attribute", "not-utf8", "encrypted", "data-descriptor", "strong-encryption", "aes-method",
+    "crc-wrong-size-right", "huge-declared-size", "zip64-entry-sizes", "size-0xfffffff0", "size-short", "root-only-local-header",
+    "truncated-last-byte",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("case", STRUCTURE)
+def test_hostile_structure_beyond_the_builders_cases_is_refused(cli, pristine, tmp_path, case):
+    data, what = _structure_cases(pristine)[case]
+    error = _refused(_verify(cli, tmp_path, data))
+    assert what in error["message"] + str(error.get("expected")) + str(error.get("actual")), error
+
+
+# --- the writer writes only what its reader reads -------------------------------------------------
+
+
+@pytest.mark.parametrize("cap", ["MAX_BYTES", "MAX_ENTRIES"])
+def test_the_writer_refuses_a_bundle_its_reader_would_refuse(cli, robot, tmp_path, monkeypatch, cap):
+    """Over the reader's caps the writer must stop, with nothing written (the caps made small here)."""
+    from hcdf_trust import bundle as bundle_mod
+
+    out = tmp_path / "big.hcdfz"
+    monkeypatch.setattr(bundle_mod, cap, 5 if cap == "MAX_ENTRIES" else 10_000)
+    r = cli("bundle", robot, out)
+    assert r.exit_code != 0 and not out.exists(), (r.exit_code, r.stderr)
+    assert "cap" in r.stderr
