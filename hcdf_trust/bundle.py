@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .digest import Hashed
-from .errors import InputError, IntegrityError, display_path
+from .errors import InputError, IntegrityError, UnpinnedError, display_path
 
 if TYPE_CHECKING:
     from .include.resolver import Resolution
@@ -379,10 +379,13 @@ def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = 
 
 
 def _decode_name(raw: bytes, flags: int, bad: _Bad) -> str:
+    """The name as UTF-8. Without the UTF-8 flag (bit 11) other tools read a non-ASCII name as
+    CP437: two readings of one name, so only ASCII is accepted there (both writers write ASCII)."""
+    if not flags & _UTF8_FLAG and not raw.isascii():
+        raise bad("an entry name is not ASCII and not flagged UTF-8 (tools read it two ways)", actual=repr(raw))
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
-        # Without bit 11 other tools read the name as CP437: two readings of one name.
         raise bad("an entry name is not UTF-8", actual=repr(raw)) from None
 
 
@@ -436,7 +439,6 @@ class BundleFiles:
     def __init__(self, archive: Archive, folder: str) -> None:
         self.archive = archive
         self.folder = folder.rstrip("/") + "/"
-        self.read_names: set[str] = set()  # what the walk used: check_contents' unused entries
 
     @property
     def root_path(self) -> str:
@@ -454,8 +456,12 @@ class BundleFiles:
                 expected=f"an entry of {self.archive.path}",
                 actual=shown,
             )
-        self.read_names.add(entry.name)
         return entry
+
+    def size(self, path: str) -> int:
+        """An entry's size, -1 if there is none (the resolver's hint for hashing on a thread)."""
+        entry = self.archive.by_name.get(path[len(self.folder) :]) if path.startswith(self.folder) else None
+        return entry.size if entry is not None else -1
 
     def read(
         self,
@@ -554,6 +560,30 @@ def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityE
 
 
 # --- writing --------------------------------------------------------------------------------
+
+
+def unpinned(res: Resolution) -> list[UnpinnedError]:
+    """What a bundle cannot carry: a reference that neither a full ``sha`` nor the lock pins
+    (a bundle pins every file it holds; it would otherwise pin what happened to be there)."""
+
+    locked = res.locked.entries if res.locked is not None else {}
+    errors = []
+    for art in res.artifacts.values():
+        if art.pin_status == "full" or res.lock_url(art.url) in locked:
+            continue
+        use = art.uses[0]
+        errors.append(
+            UnpinnedError(
+                f"{art.uri} is not pinned: a bundle carries only files pinned by a full sha256 or the lock"
+                " (`hcdf-trust resolve` writes the lock, `pin --write` the sha)",
+                file=use.doc,
+                line=use.ref.line,
+                url=art.url,
+                expected="a full sha256 or a lock entry",
+                actual=art.sha256,
+            )
+        )
+    return errors
 
 
 def encode(entries: list[tuple[str, bytes | memoryview]]) -> bytes:
@@ -706,4 +736,12 @@ def build(
     xml = etree.tostring(doc.root.getroottree(), xml_declaration=True, encoding="UTF-8") + b"\n"
     entries: list[tuple[str, bytes | memoryview]] = [(root_name(doc.root.get("name"), root_loc.path), xml)]
     entries += sorted(assets.items())
+    total = sum(len(data) + 76 + 2 * len(name) for name, data in entries) + _EOCD.size  # headers: 30 + 46
+    if len(entries) > MAX_ENTRIES or total > MAX_BYTES:
+        raise BundleFormatError(
+            f"{source}: {len(entries)} entries, {total} bytes: more than a bundle holds",
+            file=source,
+            expected=f"at most {MAX_ENTRIES} entries and {MAX_BYTES} bytes",
+            actual=f"{len(entries)} entries, {total} bytes",
+        )
     return encode(entries)

@@ -367,3 +367,68 @@ def test_ota_build_and_the_sbom_record_the_bundles_digest(cli, robot, bundled, t
     record = json.loads((tmp_path / "rel" / "release.suit.json").read_text())
     assert record["hcdf"]["lock_sha256"] == digest
     assert cli("ota", "verify", tmp_path / "rel", "--key", tmp_path / "k.pub.pem").exit_code == 0
+
+
+# --- remote files and pins --------------------------------------------------------------------
+
+
+def _doc(folder: Path, *models: tuple[str, str | None]) -> Path:
+    comps = "".join(
+        f'<comp name="c{i}"><visual name="v"><model uri="{uri}"{f" sha={pin!r}" if pin else ""}/></visual></comp>'
+        for i, (uri, pin) in enumerate(models)
+    )
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "r.hcdf").write_text(f'<?xml version="1.0"?>\n<hcdf version="1.0" name="r">{comps}</hcdf>\n')
+    return folder / "r.hcdf"
+
+
+def test_remote_files_are_fetched_into_the_bundle(cli, https_server, tls, tmp_path):
+    data = b"glTF" + bytes(range(200))
+    digest = hashlib.sha256(data).hexdigest()
+    url = https_server.add("/models/wheel.glb", data)
+    doc = _doc(tmp_path / "w", (url, digest))
+    out, cache = tmp_path / "r.hcdfz", tmp_path / "cache"
+    r = cli("bundle", doc, out, "--cache-dir", cache)  # offline (the default) and not cached: nothing written
+    assert r.exit_code == 3 and not out.exists()
+    r = cli("bundle", doc, out, "--online", "--cache-dir", cache, "--ca-bundle", tls.ca_pem)
+    assert r.exit_code == 0, r.stderr
+    entries = dict(_entries(out))
+    assert entries[f"assets/wheel_{digest[:12]}.glb"] == data
+    assert b"https://" not in entries["r.hcdf"]
+    assert cli("verify", out).exit_code == 0
+    # the same tree bundled again from the cache alone (offline, no socket) is the same bytes
+    https_server.close()
+    again = tmp_path / "again.hcdfz"
+    assert cli("bundle", doc, again, "--cache-dir", cache).exit_code == 0
+    assert again.read_bytes() == out.read_bytes()
+
+
+def test_a_reference_neither_the_document_nor_a_lock_pins_is_not_bundled(cli, tmp_path):
+    folder = tmp_path / "t"
+    (folder / "m").mkdir(parents=True)
+    (folder / "m" / "a.glb").write_bytes(b"glTF-a")
+    doc = _doc(folder, ("m/a.glb", None))
+    r = cli("bundle", doc, tmp_path / "x.hcdfz")
+    assert r.exit_code == 1 and "m/a.glb is not pinned" in r.stderr
+    assert not (tmp_path / "x.hcdfz").exists()
+    assert cli("resolve", doc).exit_code == 0  # the lock now pins it (trust on first use)
+    assert cli("bundle", doc, tmp_path / "x.hcdfz").exit_code == 0
+    assert cli("verify", tmp_path / "x.hcdfz").exit_code == 0
+
+
+def test_pin_refuses_a_bundle_it_cannot_edit(cli, bundled):
+    r = cli("pin", "--write", bundled)
+    assert r.exit_code == 3 and "a bundle: every reference in it is pinned already" in r.stderr
+
+
+def test_a_non_ascii_name_without_the_utf8_flag_is_refused(cli, bundled, tmp_path):
+    entries = _entries(bundled)
+    r = _verify(cli, tmp_path, _zip([entries[0], ("assets/ré_0.glb", b"x")]))
+    assert r.exit_code == 3 and "not ASCII and not flagged UTF-8" in r.stderr
+
+
+def test_a_tree_too_large_for_a_bundle_is_not_written(cli, robot, tmp_path, monkeypatch):
+    monkeypatch.setattr(bundle_mod, "MAX_BYTES", 10_000)
+    r = cli("bundle", robot, tmp_path / "big.hcdfz")
+    assert r.exit_code == 3 and "more than a bundle holds" in r.stderr
+    assert not (tmp_path / "big.hcdfz").exists()

@@ -31,7 +31,7 @@ from .macsec import store_options
 @click.option("--registry", "registry_site", help="Registry (URL or folder): extension domains and schemas.")
 @click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
 @functools.partial(store_options, required=False)
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (README: `hcdf-trust audit`).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (shape: docs/audit.md).")
 @handle_errors
 def audit_cmd(
     doc: str,

@@ -21,33 +21,46 @@ from . import emit_json, handle_errors, say, tree_options
     help="Most elements the bundled document may have once every include is expanded.",
 )
 @click.option(
+    "--ca-bundle",
+    type=click.Path(dir_okay=False),
+    envvar="HCDF_TRUST_CA_BUNDLE",
+    help="PEM CA certificates for https (--online) [env: HCDF_TRUST_CA_BUNDLE].",
+)
+@click.option(
     "--json", "as_json", is_flag=True, help="Print one JSON object on stdout: ok, bundle, sha256, size, entries, wrote."
 )
 @handle_errors
-def bundle(doc: str, out: str, tree: Any, max_elements: int, as_json: bool) -> None:
+def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | None, as_json: bool) -> None:
     """Write DOC's verified tree as OUT, one self-contained .hcdfz (upstream's format).
 
     The tree is verified first, under its lock (offline unless --online, which fetches what the
     cache lacks: remote files are carried in the bundle); every reference must be pinned, by the
-    document or the lock. The includes are flattened into one document, the first entry; each
+    document (a full sha256) or the lock. The includes are flattened into one document, the first entry; each
     referenced file follows as assets/<name>_<sha>.<ext> with its full sha256 pin. Every entry is
     stored, the same tree gives the same bytes, and nothing is written unless all of it verified.
     `verify OUT` (and resolve, validate, audit, sbom, macsec, ota build) read it without extracting.
     """
-    from ..bundle import build, is_bundle
+    import os
+
+    from ..bundle import build, is_bundle, unpinned
     from ..errors import ErrorGroup, display_path
+    from ..include.lockfile import default_path
     from ..include.resolver import resolve
     from ..outputs import OutputPlan, protect_inputs
 
     if not is_bundle(out):
         raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="OUT")
-    options = tree.resolve_options(locked=True)
+
+    # Under the lock when there is one; a tree whose document pins everything needs none.
+    locked = tree.lock_path is not None or os.path.lexists(default_path(os.path.abspath(doc)))
+    options = tree.resolve_options(locked=locked, ca_bundle=ca_bundle)
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:
             say(f"warning: {w}", always=True)
-    if not res.ok:
-        raise ErrorGroup(res.errors)
+    errors: list[Any] = res.errors or unpinned(res)
+    if errors:
+        raise ErrorGroup(errors)
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)
     plan.protect(res.lock_path, what="the lock file")
@@ -60,13 +73,13 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, as_json: bool) -> N
         cache_dir=options.cache_dir,
         max_elements=max_elements,
     )
-    plan.add(out, data, flag="OUT", if_changed=True)
-    wrote = [display_path(p) for p in plan.commit()]
     import hashlib
 
     from ..bundle import check_structure
 
-    entries = check_structure(memoryview(data), shown=out)  # what we wrote reads back under our own rules
+    entries = check_structure(memoryview(data), shown=out)  # it reads back under our own rules, or is not written
+    plan.add(out, data, flag="OUT", if_changed=True)
+    wrote = [display_path(p) for p in plan.commit()]
     sha = hashlib.sha256(data).hexdigest()
     if as_json:
         emit_json(

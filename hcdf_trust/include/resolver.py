@@ -716,6 +716,8 @@ class _Run:
 
     def _stat_size(self, art: Artifact) -> int:
         """The size of the local file, or of the cache blob of a remote one; -1 if none."""
+        if self.bundle is not None:
+            return self.bundle.size(art.location.path or "")
         try:
             path: str | Path | None = art.location.path
             if path is None:
