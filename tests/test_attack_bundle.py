@@ -237,7 +237,7 @@ def _structure_cases(pristine):
         "empty-segment": (_archive(_renamed(pristine, CHASSIS, "assets//chassis_14662db9eb3d.glb")), "empty"),
         "trailing-slash": (_archive([*zs, Z("assets/dir/", b"")]), "directory entry"),
         "directory-attribute": (_archive(one(external=0x10)), "a directory"),
-        "not-utf8": (_archive(_renamed(pristine, CHASSIS, b"assets/caf\xe9_14662db9eb3d.glb")), "not UTF-8"),
+        "not-utf8": (_archive(_renamed(pristine, CHASSIS, b"assets/caf\xe9_14662db9eb3d.glb")), "not ASCII"),
         # flags
         "encrypted": (_archive(one(flags=0x1)), "flags"),
         "data-descriptor": (_archive(one(flags=0x8)), "flags"),
@@ -246,7 +246,7 @@ def _structure_cases(pristine):
         # sizes and checksums
         "crc-wrong-size-right": (_archive(one(crc=zlib.crc32(chassis.data) ^ 1)), "CRC-32"),
         "huge-declared-size": (_archive(one(size=0xFFFFFFFE)), "runs past"),
-        "zip64-entry-sizes": (_archive(one(size=0xFFFFFFFF, central_extra=ZIP64_EXTRA)), "stored sizes"),
+        "zip64-entry-sizes": (_archive(one(size=0xFFFFFFFF, central_extra=ZIP64_EXTRA)), "extra field"),
         "size-0xfffffff0": (_archive(one(size=0xFFFFFFF0)), "runs past"),
         "size-short": (_archive(one(size=len(chassis.data) - 1)), "CRC-32"),
         "root-only-local-header": (_archive([root])[:30 + len(ROOT)], "not the end-of-central-directory"),
@@ -284,4 +284,117 @@ def test_the_writer_refuses_a_bundle_its_reader_would_refuse(cli, robot, tmp_pat
     monkeypatch.setattr(bundle_mod, cap, 5 if cap == "MAX_ENTRIES" else 10_000)
     r = cli("bundle", robot, out)
     assert r.exit_code != 0 and not out.exists(), (r.exit_code, r.stderr)
-    assert "cap" in r.stderr
+    assert "more than a bundle holds" in r.stderr
+
+
+# --- names and header fields the writer never writes ----------------------------------------------
+# The writer names every asset ``assets/<[0-9A-Za-z._-]+>`` (safe_stem) and writes every header field
+# as upstream does (version 2.0, MS-DOS host, no attributes, time 0). The reader's docstring promises
+# it "accepts exactly the archives the writer writes"; these archives verify (exit 0) and are not.
+
+_NAME_HOLE = (
+    "the reader accepts an entry name the writer never writes and that extracts elsewhere or not at all on "
+    "another system; refuse names outside the writer's alphabet (assets/[0-9A-Za-z._-]+)"
+)
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        # NTFS: 'chassis' with an alternate data stream 'x_14662db9eb3d.glb' (the file itself is empty)
+        pytest.param("assets/chassis:x_14662db9eb3d.glb", id="ntfs-stream", marks=pytest.mark.xfail(
+            strict=True, reason=_NAME_HOLE)),
+        # Windows: a folder named after a device cannot be created
+        pytest.param("assets/con/chassis_14662db9eb3d.glb", id="windows-device", marks=pytest.mark.xfail(
+            strict=True, reason=_NAME_HOLE)),
+        # Windows' best-fit mapping turns U+FF0E into '.' for an ANSI extractor: '../chassis...' ("WorstFit")
+        pytest.param("assets/\uff0e\uff0e/chassis_14662db9eb3d.glb", id="fullwidth-dot-dot", marks=pytest.mark.xfail(
+            strict=True, reason=_NAME_HOLE)),
+        pytest.param("assets/sub/chassis_14662db9eb3d.glb", id="subfolder", marks=pytest.mark.xfail(
+            strict=True, reason=_NAME_HOLE)),
+        # refused today, kept as regressions
+        pytest.param("assets/chassis\u0085_14662db9eb3d.glb", id="c1-control"),
+        pytest.param("assets/chassis\u202e_14662db9eb3d.glb", id="bidi-override"),
+        pytest.param("assets/chassis_14662db9eb3d.glb.", id="trailing-dot"),
+    ],
+)  # fmt: skip
+def test_a_name_the_writer_never_writes_is_refused(cli, pristine, tmp_path, name):
+    r = _verify(cli, tmp_path, _archive(_renamed(pristine, CHASSIS, name, flags=0x800)))
+    assert r.exit_code in (1, 3), (r.exit_code, r.stderr)
+    assert r.json["errors"], r.stdout
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="two entry names equal under Unicode normalization (NFC 'café' and NFD 'cafe\\u0301') are accepted "
+    "although names equal but for case are refused: on macOS (APFS/HFS+) they are one file, and with a 48-bit "
+    "name hash a birthday search (~2^24 hashes) finds two contents to put there",
+)
+def test_names_equal_but_for_unicode_normalization_are_refused_as_case_duplicates_are(cli, pristine, tmp_path):
+    nfc = "assets/caf\u00e9_14662db9eb3d.glb"
+    nfd = unicodedata.normalize("NFD", nfc)
+    assert nfc != nfd and nfc.casefold() != nfd.casefold()  # the case rule does not see them
+    chassis = dict(pristine)[CHASSIS]
+    sha = hashlib.sha256(chassis).hexdigest()
+    root = _root(pristine).replace(f'"{CHASSIS}"'.encode(), f'"{nfc}"'.encode())
+    camera = next(n for n, _ in pristine if n.startswith("assets/camera-head_"))
+    camera_sha = hashlib.sha256(dict(pristine)[camera]).hexdigest()
+    root = root.replace(f'uri="{camera}" sha="sha256:{camera_sha}"'.encode(), f'uri="{nfd}" sha="sha256:{sha}"'.encode())
+    zs = [Z(ROOT, root), *(Z(n, d) for n, d in pristine[1:] if n not in (CHASSIS, camera))]
+    zs += [Z(nfc, chassis, flags=0x800), Z(nfd, chassis, flags=0x800)]
+    error = _refused(_verify(cli, tmp_path, _archive(zs)))
+    assert "case" in error["message"] or "normaliz" in error["message"], error
+
+
+@pytest.mark.parametrize(
+    "fields, oracle",
+    [
+        # Info-ZIP restores the mode: the verified mesh lands world-writable for anyone to swap afterwards
+        pytest.param({"made_by": 0x0314, "external": 0o100777 << 16}, "mode", id="mode-0777"),
+        pytest.param({"made_by": 0x0314, "external": 0o104755 << 16}, None, id="setuid"),
+        # Info-ZIP skips an entry that needs a later version: it reads a bundle without the file we verified
+        pytest.param({"needed": 63}, "skipping", id="version-needed-6.3"),
+    ],
+)
+@pytest.mark.xfail(
+    strict=True,
+    reason="header fields the writer never writes (Unix modes, a later 'version needed') are accepted; "
+    "unzip then extracts the verified file world-writable, or skips it",
+)
+def test_header_fields_the_writer_never_writes_are_refused(cli, pristine, tmp_path, fields, oracle):
+    zs = [replace(z, **fields) if z.name == CHASSIS else z for z in _zs(pristine)]
+    data = _archive(zs)
+    if oracle is not None:  # what another reader makes of this archive (independent of hcdf-trust)
+        assert shutil.which("unzip"), "Info-ZIP unzip is not installed"
+        (tmp_path / "x.zip").write_bytes(data)
+        out = tmp_path / "x"
+        r = subprocess.run(["unzip", "-o", "x.zip", "-d", out], cwd=tmp_path, capture_output=True, text=True)
+        if oracle == "mode":
+            assert (out / CHASSIS).stat().st_mode & 0o777 == 0o777
+        else:
+            assert "skipping" in r.stdout + r.stderr and not (out / CHASSIS).exists()
+    error = _refused(_verify(cli, tmp_path, data))
+    assert CHASSIS in error["message"], error
+
+
+# --- the bundle is its own lock: pins must be full ------------------------------------------------
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a bundle's reference pinned by a 32-bit prefix (sha256:14662db9) verifies with exit 0 and a "
+    "warning: a bundle has no lock to complete the pin, and the writer only writes full pins",
+)
+def test_a_weak_pin_in_a_bundle_is_refused(cli, pristine, tmp_path):
+    full = hashlib.sha256(dict(pristine)[CHASSIS]).hexdigest()
+    root = _root(pristine).replace(f"sha256:{full}".encode(), f"sha256:{full[:8]}".encode())
+    r = _verify(cli, tmp_path, _archive([Z(ROOT, root), *_zs(pristine)[1:]]))
+    assert r.exit_code == 1, r.stderr
+    assert any(CHASSIS in e["message"] for e in r.json["errors"])
+
+
+def test_an_unpinned_reference_in_a_bundle_is_refused(cli, pristine, tmp_path):
+    full = hashlib.sha256(dict(pristine)[CHASSIS]).hexdigest()
+    root = _root(pristine).replace(f' sha="sha256:{full}"'.encode(), b"")
+    r = _verify(cli, tmp_path, _archive([Z(ROOT, root), *_zs(pristine)[1:]]))
+    assert r.exit_code == 1 and r.json["errors"][0]["code"] == "unpinned"
