@@ -85,6 +85,50 @@ def redact(text: str) -> str:
     return text
 
 
+class Pointer(int):
+    """Where an element of a JSON document was written: prints as its JSON Pointer
+    (``/hcdf/comp/3/visual/model``), compares and sorts as its place in document order.
+
+    Every message names a location through ``line``; a ``Pointer`` there makes
+    ``robot.json:/hcdf/comp/3: ...`` of what reads ``robot.hcdf:42: ...`` for XML, with no
+    change to the code that reports it. ``--json`` output shows it as ``pointer`` (with
+    ``line`` null): see :func:`json_locations`.
+    """
+
+    pointer: str
+
+    def __new__(cls, index: int, pointer: str) -> Pointer:
+        self = super().__new__(cls, index)
+        self.pointer = pointer or "/"
+        return self
+
+    def __str__(self) -> str:
+        return self.pointer
+
+    def __format__(self, spec: str) -> str:
+        return format(self.pointer, spec)
+
+    def __repr__(self) -> str:
+        return f"Pointer({int(self)}, {self.pointer!r})"
+
+
+def json_locations(value: Any) -> Any:
+    """``value`` (a ``--json`` payload) with every ``"line": Pointer`` written as
+    ``"line": null, "pointer": "/hcdf/..."`` (json's encoder would print the integer)."""
+    if isinstance(value, dict):
+        out = {k: json_locations(v) for k, v in value.items()}
+        line = value.get("line")
+        if isinstance(line, Pointer):
+            out["line"] = None
+            out["pointer"] = line.pointer
+        return out
+    if isinstance(value, list):
+        return [json_locations(v) for v in value]
+    if isinstance(value, Pointer):
+        return value.pointer
+    return value
+
+
 class HcdfTrustError(Exception):
     """Base class. ``code`` is a stable, machine-readable identifier for ``--json``."""
 

@@ -18,7 +18,7 @@ from typing import Any
 import click
 
 from .. import __version__
-from ..errors import ErrorGroup, HcdfTrustError, counted
+from ..errors import ErrorGroup, HcdfTrustError, counted, json_locations
 from .params import TIMEOUT
 
 _QUIET = "hcdf_trust.quiet"  # ctx.meta key (one per run, shared by a verb and its groups)
@@ -77,6 +77,7 @@ def emit_json(payload: dict[str, Any]) -> None:
     if "errors" not in payload:
         payload = {**payload, "errors": []}
     indent = 2 if sys.stdout.isatty() else None
+    payload = json_locations(payload)  # a JSON document's locations: "pointer", not a line
     click.echo(json.dumps(scrub_json(payload), indent=indent, sort_keys=True))  # noqa: TID251 -- filtered above
 
 
@@ -199,6 +200,32 @@ MIRROR_OPTION = click.option(
 )
 OFFLINE_HELP = "Use only local files, mirrors and the cache; never open a socket."
 JSON_OPTION = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+SCHEMA_ENV = "HCDF_TRUST_SCHEMA"  # jsonform.SCHEMA_ENV, without importing it
+SCHEMA_HELP = (
+    "HCDF schema (hcdf.xsd) that documents in HCDF's JSON form are read through (repeatable: the one "
+    f"whose version fits the document's is used) [env: {SCHEMA_ENV}]."
+)
+
+
+def use_schemas(ctx: click.Context, param: click.Parameter, value: tuple[str, ...] | None) -> tuple[str, ...]:
+    """Record the ``--schema`` files for this run's JSON documents (:func:`hcdf_trust.jsonform.use_schemas`)."""
+    if value or "hcdf_trust.jsonform" in sys.modules:  # an XML-only run never imports it
+        from .. import jsonform
+
+        jsonform.use_schemas(value or ())
+    return value or ()
+
+
+SCHEMA_OPTION = click.option(
+    "--schema",
+    "schemas",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    envvar=SCHEMA_ENV,
+    callback=use_schemas,
+    expose_value=False,
+    help=SCHEMA_HELP,
+)
 _LOCATION_KEYS = ("base", "mirrors", "root")
 _TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
 
@@ -222,7 +249,7 @@ def tree_options(func: Callable[..., Any]) -> Callable[..., Any]:
         show_default=True,
         help=OFFLINE_HELP + " --online fetches what they lack (still checked against the lock).",
     )
-    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline)
+    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline, SCHEMA_OPTION)
     return _tree_decorator(func, options, _TREE_KEYS)
 
 
@@ -259,6 +286,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             help="Refuse weak pins (hex prefixes shorter than 64 digits).",
         ),
         JSON_OPTION,
+        SCHEMA_OPTION,
     ]
     for option in reversed(options):
         func = option(func)
@@ -846,6 +874,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
     "bundle": (".bundle", "bundle"),
+    "convert": (".convert", "convert"),
     "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),
     "ota": (".ota", "ota"),

@@ -1078,12 +1078,12 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
                     try:
                         mbps = bit_rate(text, unit, default_unit=default) / 1e6
                     except UnitError as exc:
-                        bad = bad or (item.sourceline, f"{what}: {exc}")  # type: ignore[assignment]
+                        bad = bad or (sourceline(item), f"{what}: {exc}")
                         continue
                     speed = mbps if speed is None or mbps > speed else speed
         out[name] = _PortInfo(
             file,
-            el.sourceline,  # type: ignore[arg-type]  # lxml-stubs: `sourceline = ...`
+            sourceline(el),
             (el.get("type") or "").strip().lower(),
             (el.get("iface") or "").strip() or name,
             speed,

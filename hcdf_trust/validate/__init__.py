@@ -36,7 +36,7 @@ from ..document import (
 from ..include.locate import display_path
 from ..include.resolver import TreeOptions, link_stub_target
 from ..localfile import absolute
-from ..xml import parse_bytes, sourceline
+from ..xml import sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
 from .includes import local_include_edges, read_local
@@ -98,8 +98,8 @@ def validate_document(
                 path = stub
                 data = read_local(path, path.parent, source=display_path(path))
             source = display_path(path)
-        tree = parse_bytes(data, source=source)
-        doc = Document(source=source, tree=tree, data=data)
+        doc = Document.parse(data, source=source)  # XML or the JSON form
+        tree = doc.tree
     root = tree.getroot()
     kind = require_root(root, source=source, names=_ROOTS)  # <hcdf xmlns="urn:x"> is not HCDF
     if kind == ROOT:
