@@ -18,7 +18,6 @@ directory); this reader accepts exactly the archives the writer writes and refus
 from __future__ import annotations
 
 import hashlib
-import mmap
 import os
 import re
 import stat
@@ -40,12 +39,13 @@ _Bad = Callable[..., "BundleFormatError"]
 SUFFIX = ".hcdfz"
 ASSETS = "assets"
 SHORT_SHA = 12  # hex digits of the content hash in an asset's name (upstream's SHORT_SHA)
-# Caps, checked on the central directory before any entry is read. Without ZIP64 (which neither
-# upstream nor we write) an archive holds at most 65,535 entries and 4 GiB; our resolver's trees
-# top out near 10,000 files, and the whole archive is mapped, not read, so the byte cap bounds address
-# space, not memory.
+# Caps, checked before any entry is read. Without ZIP64 (which neither upstream nor we write) an
+# archive holds at most 65,535 entries and 4 GiB; our resolver's trees top out near 10,000 files.
+# A bundle is read whole into memory, once (not mapped: a file truncated under a mapping kills the
+# reader with SIGBUS, and the digest recorded must be of the very bytes checked), so the byte cap
+# is a memory cap, as it is for the writer, which builds the archive in memory.
 MAX_ENTRIES = 20_000
-MAX_BYTES = (4 << 30) - 1
+MAX_BYTES = 2 << 30
 
 # Record layouts (APPNOTE.TXT 4.3.7, 4.3.12, 4.3.16), little-endian.
 _LOCAL = struct.Struct("<IHHHHHIIIHH")  # 30 bytes
@@ -93,16 +93,15 @@ class Entry:
 
 
 class Archive:
-    """A checked archive, mapped read-only: entries in archive order, their data by name."""
+    """A checked archive, held in memory: entries in archive order, their data by name."""
 
-    def __init__(self, path: str, entries: list[Entry], view: memoryview, sha256: str, closer: mmap.mmap | None):
+    def __init__(self, path: str, entries: list[Entry], view: memoryview, sha256: str) -> None:
         self.path = path
         self.entries = entries
         self.by_name = {e.name: e for e in entries}
         self.sha256 = sha256  # of the whole archive: what ota build and the SBOM record
         self.size = len(view)
         self._view = view
-        self._map = closer
 
     @property
     def root(self) -> Entry:
@@ -113,20 +112,18 @@ class Archive:
 
     def close(self) -> None:
         self._view.release()
-        if self._map is not None:
-            self._map.close()
 
 
 def read_archive(
     path: str | os.PathLike[str], *, max_entries: int | None = None, max_bytes: int | None = None
 ) -> Archive:
-    """Open and check ``path``: a regular file, mapped, every rule of :func:`check_structure`.
+    """Read and check ``path``: a regular file, read whole (bounded), every rule of :func:`check_structure`.
 
     Raises:
         NotFoundError, InputError: it cannot be opened or is not a regular file.
         BundleFormatError: the archive breaks a rule (named, with the entry and expected/actual).
     """
-    from .localfile import open_regular
+    from .localfile import open_regular, read_whole
 
     shown = display_path(path)
     fd, st = open_regular(os.fspath(path), what="bundle")
@@ -139,19 +136,15 @@ def read_archive(
                 expected=f"at most {limit} bytes",
                 actual=str(st.st_size),
             )
-        mapped = mmap.mmap(fd, st.st_size, access=mmap.ACCESS_READ) if st.st_size else None
+        view = memoryview(read_whole(fd, limit, source=shown, what="bundle"))
     finally:
         os.close(fd)
-    view = memoryview(mapped if mapped is not None else b"")
     try:
         entries = check_structure(view, shown=shown, max_entries=MAX_ENTRIES if max_entries is None else max_entries)
-        sha = hashlib.sha256(view).hexdigest()
     except BaseException:
         view.release()
-        if mapped is not None:
-            mapped.close()
         raise
-    return Archive(shown, entries, view, sha, mapped)
+    return Archive(shown, entries, view, hashlib.sha256(view).hexdigest())
 
 
 def read_root_entry(path: str | os.PathLike[str]) -> tuple[str, bytes]:
@@ -229,7 +222,7 @@ def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = 
     if disk or cd_disk or count_disk != count:
         raise bad("a multi-disk archive", expected="one disk", actual=f"disk {disk}, central directory on {cd_disk}")
     if count == 0xFFFF or cd_size == 0xFFFFFFFF or cd_offset == 0xFFFFFFFF:
-        raise bad("a ZIP64 archive (bundles are at most 65,535 entries and 4 GiB)")
+        raise bad("a ZIP64 archive (a bundle is not: at most 65,535 entries and 4 GiB)")
     if count > max_entries:
         raise bad(
             f"{count} entries, more than the cap of {max_entries}", expected=f"at most {max_entries}", actual=count
@@ -494,7 +487,8 @@ class BundleFiles:
         return m.group(1) if m and len(m.group(1)) == 64 else None
 
     def close(self) -> None:
-        self.archive.close()
+        """Nothing: the archive's bytes stay with the :class:`Resolution` (``res.bundle``), which
+        may read an entry again after the run (the registry's stream-profile check)."""
 
 
 def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityError]:

@@ -12,6 +12,35 @@ import re
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
+# The public API (docs/api.md): the exception hierarchy and Notice. The helpers below are internal.
+__all__ = [
+    "HcdfTrustError",
+    "IntegrityError",
+    "DigestMismatchError",
+    "LockDriftError",
+    "UnpinnedError",
+    "WeakPinError",
+    "InputError",
+    "MalformedDigestError",
+    "XmlError",
+    "NotHcdfError",
+    "StreamSelectionError",
+    "AmbiguousError",
+    "AmbiguousReferenceError",
+    "NotFoundError",
+    "PathEscapeError",
+    "CredentialsError",
+    "SecretFileError",
+    "FetchError",
+    "OfflineError",
+    "IncludeCycleError",
+    "IncludeDepthError",
+    "LockFileError",
+    "FlattenError",
+    "ErrorGroup",
+    "Notice",
+]
+
 
 def counted(n: int, noun: str, plural: str | None = None) -> str:
     """``1 file``, ``2 files``: a count with its noun in the right number (``plural`` when not noun+s)."""
@@ -130,7 +159,24 @@ def json_locations(value: Any) -> Any:
 
 
 class HcdfTrustError(Exception):
-    """Base class. ``code`` is a stable, machine-readable identifier for ``--json``."""
+    """Base class of every error hcdf-trust reports. ``code`` is a stable, machine-readable
+    identifier (``--json``'s ``code``), ``exit_code`` the CLI's exit status (1: integrity,
+    3: input); ``file``, ``line``, ``expected``, ``actual`` and ``url`` say where and what,
+    when known. Library functions collect these in lists (``Resolution.errors``) or raise them.
+
+    Example:
+        >>> from hcdf_trust.errors import DigestMismatchError, IntegrityError
+        >>> e = DigestMismatchError("models/a.glb: digest mismatch", file="robot.hcdf", line=7,
+        ...                         expected="sha256 00aa", actual="sha256 11bb")
+        >>> isinstance(e, IntegrityError), e.exit_code, e.code
+        (True, 1, 'digest-mismatch')
+        >>> print(e)
+        robot.hcdf:7: models/a.glb: digest mismatch
+          expected: sha256 00aa
+          actual:   sha256 11bb
+        >>> e.to_dict()["line"]
+        7
+    """
 
     exit_code = 3
     code = "error"
@@ -204,7 +250,14 @@ class HcdfTrustError(Exception):
 
 
 class IntegrityError(HcdfTrustError):
-    """Content is not what was pinned, locked or signed."""
+    """Content is not what was pinned, locked or signed (exit 1): an attack or a mistake to
+    look at, never to retry.
+
+    Example:
+        >>> from hcdf_trust.errors import IntegrityError, LockDriftError
+        >>> issubclass(LockDriftError, IntegrityError), LockDriftError.exit_code
+        (True, 1)
+    """
 
     exit_code = 1
     code = "integrity"
@@ -236,7 +289,17 @@ class WeakPinError(IntegrityError):
 
 
 class InputError(HcdfTrustError):
-    """A file is missing, unreadable, malformed or hostile, or the network failed."""
+    """A file is missing, unreadable, malformed or hostile, or the network failed (exit 3).
+
+    Example:
+        >>> from hcdf_trust.include import resolve
+        >>> from hcdf_trust.errors import InputError, NotFoundError
+        >>> try:
+        ...     resolve("examples/robot/no-such.hcdf")
+        ... except InputError as e:
+        ...     print(type(e).__name__, e.exit_code)
+        NotFoundError 3
+    """
 
     exit_code = 3
     code = "input"
@@ -353,6 +416,12 @@ class Notice:
 
     ``code`` is stable for machines (``unpinned``, ``weak-pin``, ``lock-pins``, ...);
     ``file``/``line`` name the place, as for errors.
+
+    Example:
+        >>> from hcdf_trust.errors import Notice
+        >>> n = Notice("weak-pin", "gripper.glb has a weak pin (32 bits)", file="arm.hcdf", line=38)
+        >>> str(n), n.to_dict()["code"]
+        ('arm.hcdf:38: gripper.glb has a weak pin (32 bits)', 'weak-pin')
     """
 
     __slots__ = ("code", "message", "file", "line", "url")

@@ -163,16 +163,6 @@ class ConfinedFolders:
                     os.close(fd)
         return open_checked(path, root, file=file, line=line)
 
-    def read(
-        self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None, limit: int, source: str
-    ) -> bytes:
-        """A confined file's whole content, refused past ``limit`` bytes (:func:`read_bounded`)."""
-        fd, _ = self.open(path, root, file=file, line=line)
-        try:
-            return read_bounded(fd, limit, source=source)
-        finally:
-            os.close(fd)
-
     def hash(self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
         """:func:`hash_local` through :meth:`open`."""
         fd, st = self.open(path, root, file=file, line=line)
@@ -276,6 +266,28 @@ def read_bounded(fd: int, limit: int, *, source: str, what: str = "document") ->
     if len(data) > limit:
         raise InputError(f"{what} is over the {limit}-byte limit", file=source)
     return data
+
+
+def read_whole(fd: int, limit: int, *, source: str, what: str) -> bytearray:
+    """:func:`read_bounded` into one buffer of the file's size, without its copy (for inputs
+    of up to gigabytes that are kept whole: a bundle). A file that shrinks or grows while it
+    is read is refused: what is checked must be all of what was there.
+
+    Raises:
+        InputError: over the limit, or changed while read.
+    """
+    size = os.fstat(fd).st_size
+    if size > limit:
+        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+    buf = bytearray(size)
+    view = memoryview(buf)
+    done = 0
+    while done < size and (got := os.readv(fd, [view[done:]])):
+        done += got
+    view.release()
+    if done != size or os.read(fd, 1):
+        raise InputError(f"{what} changed size while it was read ({size} bytes when opened)", file=source)
+    return buf
 
 
 def read_input(path: Path | str, *, limit: int, what: str = "file", source: str | None = None) -> bytes:

@@ -432,3 +432,48 @@ def test_a_tree_too_large_for_a_bundle_is_not_written(cli, robot, tmp_path, monk
     r = cli("bundle", robot, tmp_path / "big.hcdfz")
     assert r.exit_code == 3 and "more than a bundle holds" in r.stderr
     assert not (tmp_path / "big.hcdfz").exists()
+
+
+@pytest.mark.parametrize("delta", [+10, -10])
+def test_a_bundle_that_changes_size_while_read_is_refused(bundled, monkeypatch, delta):
+    """The size when opened is what is read, exactly: a file that shrank (a short read) or grew
+    (a byte left after it) between the fstat and the read is refused, not checked in part."""
+    import os
+
+    from hcdf_trust import localfile
+    from hcdf_trust.errors import InputError
+
+    real = os.fstat
+
+    def fstat(fd):
+        st = real(fd)
+        return os.stat_result((*st[:6], st.st_size + delta, *st[7:]))
+
+    monkeypatch.setattr(localfile.os, "fstat", fstat)
+    with pytest.raises(InputError, match="changed size while it was read"):
+        bundle_mod.read_archive(bundled)
+
+
+def test_bundle_json_and_an_unchanged_bundle_is_left_alone(cli, robot, bundled):
+    before = bundled.stat()
+    r = cli("bundle", robot, bundled, "--json")
+    assert r.exit_code == 0, r.stderr
+    out = r.json
+    assert out["ok"] is True and out["errors"] == [] and out["wrote"] == [] and len(out["unchanged"]) == 1
+    assert out["sha256"] == hashlib.sha256(bundled.read_bytes()).hexdigest() and out["size"] == before.st_size
+    assert [e["name"] for e in out["entries"]] == [n for n, _ in _entries(bundled)]
+    after = bundled.stat()
+    assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
+
+
+def test_bundle_replaces_a_bundle_but_never_a_document(cli, robot, bundled, tmp_path):
+    from hcdf_trust.outputs import BUNDLE, kind_of
+
+    assert kind_of(bundled.read_bytes()) == BUNDLE
+    (robot.parent / "models" / "chassis.glb").write_bytes(b"glTF-new")  # another tree: other bytes
+    r = cli("bundle", robot, bundled)
+    assert r.exit_code == 1  # the tree no longer verifies: the old bundle stays
+    doc = tmp_path / "looks.hcdfz"
+    doc.write_text('<hcdf version="1.0"/>')
+    r = cli("bundle", robot.parent / "assemblies" / "sensor-head.hcdf", doc, "--root", robot.parent)
+    assert r.exit_code == 3 and "is an HCDF document: refusing to replace it" in r.stderr

@@ -720,17 +720,20 @@ def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str
     """
     from ..include.resolver import ResolveOptions
 
-    options = ResolveOptions(locked=True, offline=True, write_cache=False, **kw)
+    options = ResolveOptions(**kw)
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
-    res = _run_resolve(doc, options, as_json=as_json, registry=registry)
+    res = _run_resolve(doc, options, as_json=as_json, registry=registry, verifying=True)
     _report(res, as_json=as_json, wrote=[])
 
 
-def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None) -> Any:
-    from ..include.resolver import resolve as do_resolve
+def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None, verifying: bool = False) -> Any:
+    """The library's resolve (or, ``verifying``, its verify: locked, offline, no cache writes),
+    with a progress bar, then the registry checks; exits on any error."""
+    from ..include.resolver import resolve, verify
 
+    run = verify if verifying else resolve
     with _progress(enabled=not as_json) as (on_start, on_progress):
-        res = do_resolve(doc, options, on_start=on_start, on_progress=on_progress)
+        res = run(doc, options, on_start=on_start, on_progress=on_progress)
     if res.ok and registry is not None:  # a step after resolution: the tree verified, now its registry checks
         errors, warnings = registry.check(res, cache_dir=options.cache_dir)
         res.errors += errors

@@ -46,7 +46,7 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | No
     from ..errors import ErrorGroup, display_path
     from ..include.lockfile import default_path
     from ..include.resolver import resolve
-    from ..outputs import OutputPlan, protect_inputs
+    from ..outputs import BUNDLE, ORDINARY, OutputPlan, protect_inputs
 
     if not is_bundle(out):
         raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="OUT")
@@ -64,7 +64,8 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | No
     plan = OutputPlan()
     protect_inputs(plan, res, doc=doc, options=options)
     plan.protect(res.lock_path, what="the lock file")
-    plan.check(out, flag="OUT")  # an input is named as such before the bundle is built
+    replaces = (ORDINARY, BUNDLE)  # the previous bundle; never a document, key or store
+    plan.check(out, flag="OUT", replaces=replaces)  # an input is named as such before the bundle is built
     data = build(
         res,
         root=options.root,
@@ -78,7 +79,7 @@ def bundle(doc: str, out: str, tree: Any, max_elements: int, ca_bundle: str | No
     from ..bundle import check_structure
 
     entries = check_structure(memoryview(data), shown=out)  # it reads back under our own rules, or is not written
-    plan.add(out, data, flag="OUT", if_changed=True)
+    plan.add(out, data, flag="OUT", if_changed=True, replaces=replaces)
     wrote = [display_path(p) for p in plan.commit()]
     sha = hashlib.sha256(data).hexdigest()
     if as_json:

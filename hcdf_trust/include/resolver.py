@@ -74,7 +74,27 @@ except AttributeError:  # not on Linux
 
 @dataclass(frozen=True)
 class ResolveOptions:
-    """Everything a resolve run may be told. Keyword-only by convention."""
+    """Everything a :func:`resolve` run may be told; each field is the ``hcdf-trust resolve``
+    flag of the same name (docs/resolve.md). Pass fields by keyword; new ones may be added.
+
+    Attributes:
+        base: ``--base DIR|URL``: where relative references of published fragments resolve.
+        mirrors: ``--mirror PREFIX=DIR|URL`` pairs, longest prefix wins.
+        root: ``--root DIR``: local references must stay inside it.
+        cache_dir: the content-addressed cache (default ``~/.cache/hcdf-trust``).
+        lock_path: the lock file (default ``<DOC>.lock``).
+        locked: fail on any difference from the lock instead of updating it.
+        update_all, update: re-pin every lock entry, or those named (trust on first use).
+        offline: never open a socket (local files, mirrors and the cache only).
+        allow_http, strict, jobs, max_depth, max_bytes, timeout, ca_bundle: as the flags.
+        write_cache: store fetched and local blobs in the cache (``verify`` does not).
+        accept_mismatch: for ``pin``: keep walking past a pin mismatch (still an error).
+
+    Example:
+        >>> from hcdf_trust.include import ResolveOptions
+        >>> ResolveOptions(offline=True, strict=True).locked
+        False
+    """
 
     base: str | None = None
     mirrors: tuple[tuple[str, str], ...] = ()
@@ -140,6 +160,27 @@ class Use:
 
 @dataclass
 class Artifact:
+    """One distinct file (or firmware digest, or extension) the tree references, and what
+    was found: every reference to the same URL shares one Artifact (:attr:`uses`).
+
+    Attributes:
+        kind: what references it (:class:`~hcdf_trust.document.Kind`: ``include``, ``model``,
+            ``mesh``, ``stream-profile``, ``firmware``, ``firmware-manifest``, ``extension``).
+        uri: the location as the first reference writes it.
+        location: where it was looked for (:attr:`url` is its identity).
+        uses: every referencing place (document, line, pin).
+        sha256, size: of the bytes found; ``None`` when nothing was read.
+        source: where the bytes came from: ``file``, ``mirror``, ``cache`` or ``network``.
+        error: the error this file caused, if any (also in :attr:`Resolution.errors`).
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> chassis = next(a for a in res.artifacts.values() if a.uri == "models/chassis.glb")
+        >>> chassis.kind.value, chassis.size, chassis.pin_status, chassis.source
+        ('model', 724, 'full', 'file')
+    """
+
     kind: Kind
     uri: str  # as written in the first reference
     location: Location
@@ -153,10 +194,12 @@ class Artifact:
 
     @property
     def url(self) -> str:
+        """The absolute URL that identifies this file: ``file:///…`` or the remote URL."""
         return self.location.url
 
     @property
     def pin_status(self) -> str:
+        """``full`` (a reference pins all 64 hex digits), ``weak`` (a prefix) or ``unpinned``."""
         status = "unpinned"
         for use in self.uses:
             if use.pin is not None:
@@ -168,6 +211,35 @@ class Artifact:
 
 @dataclass
 class Resolution:
+    """The result of :func:`resolve` or :func:`verify`: every document and file of the tree,
+    what was found, and every error and warning. Nothing is written until you ask
+    (:meth:`write_lock`); a run with errors should write nothing (``ok`` is False).
+
+    Attributes:
+        root: the root document, parsed (:class:`~hcdf_trust.document.Document`).
+        root_location: where it was read.
+        lock_path: the lock file this run compared against and :meth:`write_lock` writes.
+        documents: every document of the include tree, keyed by its absolute URL.
+        artifacts: every distinct referenced file, **keyed by its absolute URL**
+            (``file:///abs/path`` for a local file, the URL as fetched otherwise; the lock
+            file names it relative to the lock, :meth:`lock_url`). Iterate ``.values()`` for
+            the files; look one up by ``res.artifacts[url]``.
+        includes: per document URL, its ``<include>`` references and the URL each resolved to.
+        others: references with nothing to fetch (``<software><hash>``, extensions).
+        errors: every :class:`~hcdf_trust.errors.HcdfTrustError` found, with file and line.
+        warnings: every :class:`~hcdf_trust.errors.Notice` (weak pins, lock-only pins, ...).
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> res.ok, len(res.documents), len(res.artifacts)
+        (True, 3, 9)
+        >>> sorted(res.lock_url(url) for url in res.artifacts)[:2]
+        ['assemblies/arm.hcdf', 'assemblies/sensor-head.hcdf']
+        >>> [w.code for w in res.warnings]
+        ['lock-pins', 'lock-pins', 'weak-pin']
+    """
+
     root: Document
     root_location: Location
     lock_path: Path
@@ -180,12 +252,14 @@ class Resolution:
     locked: lockfile.Lock | None = field(default=None, repr=False)  # the lock file as read, if any
     # The URLs of the artifacts that ``--update`` names (every one under ``update_all``).
     updating: set[str] = field(default_factory=set, repr=False)
-    # A tree read out of a ``.hcdfz``: the archive's (display path, SHA-256, size), which ota
-    # build and the SBOM record; None for a tree of files.
-    bundle: tuple[str, str, int] | None = None
+    # A tree read out of a ``.hcdfz``: its entries (``bundle.archive``: path, SHA-256 and size,
+    # which ota build and the SBOM record), for a step after resolution that reads one again
+    # (the registry's stream-profile check); None for a tree of files.
+    bundle: BundleFiles | None = field(default=None, repr=False)
 
     @property
     def ok(self) -> bool:
+        """True when the run found no error (warnings allowed)."""
         return not self.errors
 
     @functools.cached_property
@@ -246,7 +320,7 @@ class Resolution:
             InputError: the lock file cannot be read (or is larger than ``limit``).
         """
         if self.bundle is not None:
-            return self.bundle[1]
+            return self.bundle.archive.sha256
         import hashlib
 
         from ..localfile import read_input
@@ -262,6 +336,12 @@ class Resolution:
 
     def write_lock(self) -> None:
         """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.
+        A lock that already holds these bytes is left untouched. Call it only when :attr:`ok`.
+
+        Example:
+            >>> from hcdf_trust.include import resolve
+            >>> res = resolve("examples/robot/robot.hcdf")
+            >>> res.write_lock()  # the same bytes as the committed lock: nothing changes
 
         Raises:
             OutputError: it is an input of this tree, or cannot be written.
@@ -318,16 +398,66 @@ def resolve(
     on_start: Callable[[int], None] | None = None,
     on_progress: Reporter | None = None,
 ) -> Resolution:
-    """Resolve ``doc_path`` and every file it references; never raises for content errors.
+    """Resolve ``doc_path`` and every file it references, as ``hcdf-trust resolve`` does:
+    fetch each distinct file once, check it against its pin and the lock, cache it.
 
-    Errors are collected in :attr:`Resolution.errors` (use ``ok``). Raises
-    :class:`InputError` only when the root document itself cannot be read.
+    Never raises for content errors: they are collected in :attr:`Resolution.errors`
+    (check :attr:`Resolution.ok`). Nothing is written but verified cache blobs; write the
+    lock with :meth:`Resolution.write_lock`.
+
+    Args:
+        doc_path: the root HCDF document.
+        options: flags of the run (:class:`ResolveOptions`); defaults: online, not locked.
+        on_start: called once with the number of files to obtain (a progress bar).
+        on_progress: called with (files, bytes) increments as they are obtained.
+
+    Returns:
+        The :class:`Resolution`.
+
+    Raises:
+        InputError: the root document itself cannot be read.
+
+    Example:
+        >>> from hcdf_trust.include import resolve, ResolveOptions
+        >>> res = resolve("examples/robot/robot.hcdf", ResolveOptions(offline=True))
+        >>> res.ok, res.lock_path.name
+        (True, 'robot.hcdf.lock')
     """
     run = _Run(options or ResolveOptions(), on_start=on_start, on_progress=on_progress)
     try:
         return run.run(Path(doc_path))
     finally:
         run.close()
+
+
+def verify(
+    doc_path: str | os.PathLike[str],
+    options: ResolveOptions | None = None,
+    *,
+    on_start: Callable[[int], None] | None = None,
+    on_progress: Reporter | None = None,
+) -> Resolution:
+    """Check ``doc_path``'s tree against its lock file, offline, writing nothing (not even
+    the cache), as ``hcdf-trust verify`` does: :func:`resolve` with ``locked``, ``offline``
+    and no cache writes, whatever ``options`` says about those three.
+
+    Args, Returns and Raises: as :func:`resolve`.
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> res.ok
+        True
+        >>> with open("examples/robot/models/chassis.glb", "ab") as glb:
+        ...     _ = glb.write(b"tampered")
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> res.ok, res.errors[0].code, res.errors[0].exit_code
+        (False, 'digest-mismatch', 1)
+    """
+    from dataclasses import replace
+
+    fixed = replace(options or ResolveOptions(), locked=True, offline=True, write_cache=False)
+    return resolve(doc_path, fixed, on_start=on_start, on_progress=on_progress)
 
 
 class _Run:
@@ -387,7 +517,7 @@ class _Run:
         # relative to a folder descriptor: closing it could hand its number to another open,
         # and the worker would read from the wrong folder. The process exit closes them.
         if not any(pool.alive() for pool in self._pools):
-            self.folders.close()  # a bundle's archive too: its bytes are copied where they are kept
+            self.folders.close()
         if self._fetcher is not None:
             self._fetcher.close()
 
@@ -413,9 +543,7 @@ class _Run:
             root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
-        if self.bundle is not None:
-            archive = self.bundle.archive
-            res.bundle = (archive.path, archive.sha256, archive.size)
+        res.bundle = self.bundle
         res.documents[root_loc.url] = root
         self._to_lock = res._urls.to_lock
         try:
@@ -754,9 +882,13 @@ class _Run:
         if loc.path is not None:
             root = loc.root or os.path.dirname(loc.path)
             if keep:  # an include: hash and parse the very same bytes
-                data = self.folders.read(
-                    loc.path, root, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
-                )
+                if self.bundle is not None:
+                    data = self.bundle.read(
+                        loc.path, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
+                    )
+                else:
+                    with open_local(loc.path, root, file=file, line=line) as fd:
+                        data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
                 hashed = self.folders.hash(loc.path, root, file=file, line=line)

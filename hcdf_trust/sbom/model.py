@@ -274,7 +274,7 @@ class _Collector:
             drivers=tuple(sorted(self.drivers.values(), key=lambda d: d.ref)),
             files=tuple(sorted(self.files.values(), key=lambda f: f.ref)),
             lock_sha256=lock_sha,
-            bundle_sha256=res.bundle[1] if res.bundle is not None else None,
+            bundle_sha256=res.bundle.archive.sha256 if res.bundle is not None else None,
             identity=seed.hexdigest(),
             created=created or created_time(),
             release_sequence=self.release.sequence_number if self.release else None,
