@@ -159,6 +159,12 @@ def _describe(el: etree._Element) -> str:
     return f"<{written}> in namespace {q.namespace!r}"
 
 
+def is_json_form(data: bytes) -> bool:
+    """Whether ``data`` is (meant as) HCDF's JSON form: its first byte after whitespace (and a
+    UTF-8 byte order mark) is ``{``, which never starts an XML document."""
+    return data.lstrip(b" \t\r\n\xef\xbb\xbf")[:1] == b"{"
+
+
 @dataclass
 class Document:
     """A parsed HCDF document. ``source`` is how errors name it (a path or URL)."""
@@ -193,7 +199,7 @@ class Document:
     def parse(cls, data: bytes, *, source: str) -> Document:
         """The one way a document's bytes become a tree: XML, or the JSON form (whose first
         byte is ``{``, never XML's), read through the HCDF schema; no other check."""
-        if data.lstrip(b" \t\r\n\xef\xbb\xbf")[:1] == b"{":
+        if is_json_form(data):
             from . import jsonform
 
             form = jsonform.read(data, source=source)

@@ -128,7 +128,7 @@ class Pointer(int):
 
     def __new__(cls, index: int, pointer: str) -> Pointer:
         self = super().__new__(cls, index)
-        self.pointer = pointer or "/"
+        self.pointer = pointer
         return self
 
     def __str__(self) -> str:

@@ -10,9 +10,10 @@ Why a schema: ``{"uri": "a.glb"}`` is an attribute in one element and a child el
 another, and xmlschema's own encoder with ``attr_prefix=''`` takes every key for an element
 (measured). Here every key is looked up in the element type's attribute declarations, then
 its content model; a key that is neither is **refused**, never dropped: a dropped key could
-be a reference no verb would then see. Inside wildcard content (``<extension>``'s vendor data)
-a key is a child element (an attribute there has no JSON spelling, and is refused on the way
-out).
+be a reference no verb would then see. Inside vendor content (what ``<extension>``'s wildcard
+admits, which no schema declares) a key whose value is a string, number or boolean is an
+attribute, an object or list a child element, as upstream's drone writes them; the direct
+children of ``<extension>`` are elements.
 
 What the JSON form cannot say, and what is done about it (docs/json-form.md):
 
@@ -34,7 +35,7 @@ import hashlib
 import re
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,8 +47,6 @@ from .localfile import JsonNumber as Number
 from .localfile import absolute, open_local, parse_json, read_bounded
 from .xml import MAX_DOCUMENT_BYTES, LocationTable
 
-#: How a document's text is told to be JSON: XML never starts with "{".
-JSON_START = b"{"
 TEXT = "$text"
 ROOT = "hcdf"
 SCHEMA_ENV = "HCDF_TRUST_SCHEMA"
@@ -66,11 +65,6 @@ class JsonFormError(InputError):
     """A JSON document the converter cannot read as HCDF without guessing (exit 3)."""
 
     code = "json-form"
-
-
-def is_json(data: bytes) -> bool:
-    """Whether ``data`` is (meant as) HCDF's JSON form: its first non-space byte is ``{``."""
-    return data.lstrip(b" \t\r\n\xef\xbb\xbf")[:1] == JSON_START
 
 
 def pointer_join(base: str, key: str | int) -> str:
@@ -99,10 +93,6 @@ def use_schema_provider(provider: SchemaProvider) -> None:
     """Where the schema comes from when no ``--schema`` is given (a signed registry)."""
     global _provider
     _provider = provider
-
-
-def schema_paths() -> tuple[str, ...]:
-    return _schema_paths
 
 
 @dataclass(eq=False)
@@ -275,7 +265,6 @@ def read(data: bytes, *, source: str) -> JsonDocument:
         raise JsonFormError(
             f'not HCDF\'s JSON form: expected one key "{ROOT}" at the top, found {keys}',
             file=source,
-            line=Pointer(1, ""),
             expected=f'{{"{ROOT}": {{...}}}}',
         )
     body = doc[ROOT]
@@ -557,10 +546,6 @@ def dumps(value: Any) -> str:
     return "".join(parts)
 
 
-def iter_pointers(doc: JsonDocument) -> Iterator[tuple[etree._Element, Pointer]]:
-    yield from doc.locations.items()
-
-
 __all__ = [
     "Converted",
     "Form",
@@ -569,7 +554,6 @@ __all__ = [
     "Number",
     "dumps",
     "form_for",
-    "is_json",
     "read",
     "to_json",
     "use_schemas",

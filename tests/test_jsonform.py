@@ -313,6 +313,7 @@ def test_convert_both_ways_through_output_plan(tmp_path, cli):
     )
     r = cli("convert", tmp_path / "robot.json", "-")
     assert r.exit_code == 0 and _c14n(r.stdout.encode()) == _c14n(src.read_bytes())
+    assert cli("convert", tmp_path / "robot.json", "-", "--json").exit_code == 2  # two things on stdout
     # the direction is the input's; OUT's name must agree
     assert cli("convert", src, tmp_path / "x.hcdf").exit_code == 2
     assert cli("convert", tmp_path / "robot.json", tmp_path / "x.json").exit_code == 2

@@ -7,14 +7,14 @@ import os
 import click
 
 from ..errors import counted
-from . import SCHEMA_OPTION, emit_json, handle_errors, say
+from . import JSON_OPTION, SCHEMA_OPTION, emit_json, handle_errors, say
 
 
 @click.command()
 @click.argument("source", metavar="IN", type=click.Path(dir_okay=False))
 @click.argument("dest", metavar="OUT", type=click.Path(dir_okay=False, allow_dash=True))
 @SCHEMA_OPTION
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@JSON_OPTION
 @handle_errors
 def convert(source: str, dest: str, as_json: bool) -> None:
     """Convert IN (XML, or HCDF's JSON form) to the other form, written to OUT (- for stdout).
@@ -26,19 +26,21 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     The JSON form drops comments and the order between differently named elements: see
     docs/json-form.md.
     """
+    from ..document import is_json_form
     from ..include.locate import display_path
     from ..jsonform import convert as do_convert
-    from ..jsonform import is_json
     from ..localfile import absolute
     from ..outputs import DOCUMENT, ORDINARY, OutputPlan
     from ..validate.includes import read_local
 
+    if as_json and dest == "-":
+        raise click.UsageError("--json and OUT - would both write to stdout: name an OUT file")
     path = absolute(source)
     shown = display_path(path)
     plan = OutputPlan()
     plan.protect(path, what="the input document")
     data = read_local(path, os.path.dirname(path), source=shown)
-    to = "xml" if is_json(data) else "json"
+    to = "xml" if is_json_form(data) else "json"
     if dest != "-" and dest.lower().endswith(".json") != (to == "json"):
         wanted = "a name ending in .json" if to == "json" else "a name not ending in .json (.hcdf)"
         raise click.UsageError(

@@ -566,7 +566,7 @@ def validate_with_registry(
     checks extension domains, versions, content and registered stream-profile digests."""
     import os
 
-    from ..document import Document
+    from ..document import Document, is_json_form
     from ..include.locate import display_path
     from ..registry.validation import RegistrySchemaSource, check_document
     from ..validate import validate_document
@@ -578,7 +578,7 @@ def validate_with_registry(
     path = Path(os.path.abspath(doc))
     source = display_path(path)
     data = read_local(path, path.parent, source=source)
-    if not schema and data.lstrip()[:1] == b"{":  # HCDF's JSON form: read through the registry's schema too
+    if not schema and is_json_form(data):  # HCDF's JSON form: read through the registry's schema too
         from .. import jsonform
 
         jsonform.use_schema_provider(schemas.core_xsd)
