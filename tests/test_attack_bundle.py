@@ -507,12 +507,9 @@ def test_bundling_a_bundle_gives_the_same_bytes_or_says_why_not(cli, pristine, t
         assert not out.exists()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a root document whose name attribute is longer than 65,535 bytes crashes `bundle` with "
-    "struct.error (traceback) instead of an input error: the entry name does not fit a ZIP header",
-)
 def test_a_root_name_too_long_for_a_zip_name_is_an_input_error(cli, tmp_path):
+    """Fixed here: a root whose name attribute is longer than 65,535 bytes crashed `bundle` with struct.error
+    (a traceback): the entry name (the document's name) does not fit a ZIP header."""
     (tmp_path / "m.stl").write_bytes(b"x")
     sha = hashlib.sha256(b"x").hexdigest()
     doc = tmp_path / "r.hcdf"
