@@ -738,4 +738,12 @@ def build(
             expected=f"at most {MAX_ENTRIES} entries and {MAX_BYTES} bytes",
             actual=f"{len(entries)} entries, {total} bytes",
         )
+    longest = max((name for name, _ in entries), key=lambda n: len(n.encode("utf-8")))
+    if len(longest.encode("utf-8")) > 0xFFFF:  # a ZIP header holds a name's length in 16 bits
+        raise BundleFormatError(
+            f"{source}: entry name {longest[:40]!r}... is {len(longest.encode('utf-8'))} bytes: more than a ZIP holds",
+            file=source,
+            expected="at most 65535 bytes",
+            actual=str(len(longest.encode("utf-8"))),
+        )
     return encode(entries)

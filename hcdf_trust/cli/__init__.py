@@ -685,6 +685,10 @@ def resolve(
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
     from ..bundle import is_bundle
 
+    if out and is_bundle(out):  # every verb would read it as a ZIP: bundles are written by `bundle`
+        raise click.UsageError(
+            f"--out {out}: a flattened document is XML, not a bundle (hcdf-trust bundle writes those)"
+        )
     if is_bundle(doc):  # its pins are in it: it has no lock to write, and it is already flat
         if out or update:
             raise click.UsageError(f"{'--out' if out else '--update'} does not apply to a bundle ({doc})")

@@ -26,6 +26,7 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     The JSON form drops comments and the order between differently named elements: see
     docs/json-form.md.
     """
+    from ..bundle import is_bundle
     from ..document import is_json_form
     from ..include.locate import display_path
     from ..jsonform import convert as do_convert
@@ -33,6 +34,10 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     from ..outputs import DOCUMENT, ORDINARY, OutputPlan
     from ..validate.includes import read_local
 
+    if is_bundle(dest):  # every verb would read it as a ZIP: bundles are written by `bundle`
+        raise click.UsageError(
+            f"{dest}: a converted document is XML or JSON, not a bundle (hcdf-trust bundle writes those)"
+        )
     if as_json and dest == "-":
         raise click.UsageError("--json and OUT - would both write to stdout: name an OUT file")
     path = absolute(source)
