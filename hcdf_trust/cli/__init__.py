@@ -12,14 +12,14 @@ import gc
 import json
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import click
 
 from .. import __version__
 from ..errors import ErrorGroup, HcdfTrustError, counted
-from .params import TIMEOUT
+from .params import TIMEOUT, ConfigOption, acknowledged, from_config, project_config, with_project_config
 
 _QUIET = "hcdf_trust.quiet"  # ctx.meta key (one per run, shared by a verb and its groups)
 
@@ -54,6 +54,7 @@ def _with_shared_options(command: click.Command) -> click.Command:
         for sub in command.commands.values():
             _with_shared_options(sub)
     elif not any(p.name == "quiet" for p in command.params):
+        with_project_config(command)
         command.params.append(
             click.Option(
                 ["-q", "--quiet"],
@@ -76,6 +77,9 @@ def emit_json(payload: dict[str, Any]) -> None:
 
     if "errors" not in payload:
         payload = {**payload, "errors": []}
+    if "config" not in payload:  # which hcdf-trust.toml set defaults (None: none was read)
+        project = project_config()
+        payload = {**payload, "config": None if project is None else project.shown}
     indent = 2 if sys.stdout.isatty() else None
     click.echo(json.dumps(scrub_json(payload), indent=indent, sort_keys=True))  # noqa: TID251 -- filtered above
 
@@ -175,23 +179,31 @@ LOCK_OPTION = click.option(
 )
 CACHE_DIR_OPTION = click.option(
     "--cache-dir",
+    cls=ConfigOption,
+    config_key="cache-dir",
     type=click.Path(file_okay=False),
     help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
 )
 BASE_OPTION = click.option(
     "--base",
+    cls=ConfigOption,
+    config_key="base",
     callback=_base,
     metavar="DIR|URL",
     help="Existing folder, or https URL, that relative references resolve against (default: the referencing document).",
 )
 ROOT_OPTION = click.option(
     "--root",
+    cls=ConfigOption,
+    config_key="root",
     type=click.Path(exists=True, file_okay=False),
     help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
 )
 MIRROR_OPTION = click.option(
     "--mirror",
     "mirrors",
+    cls=ConfigOption,
+    config_key="mirror",
     multiple=True,
     callback=_mirror,
     metavar="PREFIX=DIR|URL",
@@ -277,12 +289,16 @@ def _registry_options(*, urls: bool) -> Callable[[Callable[..., Any]], Callable[
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         func = click.option(
             "--trusted-root",
+            cls=ConfigOption,
+            config_key="registry.trusted-root",
             type=click.Path(dir_okay=False),
             help="The registry's root.json you trust (with --registry).",
         )(func)
         return click.option(
             "--registry",
             "registry_site",
+            cls=ConfigOption,
+            config_key="registry.site",
             metavar="URL|DIR" if urls else "DIR",
             help=f"Check extensions and stream profiles against this signed registry: {site}. Needs "
             "--trusted-root; with --strict, unregistered extension domains and versions are errors too.",
@@ -303,6 +319,9 @@ def _registry(site: str | None, trusted_root: str | None, *, strict: bool, offli
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     if offline and _is_url(site):
+        if from_config("registry_site"):  # a project's URL registry: checked by the verbs that fetch
+            say(f"note: registry.site of {project_config().shown} is a URL; this offline run does not check it")
+            return None
         raise click.UsageError(f"--registry {site!r} is a URL, and this run is offline: give a folder copy of the site")
     from ..registry.resolution import RegistryCheck
 
@@ -702,7 +721,7 @@ def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None)
         res.warnings += warnings
     if not res.ok:
         if not as_json:
-            _warn(res.warnings)
+            warn(res.warnings)
         fail(res.errors, as_json=as_json, payload=_payload(res))
     keep_until_exit(res)
     return res
@@ -789,9 +808,30 @@ def _payload(res: Any) -> dict[str, Any]:
     }
 
 
-def _warn(warnings: list[Any]) -> None:
-    for w in warnings:
-        say(f"warning: {w}", always=True)
+def warn(notices: Iterable[Any]) -> None:
+    """Say each warning once: one line per fact, not per reference (the same code about the
+    same file, from several places, is one line naming the other places); not at all when the
+    project's ``hcdf-trust.toml`` acknowledges its code, or when it is ``repeated`` (an earlier
+    run said it when it wrote the lock that now covers it). ``--json`` lists every one."""
+    said: dict[tuple[str, str], list[Any]] = {}
+    for n in notices:
+        if n.repeated or acknowledged(n.code):
+            continue
+        key = (n.code, n.url) if n.url is not None else (n.code, str(n))
+        said.setdefault(key, []).append(n)
+    for first, *more in said.values():
+        also = ""
+        if more:
+            places = ", ".join(_place(n) for n in more[:3]) + (", ..." if len(more) > 3 else "")
+            also = f" (also at {places})"
+        say(f"warning: {first}{also}", always=True)
+
+
+def _place(n: Any) -> str:
+    from ..errors import display_place
+
+    file = display_place(n.file) if n.file else "?"
+    return f"{file}:{n.line}" if n.line else file
 
 
 def _summary(res: Any) -> dict[str, int]:
@@ -819,7 +859,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
             payload["unchanged"] = unchanged
         emit_json(payload)
         return
-    _warn(res.warnings)
+    warn(res.warnings)
     s = _summary(res)
     say(
         f"{counted(s['references'], 'reference')} to {counted(s['files'], 'file')}: "

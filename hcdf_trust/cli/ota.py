@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, handle_errors, say, tree_options
+from . import emit_json, handle_errors, say, tree_options, warn
 from .params import source_date_epoch_option
 
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")  # == ota.keys.KEY_TYPES (not imported: --help stays fast)
@@ -184,8 +184,7 @@ def build(
             }
         )
         return
-    for n in report.notices:
-        say(f"warning: {n}", always=True)
+    warn(report.notices)
     for ch in report.hcdf_changes:
         say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
@@ -388,8 +387,7 @@ def push(
             }
         )
     else:
-        for n in warnings:
-            say(f"warning: {n}", always=True)
+        warn(warnings)
         say(f"pushed {counted(len(result['layers']), 'file')} to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
@@ -459,8 +457,7 @@ def pull(
             }
         )
         return
-    for n in report.notices:
-        say(f"warning: {n}", always=True)
+    warn(report.notices)
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
         f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache), written to {out_dir}"

@@ -887,6 +887,10 @@ def _full_pin_matches(art: Artifact, sha: str) -> bool:
     return any(u.pin is not None and u.pin.is_full and u.pin.matches(sha) for u in art.uses)
 
 
+# A <mesh> reference: HCDF's schema gives the element no sha attribute, so only the lock pins it.
+MESH_WITHOUT_SHA = "mesh-without-sha"
+
+
 def check_artifact(
     art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool
 ) -> tuple[list[HcdfTrustError], list[Notice]]:
@@ -899,7 +903,10 @@ def check_artifact(
         pin = use.pin
         if pin is not None and pin.is_full and pin.hex == sha:
             continue  # the common case: a full pin that matches
-        where = functools.partial(Notice, file=use.doc, line=use.ref.line, url=art.url)
+        # The lock already held this content before the run: whatever it says about the pin,
+        # the run that wrote that entry said it first (a person is not told again; --json lists it).
+        covered = lock_entry is not None and lock_entry.sha256 == sha
+        where = functools.partial(Notice, file=use.doc, line=use.ref.line, url=art.url, repeated=covered)
         if pin is None:
             if locked and lock_entry is None:
                 errors.append(
@@ -912,6 +919,9 @@ def check_artifact(
                         actual=sha,
                     )
                 )
+            elif art.kind is Kind.MESH:  # the schema gives <mesh> no sha: the lock is its only pin
+                pinned = "the lock file pins it" if lock_entry is not None else f"pinned by the lock as sha256 {sha}"
+                warnings.append(where(MESH_WITHOUT_SHA, f"{use.ref.uri}: <mesh> has no sha in HCDF; {pinned}"))
             elif lock_entry is not None:
                 warnings.append(where("lock-pins", f"{use.ref.uri} has no sha; the lock file pins it"))
             else:
