@@ -559,6 +559,9 @@ def main(ctx: click.Context) -> None:
             ctx.call_on_close(gc.enable)
 
 
+_VALUE_LEFT_OUT = "hcdf_trust.value_left_out"  # ctx.meta: (option, the word read as the positional)
+
+
 class _OptionalValueCommand(click.Command):
     """A command with one positional argument and an option whose value may be omitted
     (resolve's ``--update [URI]``). Click gives such an option the next word as its value,
@@ -589,6 +592,7 @@ class _OptionalValueCommand(click.Command):
             i += 1
         if positionals == 0 and omitted is not None:
             args[omitted] += "="  # "--update=": the value left out; the next word is the positional
+            ctx.meta[_VALUE_LEFT_OUT] = (args[omitted][:-1], args[omitted + 1])
         return super().parse_args(ctx, args)
 
 
@@ -682,6 +686,8 @@ def resolve(
             replaces=flat,
         )
     wrote = plan.commit()
+    if update:
+        _say_updates(res, update_all="" in update)
     _report(
         res,
         as_json=as_json,
@@ -708,6 +714,22 @@ def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     _report(res, as_json=as_json, wrote=[])
+
+
+def _say_updates(res: Any, *, update_all: bool) -> None:
+    """What ``--update`` did: each lock entry it changed, or that it changed none; and, when
+    ``--update DOC`` was read as ``--update`` alone, that this re-opened every entry."""
+    left_out = click.get_current_context().meta.get(_VALUE_LEFT_OUT)
+    if left_out is not None:
+        option, word = left_out
+        say(f"note: {option} took no URI ({word} is DOC), so every entry of the lock could take new content")
+    before = res.locked.entries if res.locked is not None else {}
+    changed = [(before[e.url], e) for e in res.lock_entries() if e.url in before and before[e.url].sha256 != e.sha256]
+    for old, new in changed:
+        say(f"updated {new.uri}: sha256 {old.sha256} -> {new.sha256}")
+    if not changed:
+        which = "the lock" if update_all else "the named entries"
+        say(f"--update: nothing to accept, {which} already matched the content")
 
 
 def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None) -> Any:

@@ -428,10 +428,13 @@ def publish(
             say(f"pushed {counted(pushed['files'], 'file')} to {ref} ({pushed['digest']})")
 
 
-def _client(site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0) -> Any:
+def _client(
+    site: str, trusted_root: str, cache_dir: str | None, timeout: float = 30.0, *, flag: str = "--registry"
+) -> Any:
     from ..registry.client import RegistryClient
 
-    return RegistryClient.open(site, trusted_root, cache_dir=Path(cache_dir) if cache_dir else None, timeout=timeout)
+    cache = Path(cache_dir) if cache_dir else None
+    return RegistryClient.open(site, trusted_root, cache_dir=cache, timeout=timeout, flag=flag)
 
 
 client_options = [
@@ -473,7 +476,7 @@ def verify(site: str, trusted_root: str, cache_dir: str | None, timeout: float, 
     from ..registry.errors import AttackError
     from . import fail
 
-    report = do_verify(_client(site, trusted_root, cache_dir, timeout))
+    report = do_verify(_client(site, trusted_root, cache_dir, timeout, flag="SITE"))
     errors = [
         AttackError(
             f"cross-domain signing: {s.role} lists {s.path}, outside its delegation (ignored by clients)"
@@ -523,7 +526,7 @@ def fetch(
     else:
         raise click.UsageError("give DOMAIN[@VERSION], profile NAME[@VERSION] or schema NAME[@VERSION]")
     name, _, version = spec.partition("@")
-    client = _client(site, trusted_root, cache_dir, timeout)
+    client = _client(site, trusted_root, cache_dir, timeout, flag="SITE")
     if kind == "domain":
         versions = client.versions(name)
     else:

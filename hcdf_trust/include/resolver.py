@@ -805,6 +805,7 @@ class _Run:
 
     def _check_all(self) -> None:
         res = self.res
+        root = display_path(res.root.source)
         for art in res.artifacts.values():
             if art.error is not None:
                 res.errors.append(art.error)
@@ -816,7 +817,7 @@ class _Run:
             if len(uses) == 1 and (pin := uses[0].pin) is not None and pin.hex == sha:
                 continue  # one full pin that matches: authoritative, no error, no warning, no drift
             entry = self._entry(art)
-            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=self.o.locked)
+            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=self.o.locked, root=root)
             res.errors.extend(errors)
             res.warnings.extend(warnings)
             if entry is not None and not self.o.locked and art.pin_status != "full" and not self._is_updating(art):
@@ -837,7 +838,7 @@ class _Run:
         for source, ref in res.others:
             if ref.kind is Kind.FIRMWARE and ref.sha:
                 try:
-                    parse_pin(ref.sha, file=source, line=ref.line)
+                    parse_pin(ref.sha, file=source, line=ref.line, element="hash")
                 except HcdfTrustError as exc:
                     res.warnings.append(
                         Notice("bad-digest", f"firmware {ref.name!r}: {exc.message}", file=source, line=ref.line)
@@ -845,6 +846,14 @@ class _Run:
         if self.o.locked:
             actual = {e.url: e for e in res.lock_entries()}
             failed = {res.lock_url(a.url) for a in res.artifacts.values() if a.sha256 is None}
+            # An entry referenced from a document this run did not read (an include that failed its
+            # pin is not walked) may well still be referenced: that document's error is the news.
+            unread = {
+                res.lock_url(a.url)
+                for a in res.artifacts.values()
+                if a.kind is Kind.INCLUDE and a.url not in res.documents
+            }
+            failed |= {url for url, e in self.lock.items() if unread.intersection(e.referenced_from)}
             locked = {url: e for url, e in self.lock.items() if url not in failed}
             where = {res.lock_url(a.url): (a.uses[0].doc, a.uses[0].ref.line) for a in res.artifacts.values()}
             res.errors.extend(lockfile.compare(locked, actual, lock_path=display_path(res.lock_path), where=where))
@@ -892,9 +901,10 @@ MESH_WITHOUT_SHA = "mesh-without-sha"
 
 
 def check_artifact(
-    art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool
+    art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool, root: str = "ROBOT.hcdf"
 ) -> tuple[list[HcdfTrustError], list[Notice]]:
-    """Every pin of every use of one artifact against its actual digest. Pure."""
+    """Every pin of every use of one artifact against its actual digest (``root``: the tree's
+    root document, as the fixes the messages name should be typed). Pure."""
     errors: list[HcdfTrustError] = []
     warnings: list[Notice] = []
     sha = art.sha256
@@ -928,7 +938,7 @@ def check_artifact(
                 warnings.append(where("unpinned", f"{use.ref.uri} is unpinned (sha256 {sha})"))
             continue
         if not pin.matches(sha):
-            hint = f" ({include_mismatch_hint(use.ref.uri or '')})" if art.kind is Kind.INCLUDE else ""
+            hint = f": {include_mismatch_hint(use.ref.uri or '', root)}" if art.kind is Kind.INCLUDE else ""
             errors.append(
                 DigestMismatchError(
                     f"{use.ref.uri}: digest mismatch{hint}",
@@ -944,7 +954,8 @@ def check_artifact(
             if strict:
                 errors.append(
                     WeakPinError(
-                        f"{use.ref.uri}: weak pin of {len(pin.hex)} hex digits ({bits} bits) refused by --strict",
+                        f"{use.ref.uri}: weak pin of {len(pin.hex)} hex digits ({bits} bits) refused by --strict; "
+                        f"its full digest is sha256 {sha}: write it, or run `hcdf-trust pin --write {root}`",
                         file=use.doc,
                         line=use.ref.line,
                         url=art.url,

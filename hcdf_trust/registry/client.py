@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, unquote, urlsplit
 
-from ..errors import HcdfTrustError, InputError, NotFoundError
+from ..errors import HcdfTrustError, InputError, NotFoundError, redact
 from ..localfile import JsonError, open_checked, parse_json, read_bounded, read_chunks, read_input
 from .errors import AttackError, TransportError
 from .source import domain_pattern, is_version
@@ -97,7 +97,7 @@ def _chunks(fd: int) -> Iterator[bytes]:
         os.close(fd)
 
 
-def _attack(exc: Exception, what: str) -> HcdfTrustError:
+def _attack(exc: Exception, what: str, site: str = "", flag: str = "--registry") -> HcdfTrustError:
     """The error (and attack name) for a python-tuf exception raised while loading ``what``."""
     from tuf.api import exceptions as tx
 
@@ -124,9 +124,39 @@ def _attack(exc: Exception, what: str) -> HcdfTrustError:
     if isinstance(exc, tx.DownloadHTTPError):
         return TransportError(f"{what}: HTTP {exc.status_code} ({exc})")
     if isinstance(exc, tx.DownloadError):
-        cause = exc.__cause__ or exc
-        return TransportError(f"{what}: download failed: {cause}")
+        if "://" not in site:  # a folder copy of the site (DirectoryFetcher): its refusal as it is
+            return TransportError(f"{what}: download failed: {exc.__cause__ or exc}")
+        return TransportError(_unreachable(exc, what, site, flag))
     return InputError(f"{what}: {exc}")
+
+
+def _unreachable(exc: Exception, what: str, site: str, flag: str) -> str:
+    """A failed connection said as the user can act on it: the host, why in a few words, and the
+    option that named the site (not urllib3's "HTTPSConnectionPool(...): Max retries exceeded")."""
+    import re
+
+    cause: BaseException = exc
+    while cause.__cause__ is not None:
+        cause = cause.__cause__
+    reason = getattr(cause, "reason", None) or cause  # urllib3's MaxRetryError wraps the real one
+    text = str(reason)
+    errno = re.search(r"\[Errno -?\d+\] ([^'\")\]]+)", text)
+    name = type(reason).__name__
+    why = (
+        errno.group(1).strip()
+        if errno
+        else "timed out"
+        if "Timeout" in name or "timed out" in text
+        else f"TLS failed: {text[:200]}"
+        if "SSL" in name
+        else text[:200]
+    )
+    parts = urlsplit(site)
+    host = (f"{parts.hostname}:{parts.port}" if parts.port else parts.hostname) if parts.hostname else site
+    return (
+        f"cannot reach the registry at {host} ({why}) to fetch {what}; check {flag} {redact(site)} "
+        "and the network, or give a folder holding a copy of the site"
+    )
 
 
 def _tuf_errors() -> tuple[type[Exception], ...]:
@@ -163,7 +193,15 @@ class RegistryClient:
         InputError: the trusted root is unreadable or not TUF root metadata.
     """
 
-    def __init__(self, site: str, *, trusted_root: bytes, cache_dir: Path | None = None, timeout: float = 30.0) -> None:
+    def __init__(
+        self,
+        site: str,
+        *,
+        trusted_root: bytes,
+        cache_dir: Path | None = None,
+        timeout: float = 30.0,
+        flag: str = "--registry",
+    ) -> None:
         from tuf.ngclient import Urllib3Fetcher
 
         try:
@@ -171,6 +209,7 @@ class RegistryClient:
         except JsonError as exc:
             raise InputError(f"the trusted root is not valid TUF root metadata: {exc.message}") from None
         self.site = site
+        self.flag = flag  # how the user named the site, for messages (--registry, SITE)
         local = "://" not in site
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(site, trusted_root)
         self.metadata_dir = self.cache_dir / "metadata"
@@ -206,11 +245,17 @@ class RegistryClient:
 
     @classmethod
     def open(
-        cls, site: str, trusted_root: str, *, cache_dir: Path | None = None, timeout: float = 30.0
+        cls,
+        site: str,
+        trusted_root: str,
+        *,
+        cache_dir: Path | None = None,
+        timeout: float = 30.0,
+        flag: str = "--registry",
     ) -> RegistryClient:
         """A client whose trust anchor is the root metadata file ``trusted_root``."""
         root = read_input(trusted_root, limit=ROOT_LIMIT, what="trusted root")
-        return cls(site, trusted_root=root, cache_dir=cache_dir, timeout=timeout)
+        return cls(site, trusted_root=root, cache_dir=cache_dir, timeout=timeout, flag=flag)
 
     # -- loading ------------------------------------------------------------------------
 
@@ -241,7 +286,7 @@ class RegistryClient:
         try:
             self.updater.refresh()
         except _tuf_errors() as exc:
-            raise _attack(exc, "top-level metadata") from None
+            raise _attack(exc, "top-level metadata", self.site, self.flag) from None
         self._refreshed = True
         self._check_replaced("targets")
 
@@ -275,7 +320,7 @@ class RegistryClient:
         try:
             self.updater.get_targetinfo(f"extensions/{domain}/")
         except _tuf_errors() as exc:
-            raise _attack(exc, f"{domain}.json") from None
+            raise _attack(exc, f"{domain}.json", self.site, self.flag) from None
         self._check_replaced(domain)
         return self._trusted(domain)
 
@@ -322,7 +367,7 @@ class RegistryClient:
             self.updater.download_target(info, filepath=f"/proc/self/fd/{fd}")
             return read_bounded(fd, info.length, source=info.path, what="downloaded target")
         except _tuf_errors() as exc:
-            raise _attack(exc, f"target {info.path}") from None
+            raise _attack(exc, f"target {info.path}", self.site, self.flag) from None
         finally:
             os.close(fd)
 
