@@ -671,7 +671,10 @@ def resolve(
     if no_lock:
         plan.protect(res.lock_path, what="the lock file")
     else:
-        plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
+        lock = res.render_lock()
+        if options.lock_path is None:
+            _lock_beside_doc_writable(res.lock_path, lock)
+        plan.add(res.lock_path, lock, flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
         from ..outputs import DOCUMENT, ORDINARY
@@ -714,6 +717,31 @@ def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     _report(res, as_json=as_json, wrote=[])
+
+
+def _lock_beside_doc_writable(lock_path: Any, data: bytes) -> None:
+    """The default lock goes beside DOC. In a folder this user cannot write (a read-only checkout
+    of someone else's content, a read-only mount) a lock that would change is a usage error
+    naming --lock, before anything is written: never a half-done run, never a write into that
+    tree by a user who can override its mode. A lock that is already up to date is fine."""
+    folder = os.path.dirname(lock_path) or "."
+    if os.access(folder, os.W_OK):
+        return
+    from ..errors import display_path
+    from ..localfile import read_input
+
+    try:
+        if read_input(lock_path, limit=len(data), what="lock file") == data:
+            return
+    except HcdfTrustError:
+        pass  # none, or another one (over the limit, unreadable): it would be written
+
+    name = os.path.basename(lock_path)
+    raise click.UsageError(
+        f"DOC's folder {display_path(folder)} is not writable (a read-only checkout?), so the lock file cannot "
+        f"be written beside it as {display_path(lock_path)}: name one you can write with --lock "
+        f"(e.g. --lock {name}), or pass --no-lock"
+    )
 
 
 def _say_updates(res: Any, *, update_all: bool) -> None:
