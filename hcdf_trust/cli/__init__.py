@@ -870,10 +870,10 @@ def warn(notices: Iterable[Any]) -> None:
         key = (n.code, n.url) if n.url is not None else (n.code, str(n))
         said.setdefault(key, []).append(n)
     for first, *more in said.values():
+        others = list(dict.fromkeys(p for p in map(_place, more) if p != _place(first)))
         also = ""
-        if more:
-            places = ", ".join(_place(n) for n in more[:3]) + (", ..." if len(more) > 3 else "")
-            also = f" (also at {places})"
+        if others:
+            also = f" (also at {', '.join(others[:3])}{', ...' if len(others) > 3 else ''})"
         say(f"warning: {first}{also}", always=True)
 
 
