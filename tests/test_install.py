@@ -145,19 +145,18 @@ def test_the_demo_says_each_warning_once(cli, tmp_path, monkeypatch):
     """Issue 20's Done-when: run every command of `make demo` (in-process, on a copy of examples/)
     and count the warning lines about each file: a lock-covered fact is said by the run that wrote
     the lock, a fact about a file referenced twice is one line."""
-    import shlex
+    from .test_flatten_root import demo_lines
 
     shutil.copytree(PROJECT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("out"))
     monkeypatch.chdir(tmp_path)
     warnings: list[str] = []
-    for line in _demo_commands():
-        words = shlex.split(line)
-        if words[0].endswith("/hcdf-trust"):
-            r = cli(*words[1:])
-            assert r.exit_code == 0, (line, r.stderr)
-            warnings += [w for w in r.stderr.splitlines() if w.startswith("warning: ")]
-        else:
-            subprocess.run(["bash", "-c", line], check=True)
+    for args in demo_lines(Path("/nonexistent/corpus")):  # the demo needs none
+        if isinstance(args, str):  # the shell line making the throwaway passphrase files
+            subprocess.run(["bash", "-c", args], check=True)
+            continue
+        r = cli(*args)
+        assert r.exit_code == 0, (args, r.stderr)
+        warnings += [w for w in r.stderr.splitlines() if w.startswith("warning: ")]
     for name in ("chassis-hull.stl", "arm-ctrl.latest.json", "gripper.glb", "key-ref:arm-links"):
         said = [w for w in warnings if name in w]
         assert len(said) == 1, (name, said)
