@@ -16,8 +16,8 @@ Every input file is read once before timing, so both sides hash from the page
 cache (a fair CPU comparison; cold-disk numbers would measure the disk). Trees
 are generated under bench/work/ (git-ignored), deterministically from ``--seed``.
 Prints a Markdown table and writes it to bench/RESULTS.md and, between the
-``<!-- bench:begin -->`` and ``<!-- bench:end -->`` markers, to the README's
-Performance section (and the raw numbers to bench/work/results.json).
+``<!-- bench:begin -->`` and ``<!-- bench:end -->`` markers, to docs/benchmarks.md
+(and the raw numbers to bench/work/results.json).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from loopback import LoopbackServer
 
 HERE = Path(__file__).resolve().parent
 PROJECT = HERE.parent
-README = PROJECT / "README.md"
+README = PROJECT / "docs" / "benchmarks.md"
 README_BEGIN, README_END = "<!-- bench:begin -->", "<!-- bench:end -->"
 CLI = Path(os.environ.get("HCDF_TRUST_CLI", PROJECT / ".venv" / "bin" / "hcdf-trust"))
 PYTHON = Path(os.environ.get("HCDF_TRUST_PYTHON", PROJECT / ".venv" / "bin" / "python"))

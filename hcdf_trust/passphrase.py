@@ -1,4 +1,4 @@
-"""The one passphrase rule, the same for every verb (README, "Security model", item 5).
+"""The one passphrase rule, the same for every verb (docs/security-model.md, item 5).
 
 A passphrase (``ota``'s signing keys, the ``macsec`` key store, the ``registry``'s keys) or a
 PKCS#11 PIN comes from a file (``--passphrase-file``, ``--pin-file``, a PKCS#11 URI's

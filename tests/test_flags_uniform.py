@@ -138,7 +138,7 @@ def test_resolve_update_before_or_after_doc(tmp_path, monkeypatch, cli, order, u
 
 
 def _shape(r, *keys: str) -> dict:
-    """The README's --json rules: exit 0, one JSON object on stdout, ok true, errors [], the keys."""
+    """The --json rules of docs/commands.md: exit 0, one JSON object on stdout, ok true, errors [], the keys."""
     assert r.exit_code == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["ok"] is True and out["errors"] == []
@@ -190,7 +190,7 @@ def test_sbom_json_holds_the_sbom_or_names_the_file(cli, tmp_path, monkeypatch, 
 
 
 def test_every_json_object_has_ok_and_errors(cli, tmp_path, monkeypatch):
-    # emit_json adds the README's "errors" to a payload that lacks it (macsec plan did).
+    # emit_json adds docs/commands.md's "errors" to a payload that lacks it (macsec plan did).
     shutil.copytree(PROJECT / "examples" / "robot", tmp_path / "robot")
     monkeypatch.chdir(tmp_path)
     _shape(cli("macsec", "plan", "robot/robot.hcdf", "--json"), "associations")

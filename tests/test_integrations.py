@@ -1,4 +1,4 @@
-"""The integrations the README offers, run for real: the CMake snippet built with CMake and
+"""The integrations docs/integrations.md offers, run for real: the CMake snippet built with CMake and
 Ninja, the pre-commit hook's command and the GitHub Actions example's commands. Each must
 re-check after a model changes: a tampered GLB fails them."""
 
@@ -18,7 +18,7 @@ from hcdf_trust.store import default_cache_dir
 
 from .conftest import PROJECT
 
-README = (PROJECT / "README.md").read_text()
+INTEGRATIONS = (PROJECT / "docs" / "integrations.md").read_text()
 BIN = Path(sys.executable).parent  # the venv running the tests holds the hcdf-trust command
 
 
@@ -39,7 +39,7 @@ def _source_tree(tmp_path: Path) -> Path:
 
 
 def test_cmake_snippet_rebuilds_when_a_model_the_lock_names_changes(tmp_path):
-    snippet = re.search(r"```cmake\n(.*?)```", README, re.S).group(1)
+    snippet = re.search(r"```cmake\n(.*?)```", INTEGRATIONS, re.S).group(1)
     src = _source_tree(tmp_path)
     (src / "CMakeLists.txt").write_text(f"cmake_minimum_required(VERSION 3.19)\nproject(robot NONE)\n{snippet}")
     build = src / "build"

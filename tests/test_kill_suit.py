@@ -79,7 +79,7 @@ def manifest_of(release: suit.Release = RELEASE) -> dict[Any, Any]:
 
 NOT_OUR_LAYOUT = (
     "manifest is not in the layout ota build writes "
-    "\\(draft-ietf-suit-manifest-34, README 'Release manifest layout'\\)$"
+    "\\(draft-ietf-suit-manifest-34, docs/suit.md\\)$"
 )
 
 

@@ -1,4 +1,4 @@
-"""The README's `hcdf-trust registry` example runs as written (paths mapped to a temporary folder)."""
+"""The `hcdf-trust registry` example of docs/registry.md runs as written (paths mapped to a temporary folder)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ from tests.servers import LoopbackServer
 
 
 def _block() -> list[list[str]]:
-    readme = (PROJECT / "README.md").read_text()
-    section = readme.split("### `hcdf-trust registry", 1)[1]
+    section = (PROJECT / "docs" / "registry.md").read_text()
     block = re.search(r"```sh\n(.*?)```", section, re.S)
     assert block is not None
     text = block.group(1).replace("\\\n", " ")

@@ -104,7 +104,7 @@ def _software(report: Report, source: str, sw: Any, hashes: dict[Any, Any], rele
             line=line,
         )
         return
-    # What <hash> must be (README, ota): MCUboot's image hash, or a raw image's file SHA-256.
+    # What <hash> must be (docs/ota.md): MCUboot's image hash, or a raw image's file SHA-256.
     signed = component.mcuboot_hash if component.type == "mcuboot" else component.sha256
     if sha is not None and sha.lower() != signed:
         report.add(

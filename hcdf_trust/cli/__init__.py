@@ -71,7 +71,7 @@ def _with_shared_options(command: click.Command) -> click.Command:
 def emit_json(payload: dict[str, Any]) -> None:
     """The one JSON object of ``--json``, through the secret filter: indented on a terminal,
     compact into a pipe or file (where json's C encoder writes a 10,000-link macsec plan in
-    0.1 s instead of 0.4 s). Every object has ``errors`` (the README's shape), empty when the
+    0.1 s instead of 0.4 s). Every object has ``errors`` (docs/commands.md's shape), empty when the
     verb gave none."""
     from ..scrub import scrub_json
 

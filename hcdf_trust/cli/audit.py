@@ -49,7 +49,7 @@ from .params import ConfigOption, from_config, project_config
     help="The registry's root.json you trust.",
 )
 @functools.partial(store_options, required=False)
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (README: `hcdf-trust audit`).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (shape: docs/audit.md).")
 @handle_errors
 def audit_cmd(
     doc: str,

@@ -14,7 +14,7 @@ from typing import Any
 
 from ..ota import suit
 
-# Verdicts (README: `hcdf-trust fleet`). Integrity verdicts exit 1, the unreadable ones 3.
+# Verdicts (docs/fleet.md). Integrity verdicts exit 1, the unreadable ones 3.
 CURRENT = "current"
 OUTDATED = "outdated"
 PENDING = "pending"

@@ -4,7 +4,7 @@ Format: **draft-ietf-suit-manifest-34** (:data:`SUIT_DRAFT`; RFC 9124's informat
 valid against the draft's CDDL with no extension: every fact the draft has a parameter
 for sits in that parameter, and hcdf-trust's own facts sit in an integrated payload
 (§5.5, §7.5) that the signed manifest binds by digest like any other image. Section
-numbers are -34's; the README's "Release manifest layout" says the same for users.
+numbers are -34's; docs/suit.md ("Release manifest layout") says the same for users.
 
 ```
 107({                                          / SUIT_Envelope_Tagged (§8.2) /
@@ -89,7 +89,7 @@ MAX_DEPTH = 16
 LEGACY = (
     "this release uses hcdf-trust's layout from before draft-34 conformance (custom parameters "
     "-257…-261 in the shared sequence, manifest keys -257…-259); its facts now sit in an integrated "
-    "release record (README 'Release manifest layout'): rebuild the release with this hcdf-trust "
+    "release record (docs/suit.md): rebuild the release with this hcdf-trust "
     "(to carry its history on: move release.suit aside, set [release] sequence_number in ota.toml above its own, "
     "build with --import-unsigned-history)"
 )
@@ -611,7 +611,7 @@ def parse_release(env: Envelope, *, source: str) -> Release:
     manifest, payloads = encode(release)
     if manifest != env.manifest or payloads != env.payloads:  # (a severed member changes the manifest)
         raise MalformedReleaseError(
-            f"manifest is not in the layout ota build writes ({SUIT_DRAFT}, README 'Release manifest layout')",
+            f"manifest is not in the layout ota build writes ({SUIT_DRAFT}, docs/suit.md)",
             file=source,
         )
     return release
