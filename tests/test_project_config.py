@@ -156,3 +156,29 @@ def test_acknowledged_warnings_are_not_said_but_listed(cli, project):
     assert r.exit_code == 0 and "warning" not in r.stderr, r.stderr
     r = cli("resolve", doc, "--no-lock", "--json")
     assert [w["code"] for w in r.json["warnings"]] == ["weak-pin"]
+
+
+def test_the_documented_example_is_a_config_the_reader_accepts(tmp_path):
+    """docs/config.md's example holds every key, and only keys, that the reader knows."""
+    import re
+    from pathlib import Path
+
+    from hcdf_trust import config as project_config
+
+    page = (Path(__file__).resolve().parent.parent / "docs" / "config.md").read_text()
+    (example,) = re.findall(r"^```toml\n(.*?)^```", page, re.S | re.M)
+    path = tmp_path / "hcdf-trust.toml"
+    path.write_text(example)
+    path.chmod(0o644)
+    loaded = project_config.load(str(path))
+    assert set(loaded.values) == {
+        "base",
+        "root",
+        "cache-dir",
+        "mirror",
+        "registry.site",
+        "registry.trusted-root",
+        "audit.policy",
+    }
+    assert loaded.values["base"] == str(tmp_path / "models") and loaded.acknowledge == {"mesh-without-sha"}
+    assert loaded.values["mirror"] == ("https://models.example.com/=" + str(tmp_path / "vendor"),)
