@@ -32,6 +32,7 @@ _VCS_MARKERS = (".git", ".hg", ".svn")
 # key -> what it holds; "path": a local path, resolved against the config file's folder;
 # "location": a folder or an http(s) URL (only the folder is resolved); "mirrors": PREFIX=DIR|URL.
 _TOP = {"base": "location", "root": "path", "cache-dir": "path", "mirror": "mirrors"}
+_CONFINED = ("base", "root")  # local folders that decide which files local references may read
 _TABLES = {
     "registry": {"site": "location", "trusted-root": "path"},
     "audit": {"policy": "path"},
@@ -111,9 +112,28 @@ def load(path: str) -> ProjectConfig:
                     values[f"{key}.{sub}"] = _value(kind, subvalue, folder, shown, f"{key}.{sub}")
         elif key in _TOP:
             values[key] = _value(_TOP[key], value, folder, shown, key)
+            if key in _CONFINED:
+                _inside_own_folder(values[key], folder, shown, key)
         else:
             raise _unknown(shown, key, sorted([*_TOP, *_TABLES]))
     return ProjectConfig(path=path, values=values, acknowledge=acknowledge)
+
+
+def _inside_own_folder(value: str, folder: str, shown: str, key: str) -> None:
+    """``root`` and a local ``base`` (which ``root`` defaults to) may not lie above the file's
+    folder: the file comes with the tree it sits in (perhaps someone else's checkout), so it may
+    confine that tree's local references further, never open files above it."""
+    if "://" in value:
+        return
+    real, top = os.path.realpath(value), os.path.realpath(folder)
+    if real != top and not real.startswith(top.rstrip(os.sep) + os.sep):
+        raise ConfigError(
+            f"{key} = {display_path(value)!r} lies outside the folder this file governs ({display_path(top)}): "
+            f"a project's config may only keep references inside it; give --{key} on the command line to go wider",
+            file=shown,
+            expected=f"a folder inside {display_path(top)}",
+            actual=display_path(real),
+        )
 
 
 def _unknown(shown: str, key: str, known: list[str]) -> ConfigError:

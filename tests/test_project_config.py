@@ -182,3 +182,17 @@ def test_the_documented_example_is_a_config_the_reader_accepts(tmp_path):
     }
     assert loaded.values["base"] == str(tmp_path / "models") and loaded.acknowledge == {"mesh-without-sha"}
     assert loaded.values["mirror"] == ("https://models.example.com/=" + str(tmp_path / "vendor"),)
+
+
+@pytest.mark.parametrize("setting", ['root = ".."', 'base = "../elsewhere"', 'base = "/"'])
+def test_a_config_cannot_open_files_above_its_own_folder(cli, project, tmp_path, setting):
+    """The file comes with the tree it sits in (perhaps someone else's checkout): root, and base
+    (which root defaults to), stay inside its folder; the command line may go wider."""
+    (tmp_path / "elsewhere").mkdir()
+    config(project, setting + "\n")
+    r = verify(cli, project)
+    assert r.exit_code == 3, r.stdout
+    (err,) = r.json["errors"]
+    assert err["code"] == "config" and "outside the folder this file governs" in err["message"]
+    config(project, 'root = "."\n')
+    assert verify(cli, project, "--root", tmp_path, "--base", project / "assets").exit_code == 0
