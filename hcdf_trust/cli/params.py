@@ -165,26 +165,23 @@ CONFIG_OPTIONS = (
 
 
 def with_project_config(command: click.Command) -> None:
-    """Give ``command`` ``--project-config``/``--no-project-config`` and let the project's ``hcdf-trust.toml``
-    default its :class:`ConfigOption` options before it runs. Called once per verb, where every
-    verb is looked up (:func:`hcdf_trust.cli._with_shared_options`), so no verb can miss it."""
+    """Give ``command`` ``--project-config``/``--no-project-config`` and let the project's
+    ``hcdf-trust.toml`` default its :class:`ConfigOption` options before it runs. Called once per
+    verb, where every verb is looked up (:func:`hcdf_trust.cli._with_shared_options`), so no verb
+    can miss it."""
     if getattr(command, "_project_config", False) or command.callback is None:
         return
     command.params.extend(CONFIG_OPTIONS)
     callback = command.callback
 
     def run(*args: Any, **kwargs: Any) -> Any:
-        ctx = click.get_current_context()
+        from ..errors import HcdfTrustError
+
         try:
-            apply_project_config(ctx, command, kwargs)
-        except click.ClickException:
-            raise
-        except Exception as exc:  # noqa: BLE001 -- our own errors, reported as every verb reports them
-            from ..errors import HcdfTrustError
+            apply_project_config(click.get_current_context(), command, kwargs)
+        except HcdfTrustError as exc:  # reported as every verb reports its errors (exit 3, --json)
             from . import fail
 
-            if not isinstance(exc, HcdfTrustError):
-                raise
             fail([exc], as_json=bool(kwargs.get("as_json")))
         return callback(*args, **kwargs)
 
