@@ -76,6 +76,7 @@ clean:
 ## Ratio benchmarks (a few minutes, not part of `make test`); writes bench/RESULTS.md.
 bench: $(TEST_STAMP)
 	$(BIN)/python bench/run.py $(BENCH_ARGS)
+	$(BIN)/python bench/jsonform.py
 
 ## Mutation testing of the verification core (slow; not part of `make test`). One worker: the
 ## machine is shared. Resumes where it stopped; MUTANTS='hcdf_trust.digest.*' narrows it.

@@ -53,7 +53,7 @@ TIME = "/usr/bin/time"  # GNU time, for a child's own peak RSS
 # neither slows every run by recompiling hcdf_trust nor litters the source tree.
 CHILD_ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
 CHILD_ENV["PYTHONPYCACHEPREFIX"] = str(WORK / "pycache")
-SECTIONS = ("robot", "tree", "small", "latency", "memory", "startup")
+SECTIONS = ("robot", "tree", "small", "latency", "memory", "startup", "bundle")
 
 TREE_FILES = 300
 TREE_SIZE = 1 << 20
@@ -62,6 +62,8 @@ SMALL_SIZE = 4096
 LATENCY_FILES = 200
 LATENCY_SIZE = 32 << 10
 LATENCY_DELAY = 0.020
+BUNDLE_FILES = 100  # .hcdfz write and verify (issue 19 §2): the whole bundle is built in memory
+BUNDLE_SIZE = 1 << 20
 BIG = 1 << 30
 MEDIUM = 10_000_000
 FLAT_RSS_SLACK_MIB = 16  # "memory does not grow": RSS(1 GB) <= RSS(10 MB) + this
@@ -236,6 +238,54 @@ def ensure_flat(name: str, *, seed: int, sizes: list[int]) -> tuple[Path, list]:
     rels = [m.rel for m in models]
     stamp.write_text(json.dumps({"params": params, "models": rels}))
     return doc, rels
+
+
+def bench_bundle(args: argparse.Namespace, rows: list[Row]) -> None:
+    """``bundle`` and ``verify X.hcdfz`` against Info-ZIP over the same files: ``zip -0`` (stored,
+    CRC-32 only) and ``unzip -t`` (every CRC-32). Ours also hashes every file (SHA-256) twice on
+    write (resolve, then the bytes bundled) and once on verify, flattens, and checks the archive."""
+    doc, rels = ensure_flat("bundle", seed=args.seed, sizes=[BUNDLE_SIZE] * BUNDLE_FILES)
+    tree = doc.parent
+    warm_page_cache([tree / r for r in rels] + [doc])
+    fresh_lock(doc)
+    ours_out, zip_out = WORK / "bundle-out" / "robot.hcdfz", WORK / "bundle-out" / "robot.zip"
+    ours_out.parent.mkdir(parents=True, exist_ok=True)
+
+    def gone(path: Path) -> Callable[[], None]:
+        return lambda: path.unlink(missing_ok=True)
+
+    cache = WORK / "cache-bundle"
+    write = measure(
+        {
+            "zip": Cmd(["zip", "-0", "-X", "-q", zip_out, doc.name, *rels], cwd=tree, setup=gone(zip_out)),
+            "ours": Cmd([CLI, "bundle", doc, ours_out, "--cache-dir", cache], setup=gone(ours_out)),
+        },
+        repeat=args.repeat,
+    )
+    check = measure(
+        {
+            "unzip": Cmd(["unzip", "-tq", zip_out]),
+            "ours": Cmd([CLI, "verify", ours_out], check=expect(f"{BUNDLE_FILES} pinned")),
+        },
+        repeat=args.repeat,
+    )
+    nbytes = BUNDLE_FILES * BUNDLE_SIZE
+    for what, runs, base, target in (
+        ("bundle (write)", write, "zip", "zip -0"),
+        ("verify X.hcdfz (read, no extraction)", check, "unzip", "unzip -t"),
+    ):
+        t_base, t_ours = med(runs[base]), med(runs["ours"])
+        rows.append(
+            Row(
+                f"{what}: {BUNDLE_FILES} models of {BUNDLE_SIZE >> 20} MiB ({nbytes / 1e6:.0f} MB)",
+                mbps(nbytes, t_ours),
+                f"{target} " + mbps(nbytes, t_base),
+                times(t_ours, t_base) + cpu_note(runs["ours"], runs[base]),
+                "(info)",
+                None,
+                {"ours_s": walls(runs["ours"]), f"{base}_s": walls(runs[base]), "bytes": nbytes},
+            )
+        )
 
 
 # -- results ------------------------------------------------------------------------

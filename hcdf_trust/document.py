@@ -159,6 +159,12 @@ def _describe(el: etree._Element) -> str:
     return f"<{written}> in namespace {q.namespace!r}"
 
 
+def is_json_form(data: bytes) -> bool:
+    """Whether ``data`` is (meant as) HCDF's JSON form: its first byte after whitespace (and a
+    UTF-8 byte order mark) is ``{``, which never starts an XML document."""
+    return data.lstrip(b" \t\r\n\xef\xbb\xbf")[:1] == b"{"
+
+
 @dataclass
 class Document:
     """A parsed HCDF document. ``source`` is how errors name it (a path or URL)."""
@@ -166,23 +172,49 @@ class Document:
     source: str
     tree: etree._ElementTree
     data: bytes = field(repr=False)
+    #: For a document written in HCDF's JSON form: where each element was written (its
+    #: JSON Pointer, see :func:`where`); None for XML.
+    json: Any = field(default=None, repr=False, compare=False)
     _references: list[Reference] | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_bytes(cls, data: bytes, *, source: str) -> Document:
-        """Parse, check that the root is ``<hcdf>``, and find every reference.
+        """Parse (XML, or HCDF's JSON form: :mod:`hcdf_trust.jsonform`), check that the root
+        is ``<hcdf>``, and find every reference.
 
         Raises:
             XmlError: malformed or hostile XML.
+            JsonError, JsonFormError: malformed or hostile JSON, or JSON that the converter
+                would have to drop or guess (see :mod:`hcdf_trust.jsonform`).
             NotHcdfError: the root is not ``<hcdf>`` in no namespace.
             AmbiguousReferenceError: a reference written so that readers could disagree
                 on it (see the module docstring); the first, naming the lines of any others.
         """
-        tree = parse_bytes(data, source=source)
-        require_root(tree.getroot(), source=source)
-        doc = cls(source=source, tree=tree, data=data)
+        doc = cls.parse(data, source=source)
+        require_root(doc.root, source=source)
         doc.references()
         return doc
+
+    @classmethod
+    def parse(cls, data: bytes, *, source: str) -> Document:
+        """The one way a document's bytes become a tree: XML, or the JSON form (whose first
+        byte is ``{``, never XML's), read through the HCDF schema; no other check."""
+        if is_json_form(data):
+            from . import jsonform
+
+            form = jsonform.read(data, source=source)
+            return cls(source=source, tree=form.tree, data=data, json=form)
+        return cls(source=source, tree=parse_bytes(data, source=source), data=data)
+
+    @property
+    def is_json(self) -> bool:
+        return self.json is not None
+
+    def where(self, el: etree._Element) -> int | None:
+        """Where ``el`` was written: its line (XML) or a :class:`~hcdf_trust.errors.Pointer`
+        (JSON: an int that prints as ``/hcdf/comp/3/visual/model``). Messages name it as
+        ``file:where``."""
+        return sourceline(el)
 
     @property
     def root(self) -> etree._Element:
@@ -369,7 +401,7 @@ def _plain_model(el: etree._Element) -> Reference | None:
         return None
     if value is None or el.text is not None or len(el) or not _plain_text(value):
         return None
-    line = el.sourceline  # (sourceline() without the call; lxml-stubs types it as ...)
+    line = el.sourceline or sourceline(el)  # (the call only for a JSON document's elements)
     return Reference(Kind.MODEL, line, value, el.get("sha"), attr, element=el)  # type: ignore[arg-type]
 
 

@@ -12,6 +12,35 @@ import re
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
+# The public API (docs/api.md): the exception hierarchy and Notice. The helpers below are internal.
+__all__ = [
+    "HcdfTrustError",
+    "IntegrityError",
+    "DigestMismatchError",
+    "LockDriftError",
+    "UnpinnedError",
+    "WeakPinError",
+    "InputError",
+    "MalformedDigestError",
+    "XmlError",
+    "NotHcdfError",
+    "StreamSelectionError",
+    "AmbiguousError",
+    "AmbiguousReferenceError",
+    "NotFoundError",
+    "PathEscapeError",
+    "CredentialsError",
+    "SecretFileError",
+    "FetchError",
+    "OfflineError",
+    "IncludeCycleError",
+    "IncludeDepthError",
+    "LockFileError",
+    "FlattenError",
+    "ErrorGroup",
+    "Notice",
+]
+
 
 def counted(n: int, noun: str, plural: str | None = None) -> str:
     """``1 file``, ``2 files``: a count with its noun in the right number (``plural`` when not noun+s)."""
@@ -85,8 +114,69 @@ def redact(text: str) -> str:
     return text
 
 
+class Pointer(int):
+    """Where an element of a JSON document was written: prints as its JSON Pointer
+    (``/hcdf/comp/3/visual/model``), compares and sorts as its place in document order.
+
+    Every message names a location through ``line``; a ``Pointer`` there makes
+    ``robot.json:/hcdf/comp/3: ...`` of what reads ``robot.hcdf:42: ...`` for XML, with no
+    change to the code that reports it. ``--json`` output shows it as ``pointer`` (with
+    ``line`` null): see :func:`json_locations`.
+    """
+
+    pointer: str
+
+    def __new__(cls, index: int, pointer: str) -> Pointer:
+        self = super().__new__(cls, index)
+        self.pointer = pointer
+        return self
+
+    def __str__(self) -> str:
+        return self.pointer
+
+    def __format__(self, spec: str) -> str:
+        return format(self.pointer, spec)
+
+    def __repr__(self) -> str:
+        return f"Pointer({int(self)}, {self.pointer!r})"
+
+
+def json_locations(value: Any) -> Any:
+    """``value`` (a ``--json`` payload) with every ``"line": Pointer`` written as
+    ``"line": null, "pointer": "/hcdf/..."`` (json's encoder would print the integer)."""
+    if isinstance(value, dict):
+        out = {k: json_locations(v) for k, v in value.items()}
+        line = value.get("line")
+        if isinstance(line, Pointer):
+            out["line"] = None
+            out["pointer"] = line.pointer
+        return out
+    if isinstance(value, list):
+        return [json_locations(v) for v in value]
+    if isinstance(value, Pointer):
+        return value.pointer
+    return value
+
+
 class HcdfTrustError(Exception):
-    """Base class. ``code`` is a stable, machine-readable identifier for ``--json``."""
+    """Base class of every error hcdf-trust reports. ``code`` is a stable, machine-readable
+    identifier (``--json``'s ``code``), ``exit_code`` the CLI's exit status (1: integrity,
+    3: input); ``file``, ``line``, ``expected``, ``actual`` and ``url`` say where and what,
+    when known. Library functions collect these in lists (``Resolution.errors``) or raise them.
+
+    Example:
+        >>> from hcdf_trust.errors import DigestMismatchError, IntegrityError
+        >>> e = DigestMismatchError("models/a.glb: digest mismatch", file="robot.hcdf", line=7,
+        ...                         expected="sha256 00aa", actual="sha256 11bb")
+        >>> isinstance(e, IntegrityError), e.exit_code, e.code
+        (True, 1, 'digest-mismatch')
+        >>> print(e)
+        robot.hcdf:7: models/a.glb: digest mismatch
+          expected: sha256 00aa
+          actual:   sha256 11bb
+        >>> e.to_dict()["line"]
+        7
+    """
 
     exit_code = 3
     code = "error"
@@ -160,7 +250,14 @@ class HcdfTrustError(Exception):
 
 
 class IntegrityError(HcdfTrustError):
-    """Content is not what was pinned, locked or signed."""
+    """Content is not what was pinned, locked or signed (exit 1): an attack or a mistake to
+    look at, never to retry.
+
+    Example:
+        >>> from hcdf_trust.errors import IntegrityError, LockDriftError
+        >>> issubclass(LockDriftError, IntegrityError), LockDriftError.exit_code
+        (True, 1)
+    """
 
     exit_code = 1
     code = "integrity"
@@ -192,7 +289,17 @@ class WeakPinError(IntegrityError):
 
 
 class InputError(HcdfTrustError):
-    """A file is missing, unreadable, malformed or hostile, or the network failed."""
+    """A file is missing, unreadable, malformed or hostile, or the network failed (exit 3).
+
+    Example:
+        >>> from hcdf_trust.include import resolve
+        >>> from hcdf_trust.errors import InputError, NotFoundError
+        >>> try:
+        ...     resolve("examples/robot/no-such.hcdf")
+        ... except InputError as e:
+        ...     print(type(e).__name__, e.exit_code)
+        NotFoundError 3
+    """
 
     exit_code = 3
     code = "input"
@@ -311,6 +418,12 @@ class Notice:
     project's ``hcdf-trust.toml`` acknowledges; ``file``/``line`` name the place, as for errors.
     ``repeated``: a fact an earlier run already said when it wrote the lock that now covers it
     (listed by ``--json``, not said again to a person: see :func:`hcdf_trust.cli.warn`).
+
+    Example:
+        >>> from hcdf_trust.errors import Notice
+        >>> n = Notice("weak-pin", "gripper.glb has a weak pin (32 bits)", file="arm.hcdf", line=38)
+        >>> str(n), n.to_dict()["code"]
+        ('arm.hcdf:38: gripper.glb has a weak pin (32 bits)', 'weak-pin')
     """
 
     __slots__ = ("code", "message", "file", "line", "url", "repeated")

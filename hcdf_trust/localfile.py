@@ -163,6 +163,16 @@ class ConfinedFolders:
                     os.close(fd)
         return open_checked(path, root, file=file, line=line)
 
+    def read(
+        self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None, limit: int, source: str
+    ) -> bytes:
+        """A confined file's whole content, refused past ``limit`` bytes (:func:`read_bounded`)."""
+        fd, _ = self.open(path, root, file=file, line=line)
+        try:
+            return read_bounded(fd, limit, source=source)
+        finally:
+            os.close(fd)
+
     def hash(self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
         """:func:`hash_local` through :meth:`open`."""
         fd, st = self.open(path, root, file=file, line=line)
@@ -266,6 +276,28 @@ def read_bounded(fd: int, limit: int, *, source: str, what: str = "document") ->
     if len(data) > limit:
         raise InputError(f"{what} is over the {limit}-byte limit", file=source)
     return data
+
+
+def read_whole(fd: int, limit: int, *, source: str, what: str) -> bytearray:
+    """:func:`read_bounded` into one buffer of the file's size, without its copy (for inputs
+    of up to gigabytes that are kept whole: a bundle). A file that shrinks or grows while it
+    is read is refused: what is checked must be all of what was there.
+
+    Raises:
+        InputError: over the limit, or changed while read.
+    """
+    size = os.fstat(fd).st_size
+    if size > limit:
+        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+    buf = bytearray(size)
+    view = memoryview(buf)
+    done = 0
+    while done < size and (got := os.readv(fd, [view[done:]])):
+        done += got
+    view.release()
+    if done != size or os.read(fd, 1):
+        raise InputError(f"{what} changed size while it was read ({size} bytes when opened)", file=source)
+    return buf
 
 
 def read_input(path: Path | str, *, limit: int, what: str = "file", source: str | None = None) -> bytes:
@@ -461,13 +493,21 @@ class JsonError(InputError):
     code = "malformed-json"
 
 
+class JsonNumber(str):
+    """A JSON number exactly as written (``1.0``, ``0.0450``, ``1e-3``): ``parse_json(exact=True)``."""
+
+    __slots__ = ()
+
+
 class _Duplicated(dict):  # type: ignore[type-arg]
     """An object that held a key twice (``key``): named with its JSON Pointer after parsing."""
 
     key: str
 
 
-def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, floats: bool = True) -> Any:
+def parse_json(
+    data: bytes, *, source: str, what: str = "document", limit: int, floats: bool = True, exact: bool = False
+) -> Any:
     """``data`` as JSON, read so that every reader sees the same values as every other parser.
 
     Python's ``json`` keeps the last of two equal keys where other parsers keep the first
@@ -475,6 +515,8 @@ def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, 
     ``NaN``/``Infinity``, lone surrogates (``"\\ud800"``, which no UTF-8 encoder writes),
     UTF-16 input and nesting deep enough to exhaust the stack. All are refused here, with
     a JSON Pointer or line naming where; ``floats=False`` refuses non-integer numbers too.
+    ``exact=True`` gives every number as its literal (a :class:`JsonNumber`, a str): HCDF's
+    JSON form keeps ``1.0`` and ``0.0450`` as written.
 
     Raises:
         JsonError: over ``limit`` bytes, not UTF-8, not JSON, or any ambiguity above.
@@ -496,6 +538,10 @@ def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, 
             raise JsonError(f"{what}: number {token[:40]} is out of range", file=source)
         return value
 
+    def literal(token: str) -> Any:
+        bad_float(token)  # still finite and in range
+        return JsonNumber(token)
+
     def bad_constant(token: str) -> None:
         raise JsonError(f"{what}: {token} is not a JSON number", file=source)
 
@@ -512,8 +558,9 @@ def parse_json(data: bytes, *, source: str, what: str = "document", limit: int, 
         marked.key = next(k for k, _ in items if k in seen or seen.add(k))  # type: ignore[func-returns-value]
         return marked
 
+    hooks: dict[str, Any] = {"parse_float": literal, "parse_int": JsonNumber} if exact else {"parse_float": bad_float}
     try:
-        doc = json.loads(text, parse_float=bad_float, parse_constant=bad_constant, object_pairs_hook=pairs)
+        doc = json.loads(text, parse_constant=bad_constant, object_pairs_hook=pairs, **hooks)
     except json.JSONDecodeError as exc:
         raise JsonError(f"{what} is not JSON: {exc.msg} (column {exc.colno})", file=source, line=exc.lineno) from None
     except RecursionError:

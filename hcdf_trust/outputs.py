@@ -51,6 +51,9 @@ from .store import create_temp, default_cache_dir, fsync_dir
 if TYPE_CHECKING:
     from .include.resolver import Resolution, ResolveOptions
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["OutputError", "OutputPlan", "protect_inputs"]
+
 
 class OutputError(InputError):
     """An output cannot be written: it would replace an input, or the disk refused it."""
@@ -63,6 +66,7 @@ PRIVATE_KEY = "a private key"
 PUBLIC_KEY = "a public key"
 KEY_STORE = "a MACsec key store"
 DOCUMENT = "an HCDF document"
+BUNDLE = "an HCDF bundle"  # a .hcdfz: a ZIP whose first entry is a .hcdf (bundle.py)
 REGISTRY_SOURCE = "a registry source file"
 NEW_ONLY: tuple[str, ...] = ()  # ``replaces=NEW_ONLY``: an existing destination is never replaced
 
@@ -119,6 +123,20 @@ class OutputPlan:
     does not exist cannot be an input); an input protected with the ``inode`` of the
     descriptor it was read from is not stat'ed at all, and is also compared by path
     (it may have been replaced since). That keeps a 10,000-file tree cheap.
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> from hcdf_trust.outputs import OutputError, OutputPlan, protect_inputs
+        >>> plan = OutputPlan()
+        >>> protect_inputs(plan, verify("examples/robot/robot.hcdf"))
+        >>> try:
+        ...     plan.add("examples/robot/models/chassis.glb", b"x", flag="--out")
+        ... except OutputError as e:
+        ...     print(e.message)
+        --out examples/robot/models/chassis.glb is a verified model file: refusing to overwrite an input
+        >>> plan.add("out/report.txt", b"ok\\n", flag="--out")
+        >>> [p.name for p in plan.commit()]
+        ['report.txt']
     """
 
     def __init__(self) -> None:
@@ -528,6 +546,14 @@ def protect_inputs(
     bundle and the cache folder (``options.cache_dir``, else the default cache). Not
     the lock file: whether it is an output is the caller's choice (protect it with
     :meth:`OutputPlan.protect` when it is not).
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> from hcdf_trust.outputs import OutputPlan, protect_inputs
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> plan = OutputPlan()
+        >>> protect_inputs(plan, res)
+        >>> plan.protect(res.lock_path, what="the lock file")  # this run only reads the lock
     """
     if doc is not None:
         plan.protect(doc, what="the root document")
@@ -611,9 +637,14 @@ def _existing(folder: Path) -> tuple[str, tuple[str, ...]]:
 
 def kind_of(data: bytes) -> str:
     """What ``data`` (a file's first bytes) is, for the replace rule: :data:`PRIVATE_KEY`,
-    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, :data:`REGISTRY_SOURCE`, :data:`DOCUMENT`, else
-    :data:`ORDINARY`."""
+    :data:`PUBLIC_KEY`, :data:`KEY_STORE`, :data:`REGISTRY_SOURCE`, :data:`BUNDLE`, :data:`DOCUMENT`,
+    else :data:`ORDINARY`."""
     head = data[:_SNIFF_BYTES]
+    # A bundle (before the marks: its first entry holds "<hcdf "): a local header whose name ends .hcdf.
+    if head[:4] == b"PK\x03\x04" and len(head) >= 30:
+        name_len = int.from_bytes(head[26:28], "little")
+        if head[30 : 30 + name_len].endswith(b".hcdf"):
+            return BUNDLE
     for mark, kind in _MARKS:
         if mark in head:
             return kind

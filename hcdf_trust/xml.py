@@ -8,11 +8,13 @@ entity tricks (external, parameter, billion-laughs) never reach the tree.
 
 from __future__ import annotations
 
+import weakref
+from collections.abc import Iterator
 from typing import NoReturn, cast
 
 from lxml import etree
 
-from .errors import XmlError
+from .errors import Pointer, XmlError
 
 # An HCDF document is text; the humanoid example is ~100 KB. 32 MiB is generous
 # and keeps lxml's ~13x memory blow-up (notes/env.md §3) under half a gigabyte.
@@ -97,10 +99,43 @@ def _check_depth(tree: etree._ElementTree, source: str) -> None:
         raise XmlError(f"elements nested deeper than {MAX_DEPTH} levels", file=source, line=sourceline(deep[0]))
 
 
-def sourceline(el: etree._Element) -> int | None:
-    """``el.sourceline``: the line ``el`` starts on, None when unknown.
+class LocationTable:
+    """Where each element of a tree built from a JSON document was written.
 
-    lxml-stubs declares the attribute as ``sourceline = ...`` (an Ellipsis), so read
-    it through here wherever its type matters.
+    Holding the element proxies keeps them (lxml hands out the same proxy while one is
+    alive), so an element is found by identity. Registered while the table lives.
     """
-    return el.sourceline  # type: ignore[return-value]  # lxml-stubs: `sourceline = ...`
+
+    __slots__ = ("__weakref__", "_where")
+
+    def __init__(self) -> None:
+        self._where: dict[etree._Element, Pointer] = {}
+        _TABLES.add(self)
+
+    def add(self, el: etree._Element, where: Pointer) -> None:
+        self._where[el] = where
+
+    def get(self, el: etree._Element) -> Pointer | None:
+        return self._where.get(el)
+
+    def items(self) -> Iterator[tuple[etree._Element, Pointer]]:
+        return iter(self._where.items())
+
+
+_TABLES: weakref.WeakSet[LocationTable] = weakref.WeakSet()
+
+
+def sourceline(el: etree._Element) -> int | None:
+    """Where ``el`` was written: the line it starts on (XML), a :class:`Pointer` (an element
+    of a JSON document: prints as ``/hcdf/comp/3``), None when unknown.
+
+    Every message names a location through here. lxml-stubs declares the attribute as
+    ``sourceline = ...`` (an Ellipsis), so read it through here wherever its type matters.
+    """
+    line: int | None = el.sourceline  # type: ignore[assignment]  # lxml-stubs: `sourceline = ...`
+    if line is None and _TABLES:  # parsed XML always has a line: only built trees get here
+        for table in list(_TABLES):
+            found = table.get(el)
+            if found is not None:
+                return found
+    return line

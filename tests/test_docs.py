@@ -155,6 +155,8 @@ ORACLES = {
     "python": "run here (test_python_examples_run)",
     "sh": "hcdf-trust lines checked against the CLI here; the tour is run by test_pipeline, "
     "registry.md's block by test_registry_readme",
+    "bash": "as sh",
+    "console": "as sh (a shell session: its hcdf-trust lines are checked)",
     "toml": "parsed here; audit.md's is the built-in policy (test_audit_policy), ota-toml.md's load as ota.toml",
     "json": "parsed here; audit.md's is the real --json shape (test_audit_policy)",
     "xml": "parsed here; macsec.md's two robots are planned and compared (test_macsec_upstream)",
@@ -186,7 +188,7 @@ def test_every_example_has_an_oracle(block):
                     assert (PROJECT / path).exists(), f"{block}: {path} does not exist"
         else:
             assert block.text.startswith("hcdf-trust "), f"{block}: not a synopsis nor the layout"
-    if block.lang in ("sh", "yaml", ""):
+    if block.lang in ("sh", "bash", "console", "yaml", ""):
         assert all(not problem for problem in command_problems(block.text)), (str(block), command_problems(block.text))
 
 
@@ -289,6 +291,24 @@ def test_ota_toml_page_names_every_key_and_its_example_loads(tmp_path):
     assert table("[images.APP]") == [f.name for f in fields(ImageSettings)]
 
 
+def test_validate_rules_table_is_the_codes_rules():
+    from hcdf_trust.validate.semantic import RULES
+
+    text = (DOCS / "validate-rules.md").read_text()
+    table = text.split("<!-- rules:begin -->\n", 1)[1].split("<!-- rules:end -->", 1)[0]
+    rows = ["| code | what the rule checks |", "|---|---|"]
+    rows += [f"| `{code}` | {what.replace('|', chr(92) + '|')} |" for code, what in RULES.items()]
+    assert table == "\n".join(rows) + "\n", "regenerate the table between the markers from RULES"
+
+
+def test_the_readme_stays_a_tour():
+    """Reference goes to docs/ (one page per command group), not back into the README."""
+    readme = (PROJECT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 200, "README.md is the newcomer's tour: put reference text in docs/"
+    headings = re.findall(r"^## (.*)$", readme, re.M)
+    assert headings == ["Install", "A ten-minute tour on the example robot", "Where to go next"]
+
+
 def test_audit_rules_table_is_the_codes_checks():
     from hcdf_trust.audit.policy import CHECKS
 
@@ -319,6 +339,8 @@ FOREIGN = {
     "--align": "imgtool",
     "--max-align": "imgtool",
     "--require-provenance": "ota pull, named as not yet built (issue 22)",
+    "--vendor-remote": "upstream's hcdf bundle (docs/bundles.md)",
+    "--keep-remote": "upstream's hcdf bundle (docs/bundles.md)",
 }
 DOC_TEXT = "\n".join(p.read_text() for p in ALL)
 
@@ -346,3 +368,27 @@ def test_the_docs_mention_every_verb_and_every_option():
             if longs and not any(o in DOC_TEXT for o in longs):
                 missing.append(f"{verb} {longs[0]}")
     assert missing == []
+
+
+def _all_commands() -> list[tuple[str, click.Command]]:
+    def walk(cmd: click.Command, path: tuple[str, ...]) -> list[tuple[str, click.Command]]:
+        out = [(" ".join(("hcdf-trust", *path)), cmd)]
+        if isinstance(cmd, click.Group):
+            ctx = click.Context(cmd)
+            out += [c for name in cmd.list_commands(ctx) for c in walk(cmd.get_command(ctx, name), (*path, name))]
+        return out
+
+    return walk(main, ())
+
+
+def test_every_option_a_help_text_names_is_one_of_that_command():
+    """The raw help strings (before click wraps them, so a flag split at a line end is still
+    seen), of groups too: a help may only name the options of its own command."""
+    wrong = []
+    for path, cmd in _all_commands():
+        texts = [cmd.help or "", cmd.short_help or "", cmd.epilog or ""]
+        texts += [p.help or "" for p in cmd.params if isinstance(p, click.Option)]
+        for flag in sorted({f for text in texts for f in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", text)}):
+            if flag not in _names(cmd):
+                wrong.append(f"{path}: {flag}")
+    assert wrong == []

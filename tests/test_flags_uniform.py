@@ -35,6 +35,7 @@ def _leaves(cmd: click.Command, path: tuple[str, ...] = ()) -> list[tuple[str, c
 
 VERBS = dict(_leaves(main))
 TREE_VERBS = [
+    "bundle",
     "audit",
     "sbom",
     "ota build",

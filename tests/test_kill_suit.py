@@ -77,10 +77,7 @@ def manifest_of(release: suit.Release = RELEASE) -> dict[Any, Any]:
     return cbor2.loads(suit.encode(release)[0])
 
 
-NOT_OUR_LAYOUT = (
-    "manifest is not in the layout ota build writes "
-    "\\(draft-ietf-suit-manifest-34, docs/suit.md\\)$"
-)
+NOT_OUR_LAYOUT = "manifest is not in the layout ota build writes \\(draft-ietf-suit-manifest-34, docs/suit.md\\)$"
 
 
 def malformed(data: bytes, words: str) -> None:

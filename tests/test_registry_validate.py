@@ -125,3 +125,15 @@ def test_registry_needs_a_trusted_root(cli, published):
     reg, srv = published
     res = cli("validate", PROFILE, "--registry", srv.base)
     assert res.exit_code == 2 and "--trusted-root" in res.stderr
+
+
+def test_a_json_document_is_read_through_the_registered_core_schema(cli, published, monkeypatch):
+    """No --schema: the registry's hcdf 1.0 schema reads the drone's JSON form too; its findings
+    are located by JSON Pointer (the JSON revision lacks the root's required name)."""
+    monkeypatch.delenv("HCDF_TRUST_SCHEMA", raising=False)
+    res = _validate(cli, published, HCDFORMAT / "examples" / "drone-quadrotor.json")
+    assert res.json["schema"] == "registry:schemas/hcdf/1.0.xsd", res.stdout
+    xsd = [f for f in res.json["errors"] if f["code"] == "xsd"]
+    assert [(f["pointer"], f["line"]) for f in xsd] == [("/hcdf", None)] and "'name' is required" in xsd[0]["message"]
+    content = [f for f in res.json["errors"] if f["code"] == "extension-content"]
+    assert content and all(f["pointer"].startswith("/hcdf/comp/1/extension/1") for f in content)

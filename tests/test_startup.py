@@ -85,3 +85,21 @@ def test_a_resolve_writing_its_lock_imports_neither_tempfile_nor_secrets(tmp_pat
     assert code == 0 and lock.exists()  # written: the commit's temporary file was made
     unwanted = {"tempfile", "shutil", "random", "secrets", "bz2", "lzma"}
     assert not modules & unwanted, sorted(modules & unwanted)
+
+
+def test_an_xml_run_never_imports_the_json_form(tmp_path):
+    """xmlschema (~150 ms to import, ~0.3 s to build hcdf.xsd) is paid only when a JSON document
+    is read: not by an XML run, even with --schema given."""
+    from .conftest import CORPUS
+
+    xsd = CORPUS / "hcdformat" / "hcdf.xsd"
+    code, modules = _modules_after("validate", "examples/robot/robot.hcdf", "--schema", str(xsd))
+    assert code == 0 and "hcdf_trust.validate" in modules
+    assert "xmlschema" not in modules
+    code, modules = _modules_after("verify", "examples/robot/robot.hcdf")
+    assert code == 0 and not modules & {"xmlschema", "hcdf_trust.jsonform"}
+    # the control: a JSON document does import it
+    doc = tmp_path / "r.json"
+    doc.write_text('{"hcdf": {"version": 1.0, "name": "r"}}')
+    code, modules = _modules_after("validate", str(doc), "--schema", str(xsd))
+    assert code == 0 and "xmlschema" in modules

@@ -18,7 +18,7 @@ from typing import Any
 import click
 
 from .. import __version__
-from ..errors import ErrorGroup, HcdfTrustError, counted
+from ..errors import ErrorGroup, HcdfTrustError, counted, json_locations
 from .params import TIMEOUT, ConfigOption, acknowledged, from_config, project_config, with_project_config
 
 _QUIET = "hcdf_trust.quiet"  # ctx.meta key (one per run, shared by a verb and its groups)
@@ -81,6 +81,7 @@ def emit_json(payload: dict[str, Any]) -> None:
         project = project_config()
         payload = {**payload, "config": None if project is None else project.shown}
     indent = 2 if sys.stdout.isatty() else None
+    payload = json_locations(payload)  # a JSON document's locations: "pointer", not a line
     click.echo(json.dumps(scrub_json(payload), indent=indent, sort_keys=True))  # noqa: TID251 -- filtered above
 
 
@@ -211,6 +212,32 @@ MIRROR_OPTION = click.option(
 )
 OFFLINE_HELP = "Use only local files, mirrors and the cache; never open a socket."
 JSON_OPTION = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+SCHEMA_ENV = "HCDF_TRUST_SCHEMA"  # jsonform.SCHEMA_ENV, without importing it
+SCHEMA_HELP = (
+    "HCDF schema (hcdf.xsd) that documents in HCDF's JSON form are read through (repeatable: the one "
+    f"whose version fits the document's is used) [env: {SCHEMA_ENV}]."
+)
+
+
+def use_schemas(ctx: click.Context, param: click.Parameter, value: tuple[str, ...] | None) -> tuple[str, ...]:
+    """Record the ``--schema`` files for this run's JSON documents (:func:`hcdf_trust.jsonform.use_schemas`)."""
+    if value or "hcdf_trust.jsonform" in sys.modules:  # an XML-only run never imports it
+        from .. import jsonform
+
+        jsonform.use_schemas(value or ())
+    return value or ()
+
+
+SCHEMA_OPTION = click.option(
+    "--schema",
+    "schemas",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    envvar=SCHEMA_ENV,
+    callback=use_schemas,
+    expose_value=False,
+    help=SCHEMA_HELP,
+)
 _LOCATION_KEYS = ("base", "mirrors", "root")
 _TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
 
@@ -234,7 +261,7 @@ def tree_options(func: Callable[..., Any]) -> Callable[..., Any]:
         show_default=True,
         help=OFFLINE_HELP + " --online fetches what they lack (still checked against the lock).",
     )
-    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline)
+    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline, SCHEMA_OPTION)
     return _tree_decorator(func, options, _TREE_KEYS)
 
 
@@ -271,6 +298,7 @@ def resolve_options(func: Callable[..., Any]) -> Callable[..., Any]:
             help="Refuse weak pins (hex prefixes shorter than 64 digits).",
         ),
         JSON_OPTION,
+        SCHEMA_OPTION,
     ]
     for option in reversed(options):
         func = option(func)
@@ -658,6 +686,12 @@ def resolve(
     if update and kw["locked"]:
         raise click.UsageError("--update and --locked contradict each other: --locked never changes the lock")
     options = ResolveOptions(update_all="" in update, update=tuple(u for u in update if u), **kw)
+    from ..bundle import is_bundle
+
+    if is_bundle(doc):  # its pins are in it: it has no lock to write, and it is already flat
+        if out or update:
+            raise click.UsageError(f"{'--out' if out else '--update'} does not apply to a bundle ({doc})")
+        no_lock = True
     no_lock = no_lock or options.locked
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=options.offline, persist=True)
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
@@ -669,7 +703,8 @@ def resolve(
     # An output that already holds exactly these bytes is left alone (if_changed): a
     # rebuild over an unchanged tree touches no file, so a build system sees nothing new.
     if no_lock:
-        plan.protect(res.lock_path, what="the lock file")
+        if res.bundle is None:
+            plan.protect(res.lock_path, what="the lock file")
     else:
         lock = res.render_lock()
         if options.lock_path is None:
@@ -713,9 +748,9 @@ def verify(doc: str, as_json: bool, registry_site: str | None, trusted_root: str
     """
     from ..include.resolver import ResolveOptions
 
-    options = ResolveOptions(locked=True, offline=True, write_cache=False, **kw)
+    options = ResolveOptions(**kw)
     registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
-    res = _run_resolve(doc, options, as_json=as_json, registry=registry)
+    res = _run_resolve(doc, options, as_json=as_json, registry=registry, verifying=True)
     _report(res, as_json=as_json, wrote=[])
 
 
@@ -760,11 +795,14 @@ def _say_updates(res: Any, *, update_all: bool) -> None:
         say(f"--update: nothing to accept, {which} already matched the content")
 
 
-def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None) -> Any:
-    from ..include.resolver import resolve as do_resolve
+def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None, verifying: bool = False) -> Any:
+    """The library's resolve (or, ``verifying``, its verify: locked, offline, no cache writes),
+    with a progress bar, then the registry checks; exits on any error."""
+    from ..include.resolver import resolve, verify
 
+    run = verify if verifying else resolve
     with _progress(enabled=not as_json) as (on_start, on_progress):
-        res = do_resolve(doc, options, on_start=on_start, on_progress=on_progress)
+        res = run(doc, options, on_start=on_start, on_progress=on_progress)
     if res.ok and registry is not None:  # a step after resolution: the tree verified, now its registry checks
         errors, warnings = registry.check(res, cache_dir=options.cache_dir)
         res.errors += errors
@@ -928,6 +966,8 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
 # it building pin's and validate's options). Name -> (module, attribute).
 _LAZY_COMMANDS = {
     "audit": (".audit", "audit_cmd"),
+    "bundle": (".bundle", "bundle"),
+    "convert": (".convert", "convert"),
     "fleet": (".fleet", "fleet"),
     "macsec": (".macsec", "macsec"),
     "ota": (".ota", "ota"),

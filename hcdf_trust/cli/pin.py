@@ -40,8 +40,17 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     following resolve writes) all together, or nothing. Without --write, nothing is
     written.
     """
+    from ..bundle import is_bundle
+    from ..errors import InputError
     from ..include.pin import pin_tree
     from ..include.resolver import ResolveOptions
+
+    if is_bundle(doc):
+        raise InputError(
+            f"{doc}: a bundle: every reference in it is pinned already, and pin edits documents in place"
+            " (pin the tree it was made from, then `hcdf-trust bundle` it again)",
+            file=doc,
+        )
 
     report = pin_tree(doc, ResolveOptions(**kw), write=write, update=update, update_all=update_all)
     payload = {

@@ -569,19 +569,25 @@ def validate_with_registry(
     checks extension domains, versions, content and registered stream-profile digests."""
     import os
 
+    from ..document import Document, is_json_form
     from ..include.locate import display_path
     from ..registry.validation import RegistrySchemaSource, check_document
     from ..validate import validate_document
     from ..validate.includes import read_local
-    from ..xml import parse_bytes
 
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
-    report = validate_document(doc, schema=schema or schemas, tree_options=tree)
     path = Path(os.path.abspath(doc))
     source = display_path(path)
-    tree = parse_bytes(read_local(path, path.parent, source=source), source=source)
+    data = read_local(path, path.parent, source=source)
+    if not schema and is_json_form(data):  # HCDF's JSON form: read through the registry's schema too
+        from .. import jsonform
+
+        jsonform.use_schema_provider(schemas.core_xsd)
+    report = validate_document(doc, schema=schema or schemas, tree_options=tree)
+    parsed = Document.parse(data, source=source)  # held: a JSON document's locations live with it
+    tree = parsed.tree
     if tree.getroot().tag == "hcdf":
         report.findings.extend(check_document(tree, source=source, path=path, schemas=schemas, strict=strict))
         report.checked.append("registry")

@@ -8,7 +8,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, handle_errors, say, tree_location_options
+from . import SCHEMA_ENV, emit_json, handle_errors, say, tree_location_options, use_schemas
 from .params import ConfigOption
 
 
@@ -19,8 +19,11 @@ from .params import ConfigOption
     "schemas",
     multiple=True,
     type=click.Path(dir_okay=False),
-    help="XSD to validate against (the official schemas are not shipped); repeatable: the one that declares "
-    "the document's root and version is used, and reported with its SHA-256.",
+    envvar=SCHEMA_ENV,
+    callback=use_schemas,
+    help="XSD to validate against (the official schemas are not shipped), and that a document in HCDF's JSON "
+    "form is read through; repeatable: the one that declares the document's root and version is used, and "
+    f"reported with its SHA-256 [env: {SCHEMA_ENV}].",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option(

@@ -1,8 +1,9 @@
 """Include resolution: fetchers, locator, resolver, lock file, flattening.
 
-``from hcdf_trust.include import resolve`` is the library entry point.
+The public API of this package is :data:`__all__` (docs/api.md): :func:`resolve` and
+:func:`verify` and the classes they take and return. Its submodules are internal.
 """
 
-from .resolver import Artifact, Resolution, ResolveOptions, resolve
+from .resolver import Artifact, Resolution, ResolveOptions, resolve, verify
 
-__all__ = ["Artifact", "Resolution", "ResolveOptions", "resolve"]
+__all__ = ["Artifact", "Resolution", "ResolveOptions", "resolve", "verify"]

@@ -686,7 +686,7 @@ class _Flattener:
         child = self.res.documents[child_url]
         art = self.res.artifacts.get(child_url)
         site = _Included(
-            where=f"{doc.source}:{el.sourceline}",
+            where=f"{doc.source}:{sourceline(el)}",
             target=_relative_to_root(child_url, self.root_url),
             sha256=art.sha256 if art is not None else None,
             module=child.root.get("name"),

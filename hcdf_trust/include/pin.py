@@ -733,6 +733,20 @@ def _attr_text(raw: bytes, encoding: str) -> str:
     return html.unescape(text)
 
 
+def json_not_edited(doc: Document, verb: str) -> str:
+    """Why ``verb`` does not edit ``doc``, a document in HCDF's JSON form, and what to do instead.
+
+    Edits here are minimal text edits of XML (comments and formatting kept); rewriting JSON
+    through the converter would reorder and reformat the user's file. So a JSON document
+    is converted, edited as XML, and converted back (docs/json-form.md).
+    """
+    xml = doc.source.rsplit("/", 1)[-1].removesuffix(".json") + ".hcdf"
+    return (
+        f"this document is in HCDF's JSON form, which {verb} does not edit in place: convert it "
+        f"(hcdf-trust convert {doc.source} {xml}), {verb} the XML, and convert it back"
+    )
+
+
 def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
     """``doc``'s bytes with each reference's ``sha`` set to its full digest.
 
@@ -745,6 +759,8 @@ def apply_pins(doc: Document, edits: list[tuple[Reference, str]]) -> bytes:
         PinEditError: a reference cannot be located unambiguously in the text, or
         the document's encoding is not ASCII-compatible.
     """
+    if doc.is_json:
+        raise PinEditError(json_not_edited(doc, "pin"), file=doc.source)
     data = doc.data
     encoding = doc.tree.docinfo.encoding or "utf-8"
     try:

@@ -55,6 +55,7 @@ from . import lockfile
 from .locate import Location, Locator, confinement_root, display_path, explain_missing, file_url
 
 if TYPE_CHECKING:
+    from ..bundle import BundleFiles
     from .fetch import HttpFetcher  # imported (with ssl, httpx) only when a URL is fetched
 
 DEFAULT_MAX_DEPTH = 16
@@ -73,7 +74,27 @@ except AttributeError:  # not on Linux
 
 @dataclass(frozen=True)
 class ResolveOptions:
-    """Everything a resolve run may be told. Keyword-only by convention."""
+    """Everything a :func:`resolve` run may be told; each field is the ``hcdf-trust resolve``
+    flag of the same name (docs/resolve.md). Pass fields by keyword; new ones may be added.
+
+    Attributes:
+        base: ``--base DIR|URL``: where relative references of published fragments resolve.
+        mirrors: ``--mirror PREFIX=DIR|URL`` pairs, longest prefix wins.
+        root: ``--root DIR``: local references must stay inside it.
+        cache_dir: the content-addressed cache (default ``~/.cache/hcdf-trust``).
+        lock_path: the lock file (default ``<DOC>.lock``).
+        locked: fail on any difference from the lock instead of updating it.
+        update_all, update: re-pin every lock entry, or those named (trust on first use).
+        offline: never open a socket (local files, mirrors and the cache only).
+        allow_http, strict, jobs, max_depth, max_bytes, timeout, ca_bundle: as the flags.
+        write_cache: store fetched and local blobs in the cache (``verify`` does not).
+        accept_mismatch: for ``pin``: keep walking past a pin mismatch (still an error).
+
+    Example:
+        >>> from hcdf_trust.include import ResolveOptions
+        >>> ResolveOptions(offline=True, strict=True).locked
+        False
+    """
 
     base: str | None = None
     mirrors: tuple[tuple[str, str], ...] = ()
@@ -139,6 +160,27 @@ class Use:
 
 @dataclass
 class Artifact:
+    """One distinct file (or firmware digest, or extension) the tree references, and what
+    was found: every reference to the same URL shares one Artifact (:attr:`uses`).
+
+    Attributes:
+        kind: what references it (:class:`~hcdf_trust.document.Kind`: ``include``, ``model``,
+            ``mesh``, ``stream-profile``, ``firmware``, ``firmware-manifest``, ``extension``).
+        uri: the location as the first reference writes it.
+        location: where it was looked for (:attr:`url` is its identity).
+        uses: every referencing place (document, line, pin).
+        sha256, size: of the bytes found; ``None`` when nothing was read.
+        source: where the bytes came from: ``file``, ``mirror``, ``cache`` or ``network``.
+        error: the error this file caused, if any (also in :attr:`Resolution.errors`).
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> chassis = next(a for a in res.artifacts.values() if a.uri == "models/chassis.glb")
+        >>> chassis.kind.value, chassis.size, chassis.pin_status, chassis.source
+        ('model', 724, 'full', 'file')
+    """
+
     kind: Kind
     uri: str  # as written in the first reference
     location: Location
@@ -152,10 +194,12 @@ class Artifact:
 
     @property
     def url(self) -> str:
+        """The absolute URL that identifies this file: ``file:///…`` or the remote URL."""
         return self.location.url
 
     @property
     def pin_status(self) -> str:
+        """``full`` (a reference pins all 64 hex digits), ``weak`` (a prefix) or ``unpinned``."""
         status = "unpinned"
         for use in self.uses:
             if use.pin is not None:
@@ -167,6 +211,35 @@ class Artifact:
 
 @dataclass
 class Resolution:
+    """The result of :func:`resolve` or :func:`verify`: every document and file of the tree,
+    what was found, and every error and warning. Nothing is written until you ask
+    (:meth:`write_lock`); a run with errors should write nothing (``ok`` is False).
+
+    Attributes:
+        root: the root document, parsed (:class:`~hcdf_trust.document.Document`).
+        root_location: where it was read.
+        lock_path: the lock file this run compared against and :meth:`write_lock` writes.
+        documents: every document of the include tree, keyed by its absolute URL.
+        artifacts: every distinct referenced file, **keyed by its absolute URL**
+            (``file:///abs/path`` for a local file, the URL as fetched otherwise; the lock
+            file names it relative to the lock, :meth:`lock_url`). Iterate ``.values()`` for
+            the files; look one up by ``res.artifacts[url]``.
+        includes: per document URL, its ``<include>`` references and the URL each resolved to.
+        others: references with nothing to fetch (``<software><hash>``, extensions).
+        errors: every :class:`~hcdf_trust.errors.HcdfTrustError` found, with file and line.
+        warnings: every :class:`~hcdf_trust.errors.Notice` (weak pins, lock-only pins, ...).
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> res.ok, len(res.documents), len(res.artifacts)
+        (True, 3, 9)
+        >>> sorted(res.lock_url(url) for url in res.artifacts)[:2]
+        ['assemblies/arm.hcdf', 'assemblies/sensor-head.hcdf']
+        >>> [w.code for w in res.warnings]
+        ['lock-pins', 'lock-pins', 'weak-pin']
+    """
+
     root: Document
     root_location: Location
     lock_path: Path
@@ -179,9 +252,13 @@ class Resolution:
     locked: lockfile.Lock | None = field(default=None, repr=False)  # the lock file as read, if any
     # The URLs of the artifacts that ``--update`` names (every one under ``update_all``).
     updating: set[str] = field(default_factory=set, repr=False)
+    # A tree read out of a ``.hcdfz``: the archive's (display path, SHA-256, size), which ota
+    # build and the SBOM record; None for a tree of files.
+    bundle: tuple[str, str, int] | None = None
 
     @property
     def ok(self) -> bool:
+        """True when the run found no error (warnings allowed)."""
         return not self.errors
 
     @functools.cached_property
@@ -234,6 +311,21 @@ class Resolution:
             ]
         return entries
 
+    def pins_sha256(self, *, limit: int) -> str:
+        """The SHA-256 of what pins this tree, which a release and an SBOM record: the lock
+        file's bytes, or for a tree read from a ``.hcdfz`` the bundle's (it is its own lock).
+
+        Raises:
+            InputError: the lock file cannot be read (or is larger than ``limit``).
+        """
+        if self.bundle is not None:
+            return self.bundle[1]
+        import hashlib
+
+        from ..localfile import read_input
+
+        return hashlib.sha256(read_input(str(self.lock_path), limit=limit, what="lock file")).hexdigest()
+
     def render_lock(self, edited: dict[str, bytes] | None = None) -> bytes:
         """The lock file's bytes for this tree (what :meth:`write_lock` writes); ``edited``
         as for :meth:`lock_entries`. An unchanged lock is the bytes read (render's, by
@@ -243,6 +335,12 @@ class Resolution:
 
     def write_lock(self) -> None:
         """Write the lock file alone, atomically, refusing a ``lock_path`` that is an input.
+        A lock that already holds these bytes is left untouched. Call it only when :attr:`ok`.
+
+        Example:
+            >>> from hcdf_trust.include import resolve
+            >>> res = resolve("examples/robot/robot.hcdf")
+            >>> res.write_lock()  # the same bytes as the committed lock: nothing changes
 
         Raises:
             OutputError: it is an input of this tree, or cannot be written.
@@ -299,16 +397,66 @@ def resolve(
     on_start: Callable[[int], None] | None = None,
     on_progress: Reporter | None = None,
 ) -> Resolution:
-    """Resolve ``doc_path`` and every file it references; never raises for content errors.
+    """Resolve ``doc_path`` and every file it references, as ``hcdf-trust resolve`` does:
+    fetch each distinct file once, check it against its pin and the lock, cache it.
 
-    Errors are collected in :attr:`Resolution.errors` (use ``ok``). Raises
-    :class:`InputError` only when the root document itself cannot be read.
+    Never raises for content errors: they are collected in :attr:`Resolution.errors`
+    (check :attr:`Resolution.ok`). Nothing is written but verified cache blobs; write the
+    lock with :meth:`Resolution.write_lock`.
+
+    Args:
+        doc_path: the root HCDF document.
+        options: flags of the run (:class:`ResolveOptions`); defaults: online, not locked.
+        on_start: called once with the number of files to obtain (a progress bar).
+        on_progress: called with (files, bytes) increments as they are obtained.
+
+    Returns:
+        The :class:`Resolution`.
+
+    Raises:
+        InputError: the root document itself cannot be read.
+
+    Example:
+        >>> from hcdf_trust.include import resolve, ResolveOptions
+        >>> res = resolve("examples/robot/robot.hcdf", ResolveOptions(offline=True))
+        >>> res.ok, res.lock_path.name
+        (True, 'robot.hcdf.lock')
     """
     run = _Run(options or ResolveOptions(), on_start=on_start, on_progress=on_progress)
     try:
         return run.run(Path(doc_path))
     finally:
         run.close()
+
+
+def verify(
+    doc_path: str | os.PathLike[str],
+    options: ResolveOptions | None = None,
+    *,
+    on_start: Callable[[int], None] | None = None,
+    on_progress: Reporter | None = None,
+) -> Resolution:
+    """Check ``doc_path``'s tree against its lock file, offline, writing nothing (not even
+    the cache), as ``hcdf-trust verify`` does: :func:`resolve` with ``locked``, ``offline``
+    and no cache writes, whatever ``options`` says about those three.
+
+    Args, Returns and Raises: as :func:`resolve`.
+
+    Example:
+        >>> from hcdf_trust.include import verify
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> res.ok
+        True
+        >>> with open("examples/robot/models/chassis.glb", "ab") as glb:
+        ...     _ = glb.write(b"tampered")
+        >>> res = verify("examples/robot/robot.hcdf")
+        >>> res.ok, res.errors[0].code, res.errors[0].exit_code
+        (False, 'digest-mismatch', 1)
+    """
+    from dataclasses import replace
+
+    fixed = replace(options or ResolveOptions(), locked=True, offline=True, write_cache=False)
+    return resolve(doc_path, fixed, on_start=on_start, on_progress=on_progress)
 
 
 class _Run:
@@ -323,7 +471,10 @@ class _Run:
         self.on_start = on_start
         self.on_progress = on_progress
         self.store = ContentStore(options.cache_dir or default_cache_dir())
-        self.folders = ConfinedFolders()
+        # Where local content is read: files (confined to their root), or a bundle's entries
+        # (bundle.BundleFiles: the same interface, so the same walk and the same verdicts).
+        self.folders: ConfinedFolders | BundleFiles = ConfinedFolders()
+        self.bundle: BundleFiles | None = None
         self._pools: list[_Workers] = []  # every worker pool this run started
         self._fetcher: HttpFetcher | None = None
         self.lock: dict[str, lockfile.LockEntry] = {}  # by lock url (Resolution.lock_url)
@@ -365,7 +516,7 @@ class _Run:
         # relative to a folder descriptor: closing it could hand its number to another open,
         # and the worker would read from the wrong folder. The process exit closes them.
         if not any(pool.alive() for pool in self._pools):
-            self.folders.close()
+            self.folders.close()  # a bundle's archive too: its bytes are copied where they are kept
         if self._fetcher is not None:
             self._fetcher.close()
 
@@ -373,17 +524,27 @@ class _Run:
 
     def run(self, doc_path: Path) -> Resolution:
         doc_path = Path(absolute(doc_path))
-        lock_path = Path(absolute(self.o.lock_path)) if self.o.lock_path else lockfile.default_path(doc_path)
-        root_dir = self._confinement_root(doc_path)
+        from ..bundle import is_bundle
+
+        if is_bundle(doc_path):
+            data, doc_path = self._open_bundle(doc_path)
+            root_dir = doc_path.parent
+            lock_path = lockfile.default_path(doc_path)  # never read: the bundle's pins are its lock
+        else:
+            lock_path = Path(absolute(self.o.lock_path)) if self.o.lock_path else lockfile.default_path(doc_path)
+            root_dir = self._confinement_root(doc_path)
+            data = read_root(doc_path)
         locator = Locator.create(root=root_dir, base=self.o.base, mirrors=self.o.mirrors)
         root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
-        data = read_root(doc_path)
-        stub = link_stub_target(doc_path, data)
+        stub = link_stub_target(doc_path, data) if self.bundle is None else None
         if stub is not None:
             doc_path, data = stub, read_root(stub)
             root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
+        if self.bundle is not None:
+            archive = self.bundle.archive
+            res.bundle = (archive.path, archive.sha256, archive.size)
         res.documents[root_loc.url] = root
         self._to_lock = res._urls.to_lock
         try:
@@ -403,6 +564,10 @@ class _Run:
         )
         self._find_cycles()
         self._check_all()
+        if self.bundle is not None:
+            from ..bundle import check_contents
+
+            res.errors.extend(check_contents(res, self.bundle))
         if (notice := foreign_major_notice(res.documents.values())) is not None:
             res.warnings.append(notice)
         if lock_error is not None:
@@ -410,6 +575,26 @@ class _Run:
             others = [e for e in res.errors if not isinstance(e, LockDriftError | UnpinnedError)]
             res.errors = [self._lock_is_an_input() or lock_error, *others]
         return res
+
+    def _open_bundle(self, path: Path) -> tuple[bytes, Path]:
+        """Read a ``.hcdfz`` (structure checked, nothing extracted) and serve the run from it:
+        the root document's bytes, and its path inside the bundle (``X.hcdfz/robot.hcdf``), the
+        folder every reference of the bundle must resolve into."""
+        from ..bundle import BundleFiles, read_archive
+
+        o = self.o
+        for flag, given in (("--base", o.base), ("--mirror", o.mirrors), ("--root", o.root), ("--lock", o.lock_path)):
+            if given:
+                raise InputError(
+                    f"{flag} does not apply to a bundle: {display_path(path)} holds every file it references"
+                    " and pins them itself",
+                    file=display_path(path),
+                )
+        files = BundleFiles(read_archive(path), os.fspath(path))
+        self.folders.close()
+        self.folders = self.bundle = files
+        root = files.root_path
+        return files.read(root, limit=MAX_DOCUMENT_BYTES, source=display_path(root)), Path(root)
 
     def _lock_is_an_input(self) -> HcdfTrustError | None:
         """The error for a lock path that is one of the tree's inputs (``--lock robot.hcdf``)."""
@@ -429,6 +614,8 @@ class _Run:
         """Read the lock (every verb): a lock that exists but cannot be used stops the run,
         since under trust on first use it is the pin of every unpinned reference."""
         path = res.lock_path
+        if self.bundle is not None:
+            return  # every reference of a bundle is pinned in its document or by its entry's name
         if not self.o.locked and not os.path.lexists(path):
             return  # first use: nothing locked yet
         lock = lockfile.load(path)
@@ -546,6 +733,8 @@ class _Run:
                 if not uri:
                     raise InputError(f"<{kind.value}> has no {ref.uri_attr or 'uri'}", file=source, line=line)
                 loc = join(uri) or locate(uri, doc_loc, file=source, line=line)
+                if self.bundle is not None:
+                    pin = self._bundle_pin(pin, loc, uri, file=source, line=line)
             except HcdfTrustError as exc:
                 res.errors.append(exc)
                 continue
@@ -558,6 +747,24 @@ class _Run:
                 edges.append((ref, url))
                 includes.append(art)
         return includes
+
+    def _bundle_pin(self, pin: Pin | None, loc: Location, uri: str, *, file: str, line: int | None) -> Pin | None:
+        """A reference of a bundle: an entry of it (never a URL), pinned by the document or,
+        where it has no ``sha`` site, by the full SHA-256 in the entry's name."""
+        assert self.bundle is not None
+        if loc.path is None:
+            from ..bundle import BundleMissingError
+
+            raise BundleMissingError(
+                f"{uri} is not in the bundle {self.bundle.archive.path}: a bundle holds every file it references",
+                file=file,
+                line=line,
+                expected=f"an entry of {self.bundle.archive.path}",
+                actual=uri,
+            )
+        if pin is None and (named := self.bundle.name_pin(loc.path)) is not None:
+            return parse_pin(named, file=file, line=line, uri=uri)
+        return pin
 
     # -- step 2: fetching ------------------------------------------------------------
 
@@ -638,6 +845,8 @@ class _Run:
 
     def _stat_size(self, art: Artifact) -> int:
         """The size of the local file, or of the cache blob of a remote one; -1 if none."""
+        if self.bundle is not None:
+            return self.bundle.size(art.location.path or "")
         try:
             path: str | Path | None = art.location.path
             if path is None:
@@ -674,8 +883,9 @@ class _Run:
         if loc.path is not None:
             root = loc.root or os.path.dirname(loc.path)
             if keep:  # an include: hash and parse the very same bytes
-                with open_local(loc.path, root, file=file, line=line) as fd:
-                    data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
+                data = self.folders.read(
+                    loc.path, root, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
+                )
                 hashed = hash_bytes(data)
             else:
                 hashed = self.folders.hash(loc.path, root, file=file, line=line)
@@ -817,7 +1027,9 @@ class _Run:
             if len(uses) == 1 and (pin := uses[0].pin) is not None and pin.hex == sha:
                 continue  # one full pin that matches: authoritative, no error, no warning, no drift
             entry = self._entry(art)
-            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=self.o.locked, root=root)
+            # In a bundle every reference must be pinned: it has no lock to pin the others.
+            must_pin = self.o.locked or self.bundle is not None
+            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=must_pin, root=root)
             res.errors.extend(errors)
             res.warnings.extend(warnings)
             if entry is not None and not self.o.locked and art.pin_status != "full" and not self._is_updating(art):
@@ -843,7 +1055,7 @@ class _Run:
                     res.warnings.append(
                         Notice("bad-digest", f"firmware {ref.name!r}: {exc.message}", file=source, line=ref.line)
                     )
-        if self.o.locked:
+        if self.o.locked and self.bundle is None:
             actual = {e.url: e for e in res.lock_entries()}
             failed = {res.lock_url(a.url) for a in res.artifacts.values() if a.sha256 is None}
             # An entry referenced from a document this run did not read (an include that failed its

@@ -16,6 +16,10 @@ from typing import Any, Protocol
 from ..errors import InputError
 
 # scrypt cost recorded in the store; bounds refuse a hostile store that asks for gigabytes.
+# The public API (docs/api.md): the passphrase backend; the token and TPM backends are
+# reached through the CLI's --pkcs11-module and --tpm (they need hardware to show an example).
+__all__ = ["PassphraseWrapper"]
+
 SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**15, 8, 1
 SCRYPT_N_RANGE = (2**14, 2**20)
 
@@ -63,7 +67,16 @@ def _int_in(params: dict[str, Any], key: str, lo: int, hi: int, *, source: str) 
 
 
 class PassphraseWrapper:
-    """The data key wrapped with AES-256-GCM under ``scrypt(passphrase)``."""
+    """The data key wrapped with AES-256-GCM under ``scrypt(passphrase)``: the passphrase
+    backend of a :class:`~hcdf_trust.macsec.store.KeyStore` (``--passphrase-file``).
+
+    Example:
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.store import KeyStore
+        >>> store = KeyStore.create("keys", PassphraseWrapper(b"correct horse battery staple"))
+        >>> store.changed, store.path.name
+        (True, 'macsec-keys.json')
+    """
 
     method = "scrypt"
 

@@ -79,6 +79,10 @@ MIN_FRAME_BITS = 116 * 8
 PN_WARN_MBPS = 10_000
 
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["Association", "Plan", "plan"]
+
+
 class MacsecPlanError(InputError):
     """The description's MACsec policy is malformed or contradicts itself."""
 
@@ -156,7 +160,17 @@ class Element:
 
 @dataclass(slots=True)
 class Association:
-    """A connectivity association: one CAK (or one mesh network key) and who holds it."""
+    """A connectivity association: one CAK (or one mesh network key) and who holds it.
+
+    ``id`` is stable (``key-ref:R``, ``link:NET/LINK``, ``leg:NET/LEG``…, docs/macsec.md);
+    ``members`` maps each device to its ports; ``policy`` holds the cipher and enforcement.
+
+    Example:
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> ca = plan("examples/robot/robot.hcdf").associations["key-ref:head-link"]
+        >>> ca.kind, sorted(ca.members), ca.policy.cipher, ca.key_bytes
+        ('macsec', ['compute', 'head_camera'], 'gcm-aes-128', 16)
+    """
 
     id: str
     kind: str  # macsec | mesh-key
@@ -227,6 +241,19 @@ class Association:
 
 @dataclass
 class Plan:
+    """What ``macsec plan`` shows: the connectivity associations a description's MACsec policy
+    asks for (``associations``, by id), the networks left unprotected or skipped, warnings,
+    and the verified tree it was planned from (``resolution``).
+
+    Example:
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> p.robot, sorted(p.associations)
+        ('scout2', ['key-ref:arm-links', 'key-ref:head-link'])
+        >>> [ca.id for ca in p.for_device("head_camera")]
+        ['key-ref:head-link']
+    """
+
     document: str
     robot: str = ""  # the root document's <hcdf name>: the identity a key store is bound to
     associations: dict[str, Association] = field(default_factory=dict)
@@ -256,6 +283,11 @@ class Plan:
 def plan(doc_path: str | Path, *, device: str | None = None, tree: TreeOptions | None = None) -> Plan:
     """Resolve and verify ``doc_path`` (locked; offline unless ``tree`` says otherwise, where
     ``tree`` holds resolve's --base, --mirror, --root, --cache-dir, --lock), then plan its associations.
+
+    Example:
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> [(ca.id, ca.policy.cipher) for ca in plan("examples/robot/robot.hcdf").keyed()]
+        [('key-ref:head-link', 'gcm-aes-128'), ('key-ref:arm-links', 'gcm-aes-256')]
 
     With ``device``, only the networks that can hold that device's associations are planned
     (see :func:`plan_resolution`); when the device is in none of them, the whole description
@@ -1078,12 +1110,12 @@ def _read_ports(comp: etree._Element, file: str) -> dict[str, _PortInfo]:
                     try:
                         mbps = bit_rate(text, unit, default_unit=default) / 1e6
                     except UnitError as exc:
-                        bad = bad or (item.sourceline, f"{what}: {exc}")  # type: ignore[assignment]
+                        bad = bad or (sourceline(item), f"{what}: {exc}")
                         continue
                     speed = mbps if speed is None or mbps > speed else speed
         out[name] = _PortInfo(
             file,
-            el.sourceline,  # type: ignore[arg-type]  # lxml-stubs: `sourceline = ...`
+            sourceline(el),
             (el.get("type") or "").strip().lower(),
             (el.get("iface") or "").strip() or name,
             speed,

@@ -25,6 +25,9 @@ from .store import BLOB_KINDS, Entry, KeyStore, fmt_time
 
 DEFAULT_OVERLAP_SEC = 3600
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["Status", "generate", "retire", "rotate", "status"]
+
 
 class RotationError(InputError):
     code = "macsec-rotation"
@@ -54,9 +57,33 @@ def _supported(ca: Association) -> bool:
 
 def generate(store: KeyStore, plan: Plan, *, now: datetime) -> tuple[list[str], list[Notice]]:
     """Create every missing key; return the CA ids keyed now and notices. Existing keys are untouched.
+    The store changes in memory: write it with :meth:`KeyStore.plan_write` and commit.
 
     Raises:
         KeyStoreRobotError: the store was generated for another robot (a new store is bound to this one).
+
+    Example:
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
     """
     store.bind(plan.robot, document=plan.document)
     created: list[str] = []
@@ -158,9 +185,37 @@ def rotate(
     due_only: bool = False,
 ) -> list[tuple[str, int, datetime]]:
     """Add a pending generation to each CA in ``cas``; return (ca id, generation, activation).
+    Activation is ``now + overlap`` seconds; the current generation expires ``overlap`` later.
 
     Raises:
         RotationError: a CA has no key yet, or already has a pending generation.
+
+    Example (after :func:`generate`, below; write the store again as there):
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
+        >>> from hcdf_trust.macsec.rotation import rotate
+        >>> store = KeyStore.open("keys", wrapper)
+        >>> [(ca_id, gen) for ca_id, gen, _ in rotate(store, [p.associations["key-ref:head-link"]], now=now)]
+        [('key-ref:head-link', 2)]
     """
     errors: list[HcdfTrustError] = []
     todo: list[tuple[Association, Entry]] = []
@@ -212,6 +267,34 @@ def retire(store: KeyStore, *, now: datetime, real_now: datetime | None = None) 
     current time (``real_now``, the clock by default). Retirement is monotone in time, so
     that is the earlier of the two: ``retire --now <future>`` never removes the key devices
     send with today.
+
+    Example (right after a rotation nothing can be retired yet):
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
+        >>> from hcdf_trust.macsec.rotation import retire, rotate
+        >>> store = KeyStore.open("keys", wrapper)
+        >>> _ = rotate(store, p.keyed(), now=now)
+        >>> retire(store, now=now)
+        []
     """
     from .store import now_utc
 
@@ -247,6 +330,35 @@ def _check_value(store: KeyStore, entry: Entry, gen: Any) -> str:
 
 @dataclass
 class Status:
+    """What ``macsec status`` reports: one row per association with a key (``id``,
+    ``active_generation``, ``age_sec``, ``due``, ``generations`` with key check values), the
+    described ones without a key (``missing``), keys no longer described (``orphaned``), and
+    the errors that make ``macsec status`` exit 1 (``problems``; ``ok`` when none).
+
+    Example:
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
+    """
+
     rows: list[dict[str, Any]] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)  # in the description, no key
     orphaned: list[str] = field(default_factory=list)  # keys for associations no longer described
@@ -265,6 +377,29 @@ def status(store: KeyStore, plan: Plan, *, now: datetime) -> Status:
 
     Raises:
         KeyStoreRobotError: the store was generated for another robot.
+
+    Example:
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
     """
     store.bind(plan.robot, document=plan.document)
     out = Status()

@@ -75,6 +75,10 @@ MAX_STORE_BYTES = 512 << 20
 CKN_BYTES = 16
 
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["KeyStore", "locked", "now_utc"]
+
+
 class KeyStoreIntegrityError(IntegrityError):
     """The key store's metadata or a key's ciphertext was changed outside this tool."""
 
@@ -96,6 +100,29 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
 
     Raises:
         InputError: the folder cannot be made, the lock is not a regular file, or it stays held.
+
+    Example (generate keys into a new store, write it, read it back):
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
     """
     path = Path(os.path.abspath(folder)) / LOCK_NAME
     try:
@@ -124,6 +151,13 @@ def locked(folder: str | os.PathLike[str]) -> Iterator[None]:
 
 
 def now_utc() -> datetime:
+    """The current time, UTC, to the second: the ``now`` the key lifecycle functions take.
+
+    Example:
+        >>> from hcdf_trust.macsec.store import now_utc
+        >>> now_utc().tzinfo is not None and now_utc().microsecond == 0
+        True
+    """
     return datetime.now(UTC).replace(microsecond=0)
 
 
@@ -272,7 +306,35 @@ def _aad(store_id: str, ca_id: str, generation: int, ckn: bytes) -> bytes:
 
 
 class KeyStore:
-    """An opened key store: metadata in memory, the data key unwrapped, keys decrypted on demand."""
+    """An opened key store: metadata in memory, the data key unwrapped, keys decrypted on demand.
+
+    :meth:`create` makes a new one (written by :meth:`plan_write` and the plan's commit),
+    :meth:`open` reads one (a wrong passphrase raises, changing nothing). Hold :func:`locked`
+    around a read-modify-write. Key bytes never leave it except through the exporters.
+
+    Example:
+
+        >>> import os
+        >>> from hcdf_trust.macsec.backends import PassphraseWrapper
+        >>> from hcdf_trust.macsec.plan import plan
+        >>> from hcdf_trust.macsec.rotation import generate, status
+        >>> from hcdf_trust.macsec.store import KeyStore, locked, now_utc
+        >>> from hcdf_trust.outputs import OutputPlan
+        >>> p = plan("examples/robot/robot.hcdf")
+        >>> wrapper = PassphraseWrapper(b"correct horse battery staple")
+        >>> now = now_utc()
+        >>> with locked("keys"):  # one read-modify-write of the store at a time
+        ...     store = KeyStore.open("keys", wrapper) if KeyStore.exists("keys") else KeyStore.create("keys", wrapper)
+        ...     created, notices = generate(store, p, now=now)
+        ...     out = OutputPlan()
+        ...     store.plan_write(out, now=now)
+        ...     written = out.commit()
+        >>> created
+        ['key-ref:head-link', 'key-ref:arm-links']
+        >>> st = status(KeyStore.open("keys", wrapper), p, now=now)
+        >>> st.ok, [(row["id"], row["active_generation"]) for row in st.rows]
+        (True, [('key-ref:arm-links', 1), ('key-ref:head-link', 1)])
+    """
 
     def __init__(
         self, path: Path, *, store_id: str, wrap: dict[str, Any], dek: bytes, robot: str | None = None

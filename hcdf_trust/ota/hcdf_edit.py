@@ -18,7 +18,7 @@ from lxml import etree
 
 from ..document import Document
 from ..errors import HcdfTrustError, InputError
-from ..include.pin import apply_pins, scan_start_tags
+from ..include.pin import apply_pins, json_not_edited, scan_start_tags
 from ..localfile import read_input
 from ..xml import MAX_DOCUMENT_BYTES, sourceline
 
@@ -51,6 +51,8 @@ def replace_text(doc: Document, element: etree._Element, new: str) -> bytes:
         raise InputError(
             f"<{element.tag}> holds more than text: edit it by hand", file=doc.source, line=sourceline(element)
         )
+    if doc.is_json:
+        raise InputError(json_not_edited(doc, "ota build --update-hcdf"), file=doc.source, line=sourceline(element))
     data = doc.data
     tags = scan_start_tags(data)
     elements = _elements(doc)

@@ -14,12 +14,26 @@ from typing import Any
 from ..localfile import read_input, read_secret
 from .errors import KeyFileError
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["KEY_TYPES", "generate", "load_private", "load_public", "private_pem", "public_path", "public_pem"]
+
 KEY_TYPES = ("ecdsa-p256", "ed25519", "rsa-2048", "rsa-3072")
 MAX_KEY_BYTES = 64 << 10
 
 
 def generate(kind: str) -> Any:
-    """A new imgtool private key of ``kind`` (one of :data:`KEY_TYPES`)."""
+    """A new imgtool private key of ``kind`` (one of :data:`KEY_TYPES`), as ``ota keygen``
+    makes it. Write it with :func:`private_pem` (mode 0600) and :func:`public_pem`.
+
+    Raises:
+        KeyFileError: an unknown ``kind``.
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate, key_type
+        >>> key = generate("ed25519")
+        >>> key_type(key)
+        'ed25519'
+    """
     from imgtool import keys
 
     if kind == "ecdsa-p256":
@@ -32,7 +46,18 @@ def generate(kind: str) -> Any:
 
 
 def private_pem(key: Any, passphrase: bytes | None) -> bytes:
-    """PKCS#8 PEM, as ``imgtool keygen`` writes it; encrypted when ``passphrase`` is given."""
+    """PKCS#8 PEM, as ``imgtool keygen`` writes it; encrypted when ``passphrase`` is given.
+    Key files must be their owner's only (mode 0600), or :func:`load_private` refuses them.
+
+    Example:
+        >>> import os
+        >>> from hcdf_trust.ota.keys import generate, load_private, private_pem
+        >>> fd = os.open("fw.pem", os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        >>> _ = os.write(fd, private_pem(generate("ecdsa-p256"), b"a long passphrase"))
+        >>> os.close(fd)
+        >>> load_private("fw.pem", b"a long passphrase").get_public_bytes()[:2]
+        b'0Y'
+    """
     from cryptography.hazmat.primitives import serialization
 
     enc: serialization.KeySerializationEncryption = (
@@ -45,19 +70,41 @@ def private_pem(key: Any, passphrase: bytes | None) -> bytes:
 
 
 def public_pem(key: Any) -> bytes:
+    """The public half of ``key`` as PEM (SubjectPublicKeyInfo), what ``ota verify`` takes.
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate, public_pem
+        >>> public_pem(generate("ed25519")).startswith(b"-----BEGIN PUBLIC KEY-----")
+        True
+    """
     data: bytes = key.get_public_pem()
     return data
 
 
 def public_path(path: str | os.PathLike[str]) -> Path:
-    """Where keygen puts the public key: ``fw.pem`` → ``fw.pub.pem``."""
+    """Where keygen puts the public key: ``fw.pem`` → ``fw.pub.pem``.
+
+    Example:
+        >>> from hcdf_trust.ota.keys import public_path
+        >>> public_path("keys/fw.pem").as_posix()
+        'keys/fw.pub.pem'
+    """
     p = Path(path)
     stem = p.name[: -len(".pem")] if p.name.endswith(".pem") else p.name
     return p.with_name(f"{stem}.pub.pem")
 
 
 def load_private(path: str | os.PathLike[str], passphrase: bytes | None = None) -> Any:
-    """An imgtool signing key from a PEM file.
+    """An imgtool signing key from a PEM file (mode 0600; encrypted keys need ``passphrase``,
+    else ``$HCDF_TRUST_PASSPHRASE``). Give it to :class:`~hcdf_trust.ota.signer.FileSigner`.
+
+    Example (and :func:`private_pem`'s): a key file others may read is refused, as ssh does.
+
+        >>> from hcdf_trust.ota.keys import load_private
+        >>> load_private("examples/robot/robot.hcdf")
+        Traceback (most recent call last):
+        ...
+        hcdf_trust.errors.SecretFileError: examples/robot/robot.hcdf: permissions 0... are too open: ...
 
     Raises:
         KeyFileError: encrypted without a passphrase, wrong passphrase, a public key,
@@ -92,7 +139,14 @@ def load_private(path: str | os.PathLike[str], passphrase: bytes | None = None) 
 
 
 def load_public(path: str | os.PathLike[str]) -> Any:
-    """An imgtool public key from a PEM file (a private key gives its public half).
+    """An imgtool public key from a PEM file, for :func:`~hcdf_trust.ota.release.read_release`
+    and :func:`~hcdf_trust.ota.verify.check_release` (a private key file is refused).
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate, load_public, public_pem
+        >>> _ = open("fw.pub.pem", "wb").write(public_pem(generate("ed25519")))
+        >>> load_public("fw.pub.pem").sig_type()
+        'ED25519'
 
     Raises:
         KeyFileError: not a PEM key, or an unsupported type.

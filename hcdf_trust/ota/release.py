@@ -50,9 +50,33 @@ HISTORY_NAME = "release.history"  # the earlier signed envelopes, newest first (
 MAX_HISTORY_BYTES = 64 << 20
 _SAFE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["BuildOptions", "BuildReport", "build_release", "read_release"]
+
 
 @dataclass(frozen=True)
 class BuildOptions:
+    """What an ``ota build`` run is told; each field is the flag of the same name (docs/ota.md).
+
+    Attributes:
+        firmware_dir: ``--firmware-dir``: where each image's binary is found.
+        out_dir: ``--out``: the release folder (an earlier release there is the previous one).
+        signer: who signs: :class:`~hcdf_trust.ota.signer.FileSigner` or a PKCS#11 signer.
+        inputs: (path, what) of key, passphrase and PIN files, which no output may replace.
+        base_url, previous, config, changelog, update_hcdf, jobs, ca_bundle, provenance,
+        builder_id, allow_http, import_unsigned_history: as the flags.
+        date: the release date (RFC 3339; default ``SOURCE_DATE_EPOCH``, else now).
+        tree: where the description tree is found (resolve's ``--base``, ``--root``, ...).
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate
+        >>> from hcdf_trust.ota.release import BuildOptions
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> options = BuildOptions(firmware_dir="fw", out_dir="release", signer=FileSigner(generate("ed25519")))
+        >>> options.previous is None, options.tree.offline
+        (True, True)
+    """
+
     firmware_dir: str
     out_dir: str
     signer: Signer
@@ -99,6 +123,28 @@ class Planned:
 
 @dataclass
 class BuildReport:
+    """What :func:`build_release` built and wrote.
+
+    Attributes:
+        release: the signed release (``sequence_number``, ``components`` with ``board``,
+            ``app``, ``version``, ``mcuboot_hash``, ``sha256``…, ``lock_sha256``).
+        notices: warnings (e.g. ``unsigned-history``).
+        wrote: the paths written.
+        excluded: ``board/app`` of the images ``ota.toml`` excluded.
+        hcdf_changes: the ``<hash>`` edits ``update_hcdf`` made (file, line, comp, old, new).
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> report = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(generate("ed25519"))))
+        >>> report.release.sequence_number, [c.name for c in report.release.components]
+        (1, ['compute/scout-os', 'scout2_arm/arm-ctrl'])
+        >>> len(report.wrote), report.excluded, report.notices
+        (5, [], [])
+    """
+
     release: suit.Release
     notices: list[Notice]
     wrote: list[str]
@@ -118,7 +164,36 @@ class PreviousRelease:
 
 
 def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
-    """Build and write a release; raise on any error with nothing written.
+    """Build and write a release from ``doc_path``'s verified tree, as ``ota build`` does:
+    one MCUboot (or raw) image per ``<comp>`` with ``<software>``, ``latest.json`` per
+    device, and one signed SUIT manifest over all of them; all or nothing.
+
+    Args:
+        doc_path: the root HCDF document (its tree is resolved under its lock).
+        options: :class:`BuildOptions`.
+
+    Returns:
+        A :class:`BuildReport`.
+
+    Example (build, then verify as ``ota verify`` does, then tamper):
+
+        >>> from hcdf_trust.ota.keys import generate, load_public, public_pem
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release, read_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> from hcdf_trust.ota.verify import check_release
+        >>> key = generate("ed25519")
+        >>> _ = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(key)))
+        >>> _ = open("fw.pub.pem", "wb").write(public_pem(key))
+        >>> public = load_public("fw.pub.pem")
+        >>> release, files = read_release("release", public)
+        >>> check_release(release, files, public)
+        []
+        >>> with open("release/scout2_arm/arm-ctrl/1.4.2.bin", "r+b") as image:
+        ...     _ = image.seek(600), image.write(b"\\xff")
+        >>> release, files = read_release("release", public)
+        >>> [(e.code, e.exit_code) for e in check_release(release, files, public)]
+        [('release', 1)]
 
     Raises:
         ErrorGroup / HcdfTrustError: the tree does not verify, an input is missing or
@@ -130,8 +205,13 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     res = resolve(doc_path, options.tree.resolve_options(locked=True, ca_bundle=options.ca_bundle))
     if not res.ok:
         raise ErrorGroup(res.errors)
-    lock_data = read_input(str(res.lock_path), limit=64 << 20, what="lock file")
-    lock_sha = hashlib.sha256(lock_data).hexdigest()
+    if res.bundle is not None and options.update_hcdf:
+        raise InputError(
+            f"--update-hcdf edits the description in place: {res.bundle[0]} is a bundle, rebuild it instead",
+            file=res.bundle[0],
+        )
+    # What pins the tree: the lock file, or the bundle the tree was read from (recorded as the lock digest)
+    lock_sha = res.pins_sha256(limit=64 << 20)
     config_path = options.config
     if config_path is None:
         default = Path(doc_path).parent / "ota.toml"
@@ -770,6 +850,30 @@ def read_release(
     releases to the history (and, imported on the user's word, its latest.json entries).
 
     An image whose size is not the signed one is not read (``ReleaseFiles.sizes``).
+
+    Returns:
+        The verified :class:`~hcdf_trust.ota.suit.Release` and the folder's
+        :class:`~hcdf_trust.ota.verify.ReleaseFiles`, for :func:`~hcdf_trust.ota.verify.check_release`.
+
+    Example:
+
+        >>> from hcdf_trust.ota.keys import generate, load_public, public_pem
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release, read_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> from hcdf_trust.ota.verify import check_release
+        >>> key = generate("ed25519")
+        >>> _ = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(key)))
+        >>> _ = open("fw.pub.pem", "wb").write(public_pem(key))
+        >>> public = load_public("fw.pub.pem")
+        >>> release, files = read_release("release", public)
+        >>> check_release(release, files, public)
+        []
+        >>> with open("release/scout2_arm/arm-ctrl/1.4.2.bin", "r+b") as image:
+        ...     _ = image.seek(600), image.write(b"\\xff")
+        >>> release, files = read_release("release", public)
+        >>> [(e.code, e.exit_code) for e in check_release(release, files, public)]
+        [('release', 1)]
 
     Raises:
         NotFoundError / InputError: no manifest, or a file that cannot be read.

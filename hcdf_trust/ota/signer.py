@@ -28,8 +28,22 @@ ALG_NAMES = {-7: "ES256", -9: "ESP256", -8: "EdDSA", -19: "Ed25519", -37: "PS256
 # cwt's names for COSE_ALGS[kind][0]
 CWT_ALG = {"ecdsa-p256": "ES256", "ed25519": "EdDSA", "rsa-2048": "PS256", "rsa-3072": "PS256"}
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["FileSigner", "Signer"]
+
 
 class Signer(Protocol):
+    """What signs a release: :class:`FileSigner` (a key file) or the PKCS#11 signer of
+    :mod:`hcdf_trust.ota.hsm`. ``kind`` is the key type, ``public`` the imgtool public key.
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate
+        >>> from hcdf_trust.ota.signer import FileSigner, Signer
+        >>> signer: Signer = FileSigner(generate("ecdsa-p256"))
+        >>> signer.kind
+        'ecdsa-p256'
+    """
+
     kind: str  # one of keys.KEY_TYPES
     public: Any  # imgtool public key
 
@@ -48,7 +62,15 @@ def key_id(public: Any) -> bytes:
 
 
 class FileSigner:
-    """A private key from a PEM file (see :func:`hcdf_trust.ota.keys.load_private`)."""
+    """A :class:`Signer` holding a private key (from :func:`hcdf_trust.ota.keys.load_private`
+    or :func:`~hcdf_trust.ota.keys.generate`), for :class:`~hcdf_trust.ota.release.BuildOptions`.
+
+    Example:
+        >>> from hcdf_trust.ota.keys import generate
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> FileSigner(generate("ed25519")).kind
+        'ed25519'
+    """
 
     def __init__(self, key: Any) -> None:
         from .keys import key_type

@@ -36,10 +36,20 @@ from .errors import MalformedReleaseError, ReleaseIntegrityError, RollbackError,
 from .images import read_info, verify_image
 from .signer import ALG_NAMES, COSE_ALGS, CWT_ALG, key_id
 
+# The public API (docs/api.md); everything else here is internal.
+__all__ = ["ReleaseFiles", "check_release"]
+
 
 @dataclass(frozen=True)
 class ReleaseFiles:
-    """The bytes of one release folder (read by the caller, bounded)."""
+    """The bytes of one release folder, as :func:`~hcdf_trust.ota.release.read_release`
+    reads them (bounded), for :func:`check_release`.
+
+    Example:
+        >>> from hcdf_trust.ota.verify import ReleaseFiles
+        >>> ReleaseFiles(manifest=b"", manifest_source="release/release.suit").unaccounted
+        ()
+    """
 
     manifest: bytes
     manifest_source: str
@@ -128,7 +138,34 @@ def open_envelope(data: bytes, public_key: Any, *, source: str, require_kid: boo
 def check_release(
     release: suit.Release, files: ReleaseFiles, public_key: Any, *, previous: suit.Release | None = None
 ) -> list[HcdfTrustError]:
-    """Steps 4–6: every violation, each naming its device (board/app) and field. Pure."""
+    """Steps 4–6 of ``ota verify``: every violation, each naming its device (board/app) and
+    field, as a list (empty: the release is what was signed). Pure: reads nothing.
+
+    Args:
+        release, files: from :func:`~hcdf_trust.ota.release.read_release`.
+        public_key: from :func:`~hcdf_trust.ota.keys.load_public`.
+        previous: a previous release to check rollback against (else ``files.previous``).
+
+    Example:
+
+        >>> from hcdf_trust.ota.keys import generate, load_public, public_pem
+        >>> from hcdf_trust.ota.release import BuildOptions, build_release, read_release
+        >>> from hcdf_trust.ota.signer import FileSigner
+        >>> from hcdf_trust.ota.verify import check_release
+        >>> key = generate("ed25519")
+        >>> _ = build_release("examples/robot/robot.hcdf", BuildOptions(
+        ...     firmware_dir="examples/robot/firmware", out_dir="release", signer=FileSigner(key)))
+        >>> _ = open("fw.pub.pem", "wb").write(public_pem(key))
+        >>> public = load_public("fw.pub.pem")
+        >>> release, files = read_release("release", public)
+        >>> check_release(release, files, public)
+        []
+        >>> with open("release/scout2_arm/arm-ctrl/1.4.2.bin", "r+b") as image:
+        ...     _ = image.seek(600), image.write(b"\\xff")
+        >>> release, files = read_release("release", public)
+        >>> [(e.code, e.exit_code) for e in check_release(release, files, public)]
+        [('release', 1)]
+    """
     errors: list[HcdfTrustError] = []
     for rel in files.linked:
         errors.append(

@@ -61,6 +61,12 @@ class RegistrySchemaSource:
             return self.build(versions[version])
         return self.build(versions[latest(versions)])  # a profile's version is its content's, not the schema's
 
+    def core_xsd(self, version: str | None) -> tuple[str, bytes] | None:
+        """The registered ``hcdf`` schema's name and bytes for ``version`` (what reads HCDF's
+        JSON form: :func:`hcdf_trust.jsonform.use_schema_provider`), None when not registered."""
+        info = self.client.artifacts("schema").get(self.CORE["hcdf"], {}).get(version or "")
+        return None if info is None else (f"registry:{info.path}", self.client.download(info))
+
     def build(self, info: TargetFile) -> Schema:
         if info.path not in self._built:
             self._built[info.path] = compile_schema(self.client.download(info), name=f"registry:{info.path}")

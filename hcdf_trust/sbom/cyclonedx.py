@@ -62,6 +62,7 @@ def render(facts: Facts) -> bytes:
             properties(
                 [
                     ("hcdf:lock-sha256", facts.lock_sha256),
+                    ("hcdf:bundle-sha256", facts.bundle_sha256),
                     ("hcdf:release:sequence-number", facts.release_sequence),
                     ("hcdf:release:key-sha256", facts.release_key_sha256),
                 ]

@@ -35,7 +35,6 @@ from lxml import etree
 
 from ..document import Document, Kind, single, single_text, software_elements, stream_profile_selection
 from ..errors import InputError, Notice, StreamSelectionError
-from ..localfile import read_input
 from ..xml import sourceline
 
 if TYPE_CHECKING:
@@ -136,6 +135,7 @@ class Facts:
     release_sequence: int | None = None
     release_key_sha256: str | None = None
     notices: tuple[Notice, ...] = ()
+    bundle_sha256: str | None = None  # the .hcdfz the tree was read from (then also lock_sha256)
 
     @property
     def serial(self) -> uuid.UUID:
@@ -257,8 +257,7 @@ class _Collector:
 
     def run(self, fmt: str, created: datetime | None = None) -> Facts:
         res = self.res
-        lock_data = read_input(str(res.lock_path), limit=MAX_LOCK_BYTES, what="lock file")
-        lock_sha = hashlib.sha256(lock_data).hexdigest()
+        lock_sha = res.pins_sha256(limit=MAX_LOCK_BYTES)  # a bundle's digest, for a tree read from one
         root_sha = hashlib.sha256(res.root.data).hexdigest()
         if self.release is not None:
             self._check_binding(lock_sha, root_sha)
@@ -275,6 +274,7 @@ class _Collector:
             drivers=tuple(sorted(self.drivers.values(), key=lambda d: d.ref)),
             files=tuple(sorted(self.files.values(), key=lambda f: f.ref)),
             lock_sha256=lock_sha,
+            bundle_sha256=res.bundle[1] if res.bundle is not None else None,
             identity=seed.hexdigest(),
             created=created or created_time(),
             release_sequence=self.release.sequence_number if self.release else None,

@@ -36,7 +36,7 @@ from ..document import (
 from ..include.locate import display_path
 from ..include.resolver import TreeOptions, link_stub_target
 from ..localfile import absolute
-from ..xml import parse_bytes, sourceline
+from ..xml import sourceline
 from . import semantic
 from .findings import Finding, Severity, ValidationReport
 from .includes import local_include_edges, read_local
@@ -86,14 +86,20 @@ def validate_document(
         tree, source = doc.tree, doc.source
     else:
         path = Path(absolute(doc))
-        data = read_local(path, path.parent, source=display_path(path))
-        stub = link_stub_target(path, data)  # a symlink checked out as a plain file
-        if stub is not None:
-            path = stub
+        from ..bundle import is_bundle, read_root_entry
+
+        if is_bundle(path):  # its root entry, read from the checked archive; a bundle has no includes
+            source, data = read_root_entry(path)
+            path = None
+        else:
             data = read_local(path, path.parent, source=display_path(path))
-        source = display_path(path)
-        tree = parse_bytes(data, source=source)
-        doc = Document(source=source, tree=tree, data=data)
+            stub = link_stub_target(path, data)  # a symlink checked out as a plain file
+            if stub is not None:
+                path = stub
+                data = read_local(path, path.parent, source=display_path(path))
+            source = display_path(path)
+        doc = Document.parse(data, source=source)  # XML or the JSON form
+        tree = doc.tree
     root = tree.getroot()
     kind = require_root(root, source=source, names=_ROOTS)  # <hcdf xmlns="urn:x"> is not HCDF
     if kind == ROOT:

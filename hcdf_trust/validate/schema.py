@@ -82,7 +82,7 @@ class Schema:
 
 def _line_of(tree: etree._ElementTree, entry: etree._LogEntry) -> int | None:
     line = entry.line or None
-    if line == _LINE_CAP and entry.path:
+    if (line is None or line == _LINE_CAP) and entry.path:  # (a tree built from JSON has no lines)
         try:
             found = cast("list[object]", tree.xpath(entry.path))  # a location path selects a node-set
         except etree.XPathError:

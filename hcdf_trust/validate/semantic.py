@@ -280,7 +280,7 @@ class _Checker:
                 self.add(
                     "duplicate-name",
                     "error",
-                    f"{what} {name!r} is defined twice (first at line {table[name].sourceline}); "
+                    f"{what} {name!r} is defined twice (first at line {sourceline(table[name])}); "
                     "references to it are ambiguous",
                     el,
                 )
@@ -822,9 +822,9 @@ class _Checker:
                 cipher, policy = m.get("cipher", DEFAULT_CIPHER), m.get("policy")
                 diffs = []
                 if cipher != first_cipher:
-                    diffs.append(f"cipher {cipher} here, {first_cipher} at line {first.sourceline}")
+                    diffs.append(f"cipher {cipher} here, {first_cipher} at line {sourceline(first)}")
                 if policy != first_policy:
-                    diffs.append(f"policy {policy} here, {first_policy} at line {first.sourceline}")
+                    diffs.append(f"policy {policy} here, {first_policy} at line {sourceline(first)}")
                 if diffs:
                     self.add(
                         "macsec-key-ref-conflict",
