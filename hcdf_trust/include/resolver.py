@@ -237,7 +237,7 @@ class Resolution:
         >>> sorted(res.lock_url(url) for url in res.artifacts)[:2]
         ['assemblies/arm.hcdf', 'assemblies/sensor-head.hcdf']
         >>> [w.code for w in res.warnings]
-        ['lock-pins', 'lock-pins', 'weak-pin']
+        ['mesh-without-sha', 'lock-pins', 'weak-pin']
     """
 
     root: Document
