@@ -51,9 +51,15 @@ class Pin:
 
 
 def parse_pin(
-    text: str | None, *, file: str | None = None, line: int | None = None, uri: str | None = None
+    text: str | None,
+    *,
+    file: str | None = None,
+    line: int | None = None,
+    uri: str | None = None,
+    element: str | None = None,
 ) -> Pin | None:
-    """Parse a ``sha`` attribute. ``None`` or blank means unpinned.
+    """Parse a ``sha`` attribute (or, with ``element="hash"``, the text of ``<hash>``, which
+    messages then name as the element it is). ``None`` or blank means unpinned.
 
     ``uri`` names the reference the digest pins, for the message; ``actual`` is the
     attribute exactly as written.
@@ -71,9 +77,10 @@ def parse_pin(
     if value.startswith("sha256:"):
         value = value[len("sha256:") :]
     about = f"{redact(uri)}: " if uri else ""
+    written = f"<{element}>{text}</{element}>" if element else f'sha="{text}"'
     if not set(value) <= _HEX:
         raise MalformedDigestError(
-            f'{about}sha="{text}" is not a hex SHA-256 digest',
+            f"{about}{written} is not a hex SHA-256 digest",
             file=file,
             line=line,
             expected=PIN_FORMAT,
@@ -81,7 +88,7 @@ def parse_pin(
         )
     if len(value) > FULL_HEX or len(value) < MIN_WEAK_HEX:
         raise MalformedDigestError(
-            f'{about}sha="{text}" has {len(value)} hex digits: a SHA-256 pin has 64 '
+            f"{about}{written} has {len(value)} hex digits: a SHA-256 pin has 64 "
             f"(or at least {MIN_WEAK_HEX} for a weak prefix)",
             file=file,
             line=line,
@@ -107,7 +114,7 @@ def prefixed_style(pins: Iterable[str | None]) -> bool:
     return bool(written) and all(p.startswith(PREFIX) for p in written)
 
 
-def include_mismatch_hint(uri: str) -> str:
+def include_mismatch_hint(uri: str, root: str = "ROBOT.hcdf") -> str:
     """What an ``<include sha>`` mismatch may mean, and how to re-pin the bytes.
 
     Upstream's ``hcdf`` (hcdformat 05d27b58, ``content_sha_of_module``) accepts as an
@@ -117,9 +124,9 @@ def include_mismatch_hint(uri: str) -> str:
     stable function of the bytes).
     """
     return (
-        f"upstream `hcdf` may have written a canonical-form pin (the SHA-256 of its re-serialization of the "
-        f"included file, not of its bytes); hcdf-trust pins bytes: if {redact(uri)} is the file you expect, "
-        f"re-pin its bytes with `hcdf-trust pin --write --update {redact(uri)} ROBOT.hcdf` (the tree's root)"
+        f"the included file changed since it was pinned; if the change is intended, re-pin it with "
+        f"`hcdf-trust pin --write --update {redact(uri)} {redact(root)}` (a pin written by upstream `hcdf` may "
+        "be a canonical-form pin, the SHA-256 of its re-serialization rather than of the bytes: re-pin it the same way)"
     )
 
 

@@ -414,8 +414,10 @@ class ErrorGroup(HcdfTrustError):
 class Notice:
     """A warning about a reference or file: reported (``--json`` as an object), never fatal.
 
-    ``code`` is stable for machines (``unpinned``, ``weak-pin``, ``lock-pins``, ...);
-    ``file``/``line`` name the place, as for errors.
+    ``code`` is stable for machines (``unpinned``, ``weak-pin``, ``lock-pins``, ...) and is what a
+    project's ``hcdf-trust.toml`` acknowledges; ``file``/``line`` name the place, as for errors.
+    ``repeated``: a fact an earlier run already said when it wrote the lock that now covers it
+    (listed by ``--json``, not said again to a person: see :func:`hcdf_trust.cli.warn`).
 
     Example:
         >>> from hcdf_trust.errors import Notice
@@ -424,22 +426,32 @@ class Notice:
         ('arm.hcdf:38: gripper.glb has a weak pin (32 bits)', 'weak-pin')
     """
 
-    __slots__ = ("code", "message", "file", "line", "url")
+    __slots__ = ("code", "message", "file", "line", "url", "repeated")
 
     def __init__(
-        self, code: str, message: str, *, file: str | None = None, line: int | None = None, url: str | None = None
+        self,
+        code: str,
+        message: str,
+        *,
+        file: str | None = None,
+        line: int | None = None,
+        url: str | None = None,
+        repeated: bool = False,
     ) -> None:
         self.code = code
         self.message = message
         self.file = file
         self.line = line
         self.url = url
+        self.repeated = repeated
 
     def to_dict(self) -> dict[str, Any]:
         file = display_place(self.file) if self.file else self.file
         out: dict[str, Any] = {"code": self.code, "message": self.message, "file": file, "line": self.line}
         if self.url is not None:
             out["url"] = display_place(self.url)
+        if self.repeated:
+            out["repeated"] = True
         return out
 
     def __str__(self) -> str:

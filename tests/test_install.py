@@ -126,3 +126,38 @@ def test_license_file_is_apache_2_and_packaged():
     assert "Apache License" in text and "Version 2.0, January 2004" in text
     pyproject = (PROJECT / "pyproject.toml").read_text()
     assert 'license = "Apache-2.0"' in pyproject and 'license-files = ["LICENSE"]' in pyproject
+
+
+def _demo_commands() -> list[str]:
+    """The demo's own commands (after the install), as `make -n demo` prints them."""
+    lines = _make_dry_run("demo").splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("rm -rf examples/out"))
+    return [line for line in lines[start:] if line and not line.startswith("echo")]
+
+
+def test_make_demo_reads_nothing_outside_the_checkout():
+    """A fresh clone runs the demo with only Python: no ../shared/corpus, no other folder."""
+    for line in _demo_commands():
+        assert "shared/corpus" not in line and "CORPUS" not in line and " ../" not in line, line
+
+
+def test_the_demo_says_each_warning_once(cli, tmp_path, monkeypatch):
+    """Issue 20's Done-when: run every command of `make demo` (in-process, on a copy of examples/)
+    and count the warning lines about each file: a lock-covered fact is said by the run that wrote
+    the lock, a fact about a file referenced twice is one line."""
+    from .test_flatten_root import demo_lines
+
+    shutil.copytree(PROJECT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("out"))
+    monkeypatch.chdir(tmp_path)
+    warnings: list[str] = []
+    for args in demo_lines(Path("/nonexistent/corpus")):  # the demo needs none
+        if isinstance(args, str):  # the shell line making the throwaway passphrase files
+            subprocess.run(["bash", "-c", args], check=True)
+            continue
+        r = cli(*args)
+        assert r.exit_code == 0, (args, r.stderr)
+        warnings += [w for w in r.stderr.splitlines() if w.startswith("warning: ")]
+    for name in ("chassis-hull.stl", "arm-ctrl.latest.json", "gripper.glb", "key-ref:arm-links"):
+        said = [w for w in warnings if name in w]
+        assert len(said) == 1, (name, said)
+    assert len(warnings) == len(set(warnings)), warnings

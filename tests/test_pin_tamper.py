@@ -455,7 +455,7 @@ def test_json_shape(cli, robot):
     r = cli("pin", *robot.args("--update", "models/b.glb", "--json"))
     assert r.exit_code == 0
     out = r.json
-    assert set(out) == {"ok", "changes", "lock_changes", "planned", "wrote", "warnings", "errors"}
+    assert set(out) == {"ok", "changes", "lock_changes", "planned", "wrote", "warnings", "errors", "config"}
     assert out["ok"] is True and out["errors"] == [] and out["warnings"] == []
     for c in out["changes"]:
         assert set(c) == KEYS_CHANGE

@@ -63,7 +63,7 @@ def test_demo_chain_then_one_tampered_artifact_per_stage(cli, tmp_path, monkeypa
     assert cli("ota", "verify", out / "release", "--key", pub).exit_code == 0
 
     # a target file of the published registry: registry verify (a fresh client cache)
-    (target,) = (out / "registry-site" / "targets" / "extensions" / "org.ros2").glob("*.1.0.xsd")
+    (target,) = (out / "registry-site" / "targets" / "extensions" / "com.example.scout2").glob("*.1.0.xsd")
     _flip(target)
     r = cli("registry", "verify", out / "registry-site", *client, "--cache-dir", tmp_path / "client2")
     assert r.exit_code == 1, r.stderr

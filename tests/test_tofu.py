@@ -212,16 +212,22 @@ def test_digest_drift_with_the_same_size_is_caught(cli, tree):
 
 
 def test_warnings_are_objects_in_json_and_lines_for_humans(cli, tree):
+    r = cli("resolve", tree, "--no-lock")
+    assert "warning: " in r.stderr and "robot.hcdf:4: b.glb has a weak pin (32 bits)" in r.stderr
+    # a.glb is referenced twice (robot.hcdf and sub.hcdf): one line naming the other place
+    assert r.stderr.count("a.glb is unpinned") == 1 and "(also at " in r.stderr, r.stderr
     r = resolve(cli, tree)
     assert r.exit_code == 0
     by_code = {w["code"]: w for w in r.json["warnings"]}
     assert set(by_code) == {"unpinned", "weak-pin"}
     w = by_code["weak-pin"]
     assert w["file"].endswith("robot.hcdf") and w["line"] == 4 and "32 bits" in w["message"]
-    r = cli("resolve", tree)
-    assert "warning: " in r.stderr and "robot.hcdf:4: b.glb has a weak pin (32 bits)" in r.stderr
+    assert not any(w.get("repeated") for w in r.json["warnings"])
     r = resolve(cli, tree)  # the lock now pins the unpinned reference
     assert {w["code"] for w in r.json["warnings"]} == {"lock-pins", "weak-pin"}
+    assert all(w["repeated"] for w in r.json["warnings"])  # the lock, written by the run that said them, covers them
+    r = cli("verify", tree)  # so a person is not told again, by this verb or the next (the summary counts them)
+    assert r.exit_code == 0 and "warning" not in r.stderr and "1 weak, 2 unpinned" in r.stderr, r.stderr
 
 
 def test_update_matches_the_lock_url_when_no_uri_is_spelled_that_way(cli, tmp_path):

@@ -13,7 +13,7 @@ from ..document import FOREIGN_MAJOR
 from ..errors import LockDriftError, UnpinnedError
 from ..include import lockfile
 from ..include.locate import display_path
-from ..include.resolver import Resolution
+from ..include.resolver import MESH_WITHOUT_SHA, Resolution
 from .report import Report
 
 # resolver notice code -> check
@@ -24,6 +24,8 @@ def check(report: Report, res: Resolution, lock: lockfile.Lock | None) -> None:
     """Add the reference findings of ``res``; ``lock`` is the tree's lock file, if it has one."""
     for notice in res.warnings:
         name = _NOTICES.get(notice.code)
+        if notice.code == MESH_WITHOUT_SHA and notice.url is not None:  # a mesh no lock entry pins yet
+            name = "unpinned" if lock is None or res.lock_url(notice.url) not in lock.entries else None
         if name is not None:
             report.add_notice(name, notice)
     for art in res.artifacts.values():

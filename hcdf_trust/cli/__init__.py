@@ -12,14 +12,14 @@ import gc
 import json
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import click
 
 from .. import __version__
 from ..errors import ErrorGroup, HcdfTrustError, counted, json_locations
-from .params import TIMEOUT
+from .params import TIMEOUT, ConfigOption, acknowledged, from_config, project_config, with_project_config
 
 _QUIET = "hcdf_trust.quiet"  # ctx.meta key (one per run, shared by a verb and its groups)
 
@@ -54,6 +54,7 @@ def _with_shared_options(command: click.Command) -> click.Command:
         for sub in command.commands.values():
             _with_shared_options(sub)
     elif not any(p.name == "quiet" for p in command.params):
+        with_project_config(command)
         command.params.append(
             click.Option(
                 ["-q", "--quiet"],
@@ -76,6 +77,9 @@ def emit_json(payload: dict[str, Any]) -> None:
 
     if "errors" not in payload:
         payload = {**payload, "errors": []}
+    if "config" not in payload:  # which hcdf-trust.toml set defaults (None: none was read)
+        project = project_config()
+        payload = {**payload, "config": None if project is None else project.shown}
     indent = 2 if sys.stdout.isatty() else None
     payload = json_locations(payload)  # a JSON document's locations: "pointer", not a line
     click.echo(json.dumps(scrub_json(payload), indent=indent, sort_keys=True))  # noqa: TID251 -- filtered above
@@ -176,23 +180,31 @@ LOCK_OPTION = click.option(
 )
 CACHE_DIR_OPTION = click.option(
     "--cache-dir",
+    cls=ConfigOption,
+    config_key="cache-dir",
     type=click.Path(file_okay=False),
     help="Content-addressed cache [default: ~/.cache/hcdf-trust].",
 )
 BASE_OPTION = click.option(
     "--base",
+    cls=ConfigOption,
+    config_key="base",
     callback=_base,
     metavar="DIR|URL",
     help="Existing folder, or https URL, that relative references resolve against (default: the referencing document).",
 )
 ROOT_OPTION = click.option(
     "--root",
+    cls=ConfigOption,
+    config_key="root",
     type=click.Path(exists=True, file_okay=False),
     help="Folder that local references may not leave [default: --base if a folder, else DOC's folder].",
 )
 MIRROR_OPTION = click.option(
     "--mirror",
     "mirrors",
+    cls=ConfigOption,
+    config_key="mirror",
     multiple=True,
     callback=_mirror,
     metavar="PREFIX=DIR|URL",
@@ -322,12 +334,16 @@ def _registry_options(*, urls: bool) -> Callable[[Callable[..., Any]], Callable[
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         func = click.option(
             "--trusted-root",
+            cls=ConfigOption,
+            config_key="registry.trusted-root",
             type=click.Path(dir_okay=False),
             help="The registry's root.json you trust (with --registry).",
         )(func)
         return click.option(
             "--registry",
             "registry_site",
+            cls=ConfigOption,
+            config_key="registry.site",
             metavar="URL|DIR" if urls else "DIR",
             help=f"Check extensions and stream profiles against this signed registry: {site}. Needs "
             "--trusted-root; with --strict, unregistered extension domains and versions are errors too.",
@@ -356,6 +372,9 @@ def _registry(
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     if offline and _is_url(site):
+        if from_config("registry_site"):  # a project's URL registry: checked by the verbs that fetch
+            say(f"note: registry.site of {project_config().shown} is a URL; this offline run does not check it")
+            return None
         raise click.UsageError(f"--registry {site!r} is a URL, and this run is offline: give a folder copy of the site")
     from ..registry.resolution import RegistryCheck
 
@@ -588,6 +607,9 @@ def main(ctx: click.Context) -> None:
             ctx.call_on_close(gc.enable)
 
 
+_VALUE_LEFT_OUT = "hcdf_trust.value_left_out"  # ctx.meta: (option, the word read as the positional)
+
+
 class _OptionalValueCommand(click.Command):
     """A command with one positional argument and an option whose value may be omitted
     (resolve's ``--update [URI]``). Click gives such an option the next word as its value,
@@ -618,6 +640,7 @@ class _OptionalValueCommand(click.Command):
             i += 1
         if positionals == 0 and omitted is not None:
             args[omitted] += "="  # "--update=": the value left out; the next word is the positional
+            ctx.meta[_VALUE_LEFT_OUT] = (args[omitted][:-1], args[omitted + 1])
         return super().parse_args(ctx, args)
 
 
@@ -714,7 +737,10 @@ def resolve(
         if res.bundle is None:
             plan.protect(res.lock_path, what="the lock file")
     else:
-        plan.add(res.lock_path, res.render_lock(), flag="--lock", if_changed=True)
+        lock = res.render_lock()
+        if options.lock_path is None:
+            _lock_beside_doc_writable(res.lock_path, lock)
+        plan.add(res.lock_path, lock, flag="--lock", if_changed=True)
     if out:
         from ..include.flatten import flatten
         from ..outputs import DOCUMENT, ORDINARY
@@ -729,6 +755,8 @@ def resolve(
             replaces=flat,
         )
     wrote = plan.commit()
+    if update:
+        _say_updates(res, update_all="" in update)
     _report(
         res,
         as_json=as_json,
@@ -818,6 +846,47 @@ def _verify_bundle_provenance(doc: str, key_files: tuple[str, ...], threshold: i
         archive.close()
 
 
+def _lock_beside_doc_writable(lock_path: Any, data: bytes) -> None:
+    """The default lock goes beside DOC. In a folder this user cannot write (a read-only checkout
+    of someone else's content, a read-only mount) a lock that would change is a usage error
+    naming --lock, before anything is written: never a half-done run, never a write into that
+    tree by a user who can override its mode. A lock that is already up to date is fine."""
+    folder = os.path.dirname(lock_path) or "."
+    if os.access(folder, os.W_OK):
+        return
+    from ..errors import display_path
+    from ..localfile import read_input
+
+    try:
+        if read_input(lock_path, limit=len(data), what="lock file") == data:
+            return
+    except HcdfTrustError:
+        pass  # none, or another one (over the limit, unreadable): it would be written
+
+    name = os.path.basename(lock_path)
+    raise click.UsageError(
+        f"DOC's folder {display_path(folder)} is not writable (a read-only checkout?), so the lock file cannot "
+        f"be written beside it as {display_path(lock_path)}: name one you can write with --lock "
+        f"(e.g. --lock {name}), or pass --no-lock"
+    )
+
+
+def _say_updates(res: Any, *, update_all: bool) -> None:
+    """What ``--update`` did: each lock entry it changed, or that it changed none; and, when
+    ``--update DOC`` was read as ``--update`` alone, that this re-opened every entry."""
+    left_out = click.get_current_context().meta.get(_VALUE_LEFT_OUT)
+    if left_out is not None:
+        option, word = left_out
+        say(f"note: {option} took no URI ({word} is DOC), so every entry of the lock could take new content")
+    before = res.locked.entries if res.locked is not None else {}
+    changed = [(before[e.url], e) for e in res.lock_entries() if e.url in before and before[e.url].sha256 != e.sha256]
+    for old, new in changed:
+        say(f"updated {new.uri}: sha256 {old.sha256} -> {new.sha256}")
+    if not changed:
+        which = "the lock" if update_all else "the named entries"
+        say(f"--update: nothing to accept, {which} already matched the content")
+
+
 def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None, verifying: bool = False) -> Any:
     """The library's resolve (or, ``verifying``, its verify: locked, offline, no cache writes),
     with a progress bar, then the registry checks; exits on any error."""
@@ -832,7 +901,7 @@ def _run_resolve(doc: str, options: Any, *, as_json: bool, registry: Any = None,
         res.warnings += warnings
     if not res.ok:
         if not as_json:
-            _warn(res.warnings)
+            warn(res.warnings)
         fail(res.errors, as_json=as_json, payload=_payload(res))
     keep_until_exit(res)
     return res
@@ -919,9 +988,30 @@ def _payload(res: Any) -> dict[str, Any]:
     }
 
 
-def _warn(warnings: list[Any]) -> None:
-    for w in warnings:
-        say(f"warning: {w}", always=True)
+def warn(notices: Iterable[Any]) -> None:
+    """Say each warning once: one line per fact, not per reference (the same code about the
+    same file, from several places, is one line naming the other places); not at all when the
+    project's ``hcdf-trust.toml`` acknowledges its code, or when it is ``repeated`` (an earlier
+    run said it when it wrote the lock that now covers it). ``--json`` lists every one."""
+    said: dict[tuple[str, str], list[Any]] = {}
+    for n in notices:
+        if n.repeated or acknowledged(n.code):
+            continue
+        key = (n.code, n.url) if n.url is not None else (n.code, str(n))
+        said.setdefault(key, []).append(n)
+    for first, *more in said.values():
+        others = list(dict.fromkeys(p for p in map(_place, more) if p != _place(first)))
+        also = ""
+        if others:
+            also = f" (also at {', '.join(others[:3])}{', ...' if len(others) > 3 else ''})"
+        say(f"warning: {first}{also}", always=True)
+
+
+def _place(n: Any) -> str:
+    from ..errors import display_place
+
+    file = display_place(n.file) if n.file else "?"
+    return f"{file}:{n.line}" if n.line else file
 
 
 def _summary(res: Any) -> dict[str, int]:
@@ -949,7 +1039,7 @@ def _report(res: Any, *, as_json: bool, wrote: list[str], unchanged: list[str] |
             payload["unchanged"] = unchanged
         emit_json(payload)
         return
-    _warn(res.warnings)
+    warn(res.warnings)
     s = _summary(res)
     say(
         f"{counted(s['references'], 'reference')} to {counted(s['files'], 'file')}: "

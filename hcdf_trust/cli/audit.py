@@ -12,12 +12,18 @@ import click
 from ..errors import counted
 from . import emit_json, handle_errors, say, tree_options
 from .macsec import store_options
+from .params import ConfigOption, from_config, project_config
 
 
 @click.command(name="audit")
 @click.argument("doc", type=click.Path(dir_okay=False))
 @click.option(
-    "--policy", "policy_file", type=click.Path(dir_okay=False), help="Audit policy (TOML) [default: built-in]."
+    "--policy",
+    "policy_file",
+    cls=ConfigOption,
+    config_key="audit.policy",
+    type=click.Path(dir_okay=False),
+    help="Audit policy (TOML) [default: built-in].",
 )
 @tree_options
 @click.option("--release", "release_dir", type=click.Path(file_okay=False), help="Signed OTA release folder.")
@@ -28,8 +34,20 @@ from .macsec import store_options
     help="A signed report written by `hcdf-trust fleet status`: flag comps not running the release.",
 )
 @click.option("--fleet-key", type=click.Path(dir_okay=False), help="The host's public key (PEM) that signed it.")
-@click.option("--registry", "registry_site", help="Registry (URL or folder): extension domains and schemas.")
-@click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
+@click.option(
+    "--registry",
+    "registry_site",
+    cls=ConfigOption,
+    config_key="registry.site",
+    help="Registry (URL or folder): extension domains and schemas.",
+)
+@click.option(
+    "--trusted-root",
+    cls=ConfigOption,
+    config_key="registry.trusted-root",
+    type=click.Path(dir_okay=False),
+    help="The registry's root.json you trust.",
+)
 @functools.partial(store_options, required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (shape: docs/audit.md).")
 @handle_errors
@@ -65,6 +83,10 @@ def audit_cmd(
     if registry_site is not None and trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
     if registry_site is not None and "://" in registry_site and tree.offline:
+        if from_config("registry_site"):
+            raise click.UsageError(
+                f"registry.site of {project_config().shown} is on the network: add --online, or --no-project-config"
+            )
         raise click.UsageError(f"--registry {registry_site} is on the network: add --online (or give a folder)")
     if store_dir is None and (passphrase_file or now_given or any(backend.values())):
         raise click.UsageError("the key store options need --store")

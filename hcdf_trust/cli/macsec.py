@@ -13,7 +13,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, fail, handle_errors, keep_until_exit, say, tree_options
+from . import emit_json, fail, handle_errors, keep_until_exit, say, tree_options, warn
 from .params import UTC_TIME, Duration
 
 
@@ -50,8 +50,7 @@ def _plan_lines(p: Any) -> None:
         say(f"unprotected: {el.label} ({el.file}:{el.line})", err=False)
     for el, reason in p.skipped:
         say(f"skipped: {el.label}: {reason}", err=False)
-    for w in p.warnings:
-        say(f"warning: {w}", always=True)
+    warn(p.warnings)
 
 
 @macsec.command("plan")
@@ -279,8 +278,7 @@ def generate(
             {"ok": True, "store": str(store.path), "created": created, "warnings": [w.to_dict() for w in warnings]}
         )
         return
-    for w in warnings:
-        say(f"warning: {w}", always=True)
+    warn(warnings)
     if created:  # one write for 10,000 lines
         say(*(f"created {ca_id} generation 1" for ca_id in created), err=False)
     say(f"{counted(len(created), 'key')} created in {store.path}" if created else "nothing to do")
@@ -551,8 +549,7 @@ def export(
             }
         )
         return
-    for n in notices:
-        say(f"warning: {n}", always=True)
+    warn(notices)
     for w in written:
         say(f"wrote {w}")
     if target:

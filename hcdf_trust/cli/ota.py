@@ -11,7 +11,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
+from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options, warn
 from .params import source_date_epoch_option
 
 
@@ -195,8 +195,7 @@ def build(
             }
         )
         return
-    for n in report.notices:
-        say(f"warning: {n}", always=True)
+    warn(report.notices)
     for ch in report.hcdf_changes:
         say(f"{ch['file']}:{ch['line']}: comp {ch['comp']!r}: <hash> {ch['old']} -> {ch['new']}")
     for c in report.release.components:
@@ -462,8 +461,7 @@ def push(
             }
         )
     else:
-        for n in warnings:
-            say(f"warning: {n}", always=True)
+        warn(warnings)
         say(f"pushed {counted(len(result['layers']), 'file')} to {ref} ({result['digest']})")
         say(f"pull it with: hcdf-trust ota pull {ref.with_digest(result['digest'])} --key PUB --out DIR")
 
@@ -561,8 +559,7 @@ def pull(
             }
         )
         return
-    for n in report.notices:
-        say(f"warning: {n}", always=True)
+    warn(report.notices)
     say(
         f"release {release.sequence_number} from {report.reference} ({report.digest}): "
         f"{counted(len(report.files), 'file')} verified ({report.from_cache} from the cache)"

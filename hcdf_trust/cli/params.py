@@ -117,3 +117,134 @@ def source_date_epoch_option(func: Any) -> Any:
         metavar="SECONDS",
         help="Date outputs with this time, in seconds since 1970, for reproducible builds [env: SOURCE_DATE_EPOCH].",
     )(func)
+
+
+# --- the per-project config file (hcdf_trust.config), applied the same way to every verb -------
+_CONFIG_META = "hcdf_trust.config"  # ctx.meta: the ProjectConfig this run uses (None: none)
+_CONFIG_FILE_META = "hcdf_trust.config_file"  # --project-config FILE, or False for --no-project-config
+_FROM_CONFIG_META = "hcdf_trust.from_config"  # names of the options the config set
+
+
+class ConfigOption(click.Option):
+    """An option that ``hcdf-trust.toml`` may set (under ``config_key``: ``base``,
+    ``registry.site``, ...). A flag (or its environment variable) given on the command line
+    overrides the file; the file's value goes through the option's own type and checks."""
+
+    def __init__(self, *args: Any, config_key: str, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.config_key = config_key
+
+
+def _set_config_file(ctx: click.Context, param: click.Parameter, value: Any) -> None:
+    if not value:
+        return
+    if param.name == "no_project_config":
+        ctx.meta[_CONFIG_FILE_META] = False
+    elif ctx.meta.get(_CONFIG_FILE_META) is not False:  # --no-project-config wins
+        ctx.meta[_CONFIG_FILE_META] = value
+
+
+CONFIG_OPTIONS = (
+    click.Option(
+        ["--project-config", "project_config_file"],
+        type=click.Path(dir_okay=False),
+        expose_value=False,
+        is_eager=True,
+        callback=_set_config_file,
+        help="Read this hcdf-trust.toml instead of looking for one beside DOC and in its parent folders.",
+    ),
+    click.Option(
+        ["--no-project-config"],
+        is_flag=True,
+        expose_value=False,
+        is_eager=True,
+        callback=_set_config_file,
+        help="Read no hcdf-trust.toml [env: HCDF_TRUST_NO_CONFIG=1].",
+    ),
+)
+
+
+def with_project_config(command: click.Command) -> None:
+    """Give ``command`` ``--project-config``/``--no-project-config`` and let the project's
+    ``hcdf-trust.toml`` default its :class:`ConfigOption` options before it runs. Called once per
+    verb, where every verb is looked up (:func:`hcdf_trust.cli._with_shared_options`), so no verb
+    can miss it."""
+    if getattr(command, "_project_config", False) or command.callback is None:
+        return
+    command.params.extend(CONFIG_OPTIONS)
+    callback = command.callback
+
+    def run(*args: Any, **kwargs: Any) -> Any:
+        from ..errors import HcdfTrustError
+
+        try:
+            apply_project_config(click.get_current_context(), command, kwargs)
+        except HcdfTrustError as exc:  # reported as every verb reports its errors (exit 3, --json)
+            from . import fail
+
+            fail([exc], as_json=bool(kwargs.get("as_json")))
+        return callback(*args, **kwargs)
+
+    command.callback = run
+    command._project_config = True  # type: ignore[attr-defined]
+
+
+def apply_project_config(ctx: click.Context, command: click.Command, kwargs: dict[str, Any]) -> None:
+    """Find (beside DOC, else from the working folder) and read the project's config, record it
+    for ``--json`` and the warnings, and put its values into ``kwargs`` for every
+    :class:`ConfigOption` not given on the command line.
+
+    Raises:
+        ConfigError (exit 3): the file is unsafe, not TOML, has an unknown key, or a value its
+            option refuses (named with the file and the key).
+    """
+    import os
+
+    from .. import config
+
+    chosen = ctx.meta.get(_CONFIG_FILE_META)
+    ctx.meta[_CONFIG_META] = None
+    if chosen is False or (chosen is None and os.environ.get(config.NO_CONFIG_ENV)):
+        return
+    if chosen is None:
+        doc = kwargs.get("doc")
+        start = (os.path.dirname(doc) or ".") if isinstance(doc, str) else "."
+        chosen = config.find(start)
+        if chosen is None:
+            return
+    project = config.load(chosen)
+    ctx.meta[_CONFIG_META] = project
+    ctx.meta[_FROM_CONFIG_META] = taken = set()
+    source = click.core.ParameterSource
+    for param in command.params:
+        if not isinstance(param, ConfigOption) or param.name not in kwargs:
+            continue
+        key = param.config_key
+        if key not in project.values or ctx.get_parameter_source(param.name) not in (source.DEFAULT, None):
+            continue
+        try:
+            kwargs[param.name] = param.process_value(ctx, project.values[key])
+            taken.add(param.name)
+        except click.BadParameter as exc:
+            raise config.ConfigError(
+                f"{key}: {exc.message}", file=project.shown, expected=f"a value {param.opts[-1]} accepts"
+            ) from None
+
+
+def project_config() -> Any:
+    """The :class:`~hcdf_trust.config.ProjectConfig` of this run, or ``None`` (ctx.meta is
+    shared by a verb and its groups)."""
+    ctx = click.get_current_context(silent=True)
+    return None if ctx is None else ctx.meta.get(_CONFIG_META)
+
+
+def from_config(name: str) -> bool:
+    """Whether the current verb's option ``name`` took its value from the project's config."""
+    ctx = click.get_current_context(silent=True)
+    return ctx is not None and name in ctx.meta.get(_FROM_CONFIG_META, ())
+
+
+def acknowledged(code: str) -> bool:
+    """Whether the project's config acknowledges warnings with this code."""
+    project = project_config()
+    return project is not None and code in project.acknowledge

@@ -7,7 +7,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, fail, fetch_options, handle_errors, resolve_options, say
+from . import emit_json, fail, fetch_options, handle_errors, resolve_options, say, warn
 
 
 @click.command()
@@ -62,14 +62,12 @@ def pin(doc: str, write: bool, update: tuple[str, ...], update_all: bool, as_jso
     }
     if report.errors:
         if not as_json:
-            for w in report.warnings:
-                say(f"warning: {w}", always=True)
+            warn(report.warnings)
         fail(report.errors, as_json=as_json, payload=payload)
     if as_json:
         emit_json({"ok": True, **payload, "errors": []})
         return
-    for w in report.warnings:
-        say(f"warning: {w}", always=True)
+    warn(report.warnings)
     verb = "pinned" if write else "would pin"
     for c in report.changes:
         say(f"{c.file}:{c.line}: {verb} {c.uri} ({c.reason}): {c.old or '-'} -> {c.new} [lock: {c.lock}]")

@@ -437,6 +437,7 @@ def _client(
     *,
     ca_bundle: str | None = None,
     insecure_registries: tuple[str, ...] = (),
+    flag: str = "--registry",
 ) -> Any:
     from ..registry.client import RegistryClient
 
@@ -447,6 +448,7 @@ def _client(
         timeout=timeout,
         ca_bundle=ca_bundle,
         insecure_registries=insecure_registries,
+        flag=flag,
     )
 
 
@@ -500,7 +502,15 @@ def verify(
     from . import fail
 
     report = do_verify(
-        _client(site, trusted_root, cache_dir, timeout, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
+        _client(
+            site,
+            trusted_root,
+            cache_dir,
+            timeout,
+            ca_bundle=ca_bundle,
+            insecure_registries=insecure_registries,
+            flag="SITE",
+        )
     )
     errors = [
         AttackError(
@@ -560,7 +570,13 @@ def fetch(
         raise click.UsageError("give DOMAIN[@VERSION], profile NAME[@VERSION] or schema NAME[@VERSION]")
     name, _, version = spec.partition("@")
     client = _client(
-        site, trusted_root, cache_dir, timeout, ca_bundle=ca_bundle, insecure_registries=insecure_registries
+        site,
+        trusted_root,
+        cache_dir,
+        timeout,
+        ca_bundle=ca_bundle,
+        insecure_registries=insecure_registries,
+        flag="SITE",
     )
     if kind == "domain":
         versions = client.versions(name)

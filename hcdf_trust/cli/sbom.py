@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from . import emit_json, handle_errors, say, tree_options
+from . import emit_json, handle_errors, say, tree_options, warn
 from .params import source_date_epoch_option
 
 
@@ -67,8 +67,7 @@ def sbom(
     options = tree.resolve_options(locked=True)
     res = resolve(doc, options)
     if not as_json:
-        for w in res.warnings:
-            say(f"warning: {w}", always=True)
+        warn(res.warnings)
     if not res.ok:
         raise ErrorGroup(res.errors)
     release = read_release(release_dir, key) if release_dir is not None and key is not None else None
@@ -80,8 +79,7 @@ def sbom(
     data = render(facts)
     warnings = [*res.warnings, *facts.notices]
     if not as_json:
-        for n in facts.notices:
-            say(f"warning: {n}", always=True)
+        warn(facts.notices)
     if out is None or out == "-":
         if as_json:
             import json

@@ -9,6 +9,7 @@ import click
 
 from ..errors import counted
 from . import SCHEMA_ENV, emit_json, handle_errors, say, tree_location_options, use_schemas
+from .params import ConfigOption
 
 
 @click.command()
@@ -25,8 +26,20 @@ from . import SCHEMA_ENV, emit_json, handle_errors, say, tree_location_options, 
     f"reported with its SHA-256 [env: {SCHEMA_ENV}].",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
-@click.option("--registry", "registry_site", help="Registry (URL or folder): schemas, extensions, stream profiles.")
-@click.option("--trusted-root", type=click.Path(dir_okay=False), help="The registry's root.json you trust.")
+@click.option(
+    "--registry",
+    "registry_site",
+    cls=ConfigOption,
+    config_key="registry.site",
+    help="Registry (URL or folder): schemas, extensions, stream profiles.",
+)
+@click.option(
+    "--trusted-root",
+    cls=ConfigOption,
+    config_key="registry.trusted-root",
+    type=click.Path(dir_okay=False),
+    help="The registry's root.json you trust.",
+)
 @click.option("--strict", is_flag=True, help="With --registry: unregistered extension domains/versions are errors.")
 @tree_location_options
 @handle_errors

@@ -440,7 +440,7 @@ class _Planner:
             assert use.pin is not None
             said = _lock_says(use.pin, read, locked)
             if art.kind is Kind.INCLUDE:
-                said += f"; {include_mismatch_hint(uri)}"
+                said += f"; {include_mismatch_hint(uri, display_path(self.res.root.source))}"
             self.errors.append(
                 self._mismatch(
                     f"{uri}: digest mismatch: the content is not what the sha pins ({said}); {hint}",

@@ -237,7 +237,7 @@ class Resolution:
         >>> sorted(res.lock_url(url) for url in res.artifacts)[:2]
         ['assemblies/arm.hcdf', 'assemblies/sensor-head.hcdf']
         >>> [w.code for w in res.warnings]
-        ['lock-pins', 'lock-pins', 'weak-pin']
+        ['mesh-without-sha', 'lock-pins', 'weak-pin']
     """
 
     root: Document
@@ -1018,6 +1018,7 @@ class _Run:
 
     def _check_all(self) -> None:
         res = self.res
+        root = display_path(res.root.source)
         for art in res.artifacts.values():
             if art.error is not None:
                 res.errors.append(art.error)
@@ -1031,7 +1032,7 @@ class _Run:
             entry = self._entry(art)
             # In a bundle every reference must be pinned: it has no lock to pin the others.
             must_pin = self.o.locked or self.bundle is not None
-            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=must_pin)
+            errors, warnings = check_artifact(art, entry, strict=self.o.strict, locked=must_pin, root=root)
             res.errors.extend(errors)
             res.warnings.extend(warnings)
             if entry is not None and not self.o.locked and art.pin_status != "full" and not self._is_updating(art):
@@ -1052,7 +1053,7 @@ class _Run:
         for source, ref in res.others:
             if ref.kind is Kind.FIRMWARE and ref.sha:
                 try:
-                    parse_pin(ref.sha, file=source, line=ref.line)
+                    parse_pin(ref.sha, file=source, line=ref.line, element="hash")
                 except HcdfTrustError as exc:
                     res.warnings.append(
                         Notice("bad-digest", f"firmware {ref.name!r}: {exc.message}", file=source, line=ref.line)
@@ -1060,6 +1061,14 @@ class _Run:
         if self.o.locked and self.bundle is None:
             actual = {e.url: e for e in res.lock_entries()}
             failed = {res.lock_url(a.url) for a in res.artifacts.values() if a.sha256 is None}
+            # An entry referenced from a document this run did not read (an include that failed its
+            # pin is not walked) may well still be referenced: that document's error is the news.
+            unread = {
+                res.lock_url(a.url)
+                for a in res.artifacts.values()
+                if a.kind is Kind.INCLUDE and a.url not in res.documents
+            }
+            failed |= {url for url, e in self.lock.items() if unread.intersection(e.referenced_from)}
             locked = {url: e for url, e in self.lock.items() if url not in failed}
             where = {res.lock_url(a.url): (a.uses[0].doc, a.uses[0].ref.line) for a in res.artifacts.values()}
             res.errors.extend(lockfile.compare(locked, actual, lock_path=display_path(res.lock_path), where=where))
@@ -1102,10 +1111,15 @@ def _full_pin_matches(art: Artifact, sha: str) -> bool:
     return any(u.pin is not None and u.pin.is_full and u.pin.matches(sha) for u in art.uses)
 
 
+# A <mesh> reference: HCDF's schema gives the element no sha attribute, so only the lock pins it.
+MESH_WITHOUT_SHA = "mesh-without-sha"
+
+
 def check_artifact(
-    art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool
+    art: Artifact, lock_entry: lockfile.LockEntry | None, *, strict: bool, locked: bool, root: str = "ROBOT.hcdf"
 ) -> tuple[list[HcdfTrustError], list[Notice]]:
-    """Every pin of every use of one artifact against its actual digest. Pure."""
+    """Every pin of every use of one artifact against its actual digest (``root``: the tree's
+    root document, as the fixes the messages name should be typed). Pure."""
     errors: list[HcdfTrustError] = []
     warnings: list[Notice] = []
     sha = art.sha256
@@ -1114,7 +1128,10 @@ def check_artifact(
         pin = use.pin
         if pin is not None and pin.is_full and pin.hex == sha:
             continue  # the common case: a full pin that matches
-        where = functools.partial(Notice, file=use.doc, line=use.ref.line, url=art.url)
+        # The lock already held this content before the run: whatever it says about the pin,
+        # the run that wrote that entry said it first (a person is not told again; --json lists it).
+        covered = lock_entry is not None and lock_entry.sha256 == sha
+        where = functools.partial(Notice, file=use.doc, line=use.ref.line, url=art.url, repeated=covered)
         if pin is None:
             if locked and lock_entry is None:
                 errors.append(
@@ -1127,13 +1144,16 @@ def check_artifact(
                         actual=sha,
                     )
                 )
+            elif art.kind is Kind.MESH:  # the schema gives <mesh> no sha: the lock is its only pin
+                pinned = "the lock file pins it" if lock_entry is not None else f"pinned by the lock as sha256 {sha}"
+                warnings.append(where(MESH_WITHOUT_SHA, f"{use.ref.uri}: <mesh> has no sha in HCDF; {pinned}"))
             elif lock_entry is not None:
                 warnings.append(where("lock-pins", f"{use.ref.uri} has no sha; the lock file pins it"))
             else:
                 warnings.append(where("unpinned", f"{use.ref.uri} is unpinned (sha256 {sha})"))
             continue
         if not pin.matches(sha):
-            hint = f" ({include_mismatch_hint(use.ref.uri or '')})" if art.kind is Kind.INCLUDE else ""
+            hint = f": {include_mismatch_hint(use.ref.uri or '', root)}" if art.kind is Kind.INCLUDE else ""
             errors.append(
                 DigestMismatchError(
                     f"{use.ref.uri}: digest mismatch{hint}",
@@ -1149,7 +1169,8 @@ def check_artifact(
             if strict:
                 errors.append(
                     WeakPinError(
-                        f"{use.ref.uri}: weak pin of {len(pin.hex)} hex digits ({bits} bits) refused by --strict",
+                        f"{use.ref.uri}: weak pin of {len(pin.hex)} hex digits ({bits} bits) refused by --strict; "
+                        f"its full digest is sha256 {sha}: write it, or run `hcdf-trust pin --write {root}`",
                         file=use.doc,
                         line=use.ref.line,
                         url=art.url,

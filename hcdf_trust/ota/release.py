@@ -276,7 +276,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         is_raw = p.settings.type == "raw"
         computed = image.image_hash  # for a raw image: its file's SHA-256
         for use in p.uses:
-            pin = parse_pin(use.hash_text, file=use.file, line=use.hash_line) if use.hash_text else None
+            pin = parse_pin(use.hash_text, file=use.file, line=use.hash_line, element="hash") if use.hash_text else None
             if pin is not None and not pin.matches(computed) and options.update_hcdf:
                 hash_edits.append(HashEdit(use.doc_url, use.hash_element, use.hash_text or "", computed))
                 changes.append(
@@ -287,7 +287,8 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
                     FirmwareHashError(
                         f"comp {use.comp!r}: <software name={p.app!r}><hash> is not the "
                         + ("SHA-256 of the raw image" if is_raw else "MCUboot image hash")
-                        + " built from it",
+                        + " built from it; if the new image is intended, build again with --update-hcdf"
+                        " (it writes the built hash into <hash>)",
                         file=use.file,
                         line=use.hash_line,
                         expected=use.hash_text,

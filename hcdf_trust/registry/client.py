@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, unquote, urlsplit
 
-from ..errors import HcdfTrustError, InputError, NotFoundError
+from ..errors import HcdfTrustError, InputError, NotFoundError, redact
 from ..localfile import JsonError, open_checked, parse_json, read_bounded, read_chunks, read_input
 from .errors import AttackError, TransportError
 from .source import domain_pattern, is_version
@@ -123,7 +123,7 @@ def _chunks(fd: int) -> Iterator[bytes]:
         os.close(fd)
 
 
-def _attack(exc: Exception, what: str) -> HcdfTrustError:
+def _attack(exc: Exception, what: str, site: str = "", flag: str = "--registry") -> HcdfTrustError:
     """The error (and attack name) for a python-tuf exception raised while loading ``what``."""
     from tuf.api import exceptions as tx
 
@@ -150,9 +150,39 @@ def _attack(exc: Exception, what: str) -> HcdfTrustError:
     if isinstance(exc, tx.DownloadHTTPError):
         return TransportError(f"{what}: HTTP {exc.status_code} ({exc})")
     if isinstance(exc, tx.DownloadError):
-        cause = exc.__cause__ or exc
-        return TransportError(f"{what}: download failed: {cause}")
+        if "://" not in site:  # a folder copy of the site (DirectoryFetcher): its refusal as it is
+            return TransportError(f"{what}: download failed: {exc.__cause__ or exc}")
+        return TransportError(_unreachable(exc, what, site, flag))
     return InputError(f"{what}: {exc}")
+
+
+def _unreachable(exc: Exception, what: str, site: str, flag: str) -> str:
+    """A failed connection said as the user can act on it: the host, why in a few words, and the
+    option that named the site (not urllib3's "HTTPSConnectionPool(...): Max retries exceeded")."""
+    import re
+
+    cause: BaseException = exc
+    while cause.__cause__ is not None:
+        cause = cause.__cause__
+    reason = getattr(cause, "reason", None) or cause  # urllib3's MaxRetryError wraps the real one
+    text = str(reason)
+    errno = re.search(r"\[Errno -?\d+\] ([^'\")\]]+)", text)
+    name = type(reason).__name__
+    why = (
+        errno.group(1).strip()
+        if errno
+        else "timed out"
+        if "Timeout" in name or "timed out" in text
+        else f"TLS failed: {text[:200]}"
+        if "SSL" in name
+        else text[:200]
+    )
+    parts = urlsplit(site)
+    host = (f"{parts.hostname}:{parts.port}" if parts.port else parts.hostname) if parts.hostname else site
+    return (
+        f"cannot reach the registry at {host} ({why}) to fetch {what}; check {flag} {redact(site)} "
+        "and the network, or give a folder holding a copy of the site"
+    )
 
 
 def _tuf_errors() -> tuple[type[Exception], ...]:
@@ -223,6 +253,7 @@ class RegistryClient:
         timeout: float = 30.0,
         ca_bundle: str | None = None,
         insecure_registries: tuple[str, ...] = (),
+        flag: str = "--registry",
     ) -> None:
 
         try:
@@ -230,6 +261,7 @@ class RegistryClient:
         except JsonError as exc:
             raise InputError(f"the trusted root is not valid TUF root metadata: {exc.message}") from None
         self.site = site
+        self.flag = flag  # how the user named the site, for messages (--registry, SITE)
         local = "://" not in site
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(site, trusted_root)
         self.metadata_dir = self.cache_dir / "metadata"
@@ -276,6 +308,7 @@ class RegistryClient:
         timeout: float = 30.0,
         ca_bundle: str | None = None,
         insecure_registries: tuple[str, ...] = (),
+        flag: str = "--registry",
     ) -> RegistryClient:
         """A client whose trust anchor is the root metadata file ``trusted_root``
         (``ca_bundle``, ``insecure_registries``: as ``--ca-bundle``, ``--insecure-registry``)."""
@@ -287,6 +320,7 @@ class RegistryClient:
             timeout=timeout,
             ca_bundle=ca_bundle,
             insecure_registries=insecure_registries,
+            flag=flag,
         )
 
     # -- loading ------------------------------------------------------------------------
@@ -318,7 +352,7 @@ class RegistryClient:
         try:
             self.updater.refresh()
         except _tuf_errors() as exc:
-            raise _attack(exc, "top-level metadata") from None
+            raise _attack(exc, "top-level metadata", self.site, self.flag) from None
         self._refreshed = True
         self._check_replaced("targets")
 
@@ -352,7 +386,7 @@ class RegistryClient:
         try:
             self.updater.get_targetinfo(f"extensions/{domain}/")
         except _tuf_errors() as exc:
-            raise _attack(exc, f"{domain}.json") from None
+            raise _attack(exc, f"{domain}.json", self.site, self.flag) from None
         self._check_replaced(domain)
         return self._trusted(domain)
 
@@ -399,7 +433,7 @@ class RegistryClient:
             self.updater.download_target(info, filepath=f"/proc/self/fd/{fd}")
             return read_bounded(fd, info.length, source=info.path, what="downloaded target")
         except _tuf_errors() as exc:
-            raise _attack(exc, f"target {info.path}") from None
+            raise _attack(exc, f"target {info.path}", self.site, self.flag) from None
         finally:
             os.close(fd)
 
