@@ -353,3 +353,37 @@ def test_ota_update_hcdf_refuses_to_edit_a_json_document():
         replace_text(doc, doc.root.find("comp/software/hash"), "cd" * 32)
     assert "does not edit in place" in exc.value.message and "hcdf-trust convert r.json r.hcdf" in exc.value.message
     assert str(exc.value.line) == "/hcdf/comp/software/hash"
+
+
+def test_no_message_about_a_json_robot_says_line_and_a_pointer(json_robot, cli):
+    """Messages that name a place inside a sentence (``at line 42``, ``(lines 3, 7)``) name a JSON
+    document's place by its bare pointer: never ``line /hcdf/...`` (errors.at_line)."""
+    r = cli("validate", json_robot / "robot.json")  # the note naming the selected stream profile
+    assert r.exit_code == 0 and "(/hcdf/network/stream-profile)" in r.stdout + r.stderr
+    assert "line /" not in r.stdout + r.stderr
+    assert cli("resolve", json_robot / "robot.json").exit_code == 0  # sbom reads the lock
+    value = json.loads((json_robot / "robot.json").read_text())
+    profile = value["hcdf"]["network"]["stream-profile"]
+    value["hcdf"]["network"]["stream-profile"] = [profile, dict(profile)]  # two selected: refused
+    (json_robot / "robot.json").write_text(json.dumps(value))
+    runs = {
+        verb: cli(*args)
+        for verb, args in {
+            "validate": ("validate", json_robot / "robot.json"),
+            "audit": ("audit", json_robot / "robot.json", "--json"),
+            "sbom": ("sbom", json_robot / "robot.json", "--format", "spdx", "-o", json_robot / "bom.json"),
+        }.items()
+    }
+    for verb, r in runs.items():
+        out = r.stdout + r.stderr
+        assert r.exit_code != 0, (verb, out)
+        assert "/hcdf/network/stream-profile/0, /hcdf/network/stream-profile/1" in out, (verb, out)
+        assert "line /" not in out and "lines /" not in out, (verb, out)
+
+
+def test_at_line_names_an_xml_line_or_a_bare_pointer():
+    from hcdf_trust.errors import at_line, at_lines
+
+    assert at_line(42) == "line 42" and at_line(Pointer(3, "/hcdf/comp/2")) == "/hcdf/comp/2"
+    assert at_lines([3, 7]) == "lines 3, 7" and at_lines([7]) == "line 7"
+    assert at_lines([Pointer(1, "/a/0"), Pointer(2, "/a/1")]) == "/a/0, /a/1"
