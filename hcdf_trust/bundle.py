@@ -487,7 +487,8 @@ class BundleFiles:
         return m.group(1) if m and len(m.group(1)) == 64 else None
 
     def close(self) -> None:
-        self.archive.close()
+        """Nothing: the archive's bytes stay with the :class:`Resolution` (``res.bundle``), which
+        may read an entry again after the run (the registry's stream-profile check)."""
 
 
 def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityError]:

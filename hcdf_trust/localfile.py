@@ -163,16 +163,6 @@ class ConfinedFolders:
                     os.close(fd)
         return open_checked(path, root, file=file, line=line)
 
-    def read(
-        self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None, limit: int, source: str
-    ) -> bytes:
-        """A confined file's whole content, refused past ``limit`` bytes (:func:`read_bounded`)."""
-        fd, _ = self.open(path, root, file=file, line=line)
-        try:
-            return read_bounded(fd, limit, source=source)
-        finally:
-            os.close(fd)
-
     def hash(self, path: str, root: Path | str, *, file: str | None = None, line: int | None = None) -> Hashed:
         """:func:`hash_local` through :meth:`open`."""
         fd, st = self.open(path, root, file=file, line=line)

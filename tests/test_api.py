@@ -32,6 +32,7 @@ PUBLIC_MODULES = (
     "hcdf_trust.macsec.backends",
     "hcdf_trust.macsec.rotation",
     "hcdf_trust.registry.client",
+    "hcdf_trust.provenance.build",
 )
 API_DOC = (PROJECT / "docs" / "api.md").read_text()
 

@@ -116,3 +116,56 @@ def test_extensions_against_the_registry(cli, tmp_path, monkeypatch):
     r = cli("audit", doc, *args, "--policy", off)
     assert [f for f in r.json["findings"] if f["code"].startswith("extension")] == []
     assert cli("audit", doc, "--registry", reg.site).exit_code == 2  # needs --trusted-root
+
+
+def _provenance(r) -> list[dict]:
+    return [f for f in r.json["findings"] if f["code"] == "release-no-provenance"]
+
+
+def test_a_release_without_provenance_is_reported_and_the_policy_switches_it(cli, tmp_path):
+    from hcdf_trust.provenance import FILE_NAME
+
+    robot = make_robot(tmp_path, cli)
+    out = tmp_path / "release"
+    assert robot.build(cli, out).exit_code == 0
+    args = ["--release", out, "--key", robot.pub, "--json"]
+    r = cli("audit", robot.doc, *args)
+    (finding,) = _provenance(r)
+    assert finding["severity"] == "warning" and finding["file"] == str(out / FILE_NAME)
+    assert "release 1 has no provenance.intoto.json" in finding["message"]
+    assert "provenance" in r.json["checked"]
+    policy = tmp_path / "policy.toml"
+    policy.write_text('[checks.release-no-provenance]\nseverity = "error"\n')
+    r = cli("audit", robot.doc, *args, "--policy", policy)
+    assert r.exit_code == 1 and "release-no-provenance" in [f["code"] for f in r.json["errors"]]
+    policy.write_text("[checks.release-no-provenance]\nenabled = false\n")
+    assert _provenance(cli("audit", robot.doc, *args, "--policy", policy)) == []
+
+    assert robot.build(cli, out, "--provenance").exit_code == 0  # the next release, with provenance
+    r = cli("audit", robot.doc, *args)
+    assert _provenance(r) == [] and not [f for f in r.json["findings"] if f["check"] == "integrity"]
+
+
+def test_a_provenance_that_does_not_verify_is_an_integrity_finding(cli, tmp_path):
+    import base64
+    import json
+
+    from hcdf_trust.provenance import FILE_NAME
+
+    robot = make_robot(tmp_path, cli)
+    out = tmp_path / "release"
+    assert robot.build(cli, out, "--provenance").exit_code == 0
+    env = json.loads((out / FILE_NAME).read_bytes())
+    stmt = json.loads(base64.b64decode(env["payload"]))
+    stmt["subject"][0]["digest"]["sha256"] = "0" * 64
+    env["payload"] = base64.b64encode(json.dumps(stmt).encode()).decode()
+    (out / FILE_NAME).write_text(json.dumps(env))
+    r = cli("audit", robot.doc, "--release", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 1 and _provenance(r) == []
+    (bad,) = [f for f in r.json["findings"] if f["check"] == "integrity"]
+    assert bad["code"] == "provenance" and "do not verify" in bad["message"]
+    assert bad["file"] == str(out / FILE_NAME), bad
+    (out / FILE_NAME).write_text("{")  # malformed: an integrity finding too, not a crash nor exit 3
+    r = cli("audit", robot.doc, "--release", out, "--key", robot.pub, "--json")
+    (bad,) = [f for f in r.json["findings"] if f["check"] == "integrity"]
+    assert r.exit_code == 1 and bad["code"] == "malformed-json" and bad["file"] == str(out / FILE_NAME), bad

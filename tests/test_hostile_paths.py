@@ -11,6 +11,7 @@ and locks must be the digest of the bytes whose references it followed.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from hcdf_trust.localfile import ConfinedFolders
+from hcdf_trust.include import resolver as resolver_module
 from hcdf_trust.store import ContentStore
 
 from ._hostile import (  # noqa: F401  (fixtures are used by name)
@@ -336,30 +337,24 @@ def test_include_changed_while_read_is_locked_as_parsed(cli, tree, monkeypatch, 
     the references of that same version: never A's digest with B's references.
     """
     doc = _swap_tree(tree)
-    real_open, real_read = ConfinedFolders.open, ConfinedFolders.read
+    real_open_local = resolver_module.open_local
     swapped = []
 
-    # The resolver reads a local include through ConfinedFolders.read (open, then one
-    # bounded read): swap the file between the open and the read, or after the read.
-    def racing_open(self, path, root, **kw):
-        opened = real_open(self, path, root, **kw)
-        if Path(path).name == "sub.hcdf" and moment == "after-open-before-read":
-            _rewrite_in_place(Path(path), SUB_B)
-            swapped.append(moment)
-        return opened
+    @contextlib.contextmanager
+    def racing_open_local(path, root, **kw):
+        with real_open_local(path, root, **kw) as fd:
+            if Path(path).name == "sub.hcdf" and moment == "after-open-before-read":
+                _rewrite_in_place(Path(path), SUB_B)
+                swapped.append(moment)
+            yield fd
+            if Path(path).name == "sub.hcdf" and moment == "after-read":
+                _rewrite_in_place(Path(path), SUB_B)
+                swapped.append(moment)
 
-    def racing_read(self, path, root, **kw):
-        data = real_read(self, path, root, **kw)
-        if Path(path).name == "sub.hcdf" and moment == "after-read":
-            _rewrite_in_place(Path(path), SUB_B)
-            swapped.append(moment)
-        return data
-
-    monkeypatch.setattr(ConfinedFolders, "open", racing_open)
-    monkeypatch.setattr(ConfinedFolders, "read", racing_read)
+    monkeypatch.setattr(resolver_module, "open_local", racing_open_local)
     monkeypatch.chdir(tree.work)
     result = cli("resolve", doc, "--offline", "--cache-dir", tree.work / "cache", "--jobs", "1")
-    assert swapped, "the race was not staged: the resolver no longer reads includes through ConfinedFolders"
+    assert swapped, "the race was not staged: resolver no longer opens includes via open_local"
     assert result.exit_code == 0, result.stderr
     arts = _lock_by_uri(tree.root / "doc.hcdf.lock")
     parsed = SUB_A if moment == "after-read" else SUB_B
@@ -425,20 +420,21 @@ def test_pin_refuses_an_include_changed_while_pinning(cli, tree, monkeypatch):
     saw: it must stop and write nothing."""
     doc = _swap_tree(tree)
     doc_before = doc.read_bytes()
-    real_read = ConfinedFolders.read
+    real_open_local = resolver_module.open_local
     swapped = []
 
-    def racing_read(self, path, root, **kw):
-        data = real_read(self, path, root, **kw)
-        if Path(path).name == "sub.hcdf" and not swapped:
-            _rewrite_in_place(Path(path), SUB_B)
-            swapped.append(path)
-        return data
+    @contextlib.contextmanager
+    def racing_open_local(path, root, **kw):
+        with real_open_local(path, root, **kw) as fd:
+            yield fd
+            if Path(path).name == "sub.hcdf" and not swapped:
+                _rewrite_in_place(Path(path), SUB_B)
+                swapped.append(path)
 
-    monkeypatch.setattr(ConfinedFolders, "read", racing_read)
+    monkeypatch.setattr(resolver_module, "open_local", racing_open_local)
     monkeypatch.chdir(tree.work)
     result = cli("pin", doc, "--write", "--offline", "--cache-dir", tree.work / "cache", "--jobs", "1")
-    assert swapped, "the race was not staged: the resolver no longer reads includes through ConfinedFolders"
+    assert swapped, "the race was not staged: resolver no longer opens includes via open_local"
     assert result.exit_code == 3, result.stderr
     assert re.search(r"^error: .*sub\.hcdf.*changed", result.stderr, re.M), result.stderr
     assert doc.read_bytes() == doc_before

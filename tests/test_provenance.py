@@ -315,3 +315,104 @@ def test_the_library_refuses_a_threshold_its_keys_cannot_meet(built):
     assert dsse.verify(env, [key], 1, source=FILE_NAME) == [key.keyid]
     with pytest.raises(KeyFileError):
         dsse.verify(env, [key, key], 2, source=FILE_NAME)
+
+
+def test_every_firmware_input_is_a_resolved_dependency(built):
+    # the oracle: the binaries in --firmware-dir, hashed here
+    robot, out = built
+    deps = json.loads(payload(out))["predicate"]["buildDefinition"]["resolvedDependencies"]
+    firmware = {d["name"]: (d["uri"], d["digest"]["sha256"]) for d in deps if d["name"].startswith("hcdf-firmware:")}
+    sha = {
+        p.relative_to(robot.fw).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest() for p in robot.fw.rglob("*.bin")
+    }
+    assert firmware == {
+        "hcdf-firmware:mr_mcxn_t1/flex-io": ("mr_mcxn_t1/flex-io.bin", sha["mr_mcxn_t1/flex-io.bin"]),
+        "hcdf-firmware:mr_mcxn_t1/rtk-gnss": ("rtk-gnss.bin", sha["rtk-gnss.bin"]),
+        "hcdf-firmware:compute/scout-os": ("scout-os.bin", sha["scout-os.bin"]),
+    }
+    names = [d["name"] for d in deps]
+    assert names[:2] == ["hcdf-root", "hcdf-lock"] and "body.glb" in names and "ota.toml" in names
+
+
+def _edit_firmware(stmt: dict, image: str, edit) -> None:
+    deps = stmt["predicate"]["buildDefinition"]["resolvedDependencies"]
+    (i,) = [i for i, d in enumerate(deps) if d["name"] == "hcdf-firmware:" + image]
+    edit(deps, i)
+
+
+@pytest.mark.parametrize("image", ["mr_mcxn_t1/flex-io", "compute/scout-os"])  # MCUboot, raw
+def test_a_firmware_input_the_image_does_not_hold_is_refused_even_when_signed(built, cli, image):
+    robot, out = built
+    stmt = json.loads(payload(out))
+    _edit_firmware(stmt, image, lambda deps, i: deps[i]["digest"].update(sha256="2" * 64))
+    resign(out, robot, stmt)
+    errors = refused(verify(cli, robot, out), 1, f"the firmware input of {image} is not the binary")
+    assert [e["actual"] for e in errors] == ["2" * 64]
+
+
+def test_a_missing_extra_or_doubled_firmware_input_is_refused(built, cli):
+    robot, out = built
+    original = payload(out)
+    stmt = json.loads(original)
+    _edit_firmware(stmt, "mr_mcxn_t1/rtk-gnss", lambda deps, i: deps.pop(i))
+    resign(out, robot, stmt)
+    refused(verify(cli, robot, out), 1, "no firmware input for mr_mcxn_t1/rtk-gnss")
+    stmt = json.loads(original)
+    _edit_firmware(stmt, "compute/scout-os", lambda deps, i: deps.append(dict(deps[i], name="hcdf-firmware:x/y")))
+    resign(out, robot, stmt)
+    refused(verify(cli, robot, out), 1, "x/y, an image the signed manifest lacks")
+    stmt = json.loads(original)
+    _edit_firmware(stmt, "compute/scout-os", lambda deps, i: deps.append(dict(deps[i])))
+    resign(out, robot, stmt)
+    refused(verify(cli, robot, out), 1, "two firmware inputs for compute/scout-os")
+
+
+def test_the_in_toto_attestation_validators_accept_the_statement(built):
+    # in-toto-attestation's Python bindings: the Statement and SLSA Provenance v1 protos parse
+    # the payload strictly (an unknown field, a wrong type or a malformed timestamp raises),
+    # Statement.validate and ResourceDescriptor.validate pass; the bindings have no
+    # Provenance.validate, so its Go validator's checks (SLSA Build L1's required fields)
+    # are written out here, with the Go ResourceDescriptor's digest check (sha256: 64 hex).
+    import re
+
+    from google.protobuf import json_format
+    from in_toto_attestation.predicates.provenance.v1 import provenance_pb2
+    from in_toto_attestation.v1 import statement_pb2
+    from in_toto_attestation.v1.resource_descriptor import ResourceDescriptor
+    from in_toto_attestation.v1.statement import Statement
+
+    _, out = built
+    data = payload(out)
+    Statement.copy_from_pb(json_format.Parse(data, statement_pb2.Statement())).validate()
+    predicate = json.loads(data)["predicate"]
+    prov = json_format.ParseDict(predicate, provenance_pb2.Provenance())
+    assert json_format.MessageToDict(prov) == predicate  # nothing dropped or reinterpreted
+    build, run = prov.build_definition, prov.run_details
+    assert prov.HasField("build_definition") and prov.HasField("run_details") and run.HasField("builder")
+    assert build.build_type == BUILD_TYPE and build.HasField("external_parameters") and run.builder.id
+    subjects = json_format.Parse(data, statement_pb2.Statement()).subject
+    for rd in [*build.resolved_dependencies, *subjects]:
+        ResourceDescriptor.copy_from_pb(rd).validate()
+        assert set(rd.digest) == {"sha256"} and re.fullmatch("[0-9a-f]{64}", rd.digest["sha256"]), rd
+    assert len(build.resolved_dependencies) > 3
+    with pytest.raises(json_format.ParseError):  # the oracle refuses what is not SLSA v1
+        json_format.ParseDict({**predicate, "buildConfig": {}}, provenance_pb2.Provenance())
+
+
+def test_an_intel_hex_input_is_listed_by_its_file_digest_and_verifies(built, cli):
+    # imgtool converts the text: the image holds the binary, so the hex file's digest is
+    # listed but cannot be checked against the image (verify says nothing false about it)
+    from intelhex import IntelHex
+
+    robot, out = built
+    ih = IntelHex()
+    ih.frombytes((robot.fw / "rtk-gnss.bin").read_bytes(), offset=0x8000)
+    ih.tofile(str(robot.fw / "rtk-gnss.hex"), format="hex")
+    (robot.fw / "rtk-gnss.bin").unlink()
+    shutil.rmtree(out)
+    assert robot.build(cli, out, "--provenance").exit_code == 0
+    deps = json.loads(payload(out))["predicate"]["buildDefinition"]["resolvedDependencies"]
+    (gnss,) = [d for d in deps if d["name"] == "hcdf-firmware:mr_mcxn_t1/rtk-gnss"]
+    assert gnss["uri"] == "rtk-gnss.hex"
+    assert gnss["digest"]["sha256"] == hashlib.sha256((robot.fw / "rtk-gnss.hex").read_bytes()).hexdigest()
+    assert verify(cli, robot, out).exit_code == 0

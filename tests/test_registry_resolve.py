@@ -259,3 +259,20 @@ def test_a_tampered_registry_is_an_attack(cli, published, tmp_path):
     res = cli("resolve", doc, "--registry", site, "--trusted-root", reg.root_json)
     assert res.exit_code == 1 and "arbitrary content" in res.stderr
     assert not (tmp_path / "r" / "robot.hcdf.lock").exists()
+
+
+def test_verify_of_a_bundle_checks_its_stream_profile_entry_against_the_registry(cli, published, tmp_path):
+    """The registry check reads the profile again after resolution: from the bundle, not a file."""
+    reg, _ = published
+    changed = PROFILE.read_bytes().replace(b'max-latency-us="200"', b'max-latency-us="900"', 1)
+    registry = ("--registry", reg.site, "--trusted-root", reg.root_json, "--json")
+    for name, profile, code in (("good", None, 0), ("bad", changed, 1)):
+        doc = _robot(tmp_path / name, profile=profile)
+        out = tmp_path / f"{name}.hcdfz"
+        assert cli("bundle", doc, out).exit_code == 0
+        shutil.rmtree(tmp_path / name)  # nothing left to read but the bundle
+        res = cli("verify", out, *registry)
+        assert res.exit_code == code, res.stdout
+        if code:
+            assert [e["code"] for e in res.json["errors"]] == ["stream-profile-digest"]
+            assert f"{name}.hcdfz/assets/op.streams_" in res.json["errors"][0]["url"]

@@ -342,3 +342,50 @@ def test_source_date_epoch_sets_the_time(cli, monkeypatch):
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
     r = cli("sbom", ROBOT / "robot.hcdf", "--format", "spdx")
     assert r.exit_code == 2 and "SOURCE_DATE_EPOCH" in r.stderr and r.stdout == ""  # a usage error, as ota build's
+
+
+@pytest.mark.parametrize("fmt", ["cyclonedx", "spdx"])
+def test_a_release_provenance_is_an_external_reference(cli, tmp_path, fmt):
+    # the oracle: the file on disk, hashed here, and the --base-url given to ota build
+    robot = tmp_path / "robot"
+    shutil.copytree(ROBOT, robot)
+    key = tmp_path / "k.pem"
+    assert cli("ota", "keygen", "-o", key).exit_code == 0
+    out = tmp_path / "release"
+    build = ["ota", "build", robot / "robot.hcdf", "--firmware-dir", robot / "firmware", "--key", key, "--out", out]
+    assert cli(*build, "--base-url", "https://fw.example.com/scout2/").exit_code == 0
+    release = ("--release", out, "--key", tmp_path / "k.pub.pem")
+    without = sbom(cli, robot / "robot.hcdf", fmt, *release)
+    assert b"provenance.intoto.json" not in without  # no provenance, no reference
+    assert cli(*build, "--base-url", "https://fw.example.com/scout2/", "--provenance").exit_code == 0
+    data = sbom(cli, robot / "robot.hcdf", fmt, *release)
+    url = "https://fw.example.com/scout2/provenance.intoto.json"
+    file_sha = hashlib.sha256((out / "provenance.intoto.json").read_bytes()).hexdigest()
+    if fmt == "cyclonedx":
+        validate_cyclonedx(data.decode())
+        bom = json.loads(data)
+        comps = cdx_components(bom)
+        holders = [bom, comps[ARM_FW], comps[OS_FW]]
+        for holder in holders:
+            (ref,) = holder["externalReferences"]
+            assert (ref["type"], ref["url"]) == ("attestation", url)
+            assert ref["hashes"] == [{"alg": "SHA-256", "content": file_sha}]
+        assert "externalReferences" not in comps["robot"]
+    else:
+        validate_spdx(data)
+        elements, _ = spdx_graph(data)
+        for ref in ("sbom", ARM_FW, OS_FW):
+            (ext,) = elements[ref]["externalRef"]
+            assert (ext["externalRefType"], ext["locator"]) == ("buildMeta", [url])
+            assert file_sha in ext["comment"]
+    # a provenance signed by another key is not listed: the run fails, nothing written
+    import base64
+
+    from hcdf_trust.ota.keys import generate
+    from hcdf_trust.ota.signer import FileSigner
+    from hcdf_trust.provenance import dsse
+
+    statement = base64.b64decode(json.loads((out / "provenance.intoto.json").read_bytes())["payload"])
+    (out / "provenance.intoto.json").write_bytes(dsse.sign(statement, [FileSigner(generate("ed25519"))]))
+    r = cli("sbom", robot / "robot.hcdf", "--format", fmt, *release, "-o", tmp_path / "bom.json")
+    assert r.exit_code == 1 and "provenance.intoto.json" in r.stderr and not (tmp_path / "bom.json").exists()

@@ -9,9 +9,9 @@ The steps, each built on the verb that owns the subject (nothing is parsed twice
 1. Resolve the tree (:func:`hcdf_trust.include.resolve`: offline unless asked, no cache or
    lock written); read its lock with :func:`hcdf_trust.include.lockfile.load`.
 2. References (:mod:`.references`), firmware (:mod:`.firmware`, with ``--release`` verified
-   by :mod:`hcdf_trust.ota` first), the fleet (:mod:`.fleet`, a signed ``fleet status``
-   report), MACsec (:mod:`.macsec`, on the macsec plan and, with a
-   key store, its status), extensions (:mod:`.extensions`, with a registry).
+   by :mod:`hcdf_trust.ota` first, and its provenance by :mod:`hcdf_trust.provenance`), the
+   fleet (:mod:`.fleet`, a signed ``fleet status`` report), MACsec (:mod:`.macsec`, on the
+   macsec plan and, with a key store, its status), extensions (:mod:`.extensions`, with a registry).
 3. Every finding gets its severity from the :class:`~.policy.Policy`; the run fails when
    one is at or above the threshold. An error that stops a check (a digest mismatch, a file
    that cannot be read, a release that does not verify) is an ``integrity`` finding, always
@@ -82,6 +82,9 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
         for error in errors:
             report.add_error(error)
         report.checked.append("release")
+        if release is not None:
+            firmware.check_provenance(report, o.release_dir, release, o.release_key)
+            report.checked.append("provenance")
     report.checked.append("stream-profiles")
     for part in res.documents.values():
         for text, line in stream_profile_selection(part).problems:

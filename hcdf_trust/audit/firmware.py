@@ -50,6 +50,33 @@ def read_release(folder: str, key: str) -> tuple[suit.Release | None, list[HcdfT
     return release, [_in_folder(e, folder) for e in errors]
 
 
+def check_provenance(report: Report, folder: str, release: suit.Release, key: str) -> None:
+    """``release-no-provenance``: the release folder has no ``provenance.intoto.json``.
+    One that is there is verified with the release key as ``ota verify --provenance``
+    verifies it: what does not verify is an integrity finding (a forged statement is no
+    better than none)."""
+    from ..ota.keys import load_public
+    from ..provenance import FILE_NAME
+    from ..provenance.verify import read_envelope, verify_provenance
+
+    try:
+        data = read_envelope(folder)
+        if data is None:
+            report.add(
+                "release-no-provenance",
+                f"release {release.sequence_number} has no {FILE_NAME}: nothing signed says how it was built "
+                "or from what (ota build --provenance)",
+                file=os.path.join(folder, FILE_NAME),
+                line=None,
+            )
+            return
+        errors = verify_provenance(folder, release, [load_public(key)], data=data)
+    except HcdfTrustError as exc:
+        errors = [exc]
+    for error in errors:
+        report.add_error(_in_folder(error, folder))
+
+
 def _in_folder(error: HcdfTrustError, folder: str) -> HcdfTrustError:
     """ota names a release's files relative to its folder; the audit report names the folder too."""
     if error.file and not os.path.isabs(error.file) and not error.file.startswith(folder):

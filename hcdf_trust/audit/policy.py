@@ -57,6 +57,9 @@ CHECKS: dict[str, Check] = {
     "firmware-hash": Check("firmware", "error", "a <hash> that is not a full SHA-256"),
     "firmware-version": Check("firmware", "warning", "a <version> that is not semantic (SemVer 2.0.0)"),
     "firmware-unreleased": Check("firmware", "error", "firmware the signed release manifest (--release) lacks"),
+    "release-no-provenance": Check(
+        "release", "warning", "a release (--release) without provenance.intoto.json: nothing says how it was built"
+    ),
     "macsec-control-traffic": Check(
         "macsec", "error", "a link or chain of a network carrying control traffic that is not must-secure"
     ),

@@ -1,4 +1,4 @@
-"""``hcdf-trust ota``: keygen, build, verify. Parses, calls :mod:`hcdf_trust.ota`, renders.
+"""``hcdf-trust ota``: keygen, build, verify, sign-provenance. Parses, calls :mod:`hcdf_trust.ota`, renders.
 
 imgtool, cbor2 and the COSE library are imported inside the commands only.
 """
@@ -277,6 +277,78 @@ def verify_cmd(
             f"release {release.sequence_number}: {counted(len(release.components), 'component')} verified "
             f"(signatures, digests, latest.json{', rollback' if before else ''}{', provenance' if provenance else ''})"
         )
+
+
+@ota.command(name="sign-provenance")
+@click.argument("release_dir", type=click.Path(file_okay=False))
+@click.option(
+    "--key", "key", required=True, help="Signing key: a PEM file, or a PKCS#11 URI (pkcs11:token=…;object=…)."
+)
+@click.option(
+    "--passphrase-file",
+    type=click.Path(dir_okay=False),
+    help="Passphrase of an encrypted key file (mode 0600) [default: $HCDF_TRUST_PASSPHRASE].",
+)
+@click.option(
+    "--pin-file",
+    type=click.Path(dir_okay=False),
+    help="PKCS#11 user PIN [default: the URI's pin-source, else $HCDF_TRUST_PKCS11_PIN]; never on the command line.",
+)
+@click.option(
+    "--release-key",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="The release's public key (PEM): the release and its provenance must verify with it first.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@handle_errors
+def sign_provenance_cmd(
+    release_dir: str, key: str, passphrase_file: str | None, pin_file: str | None, release_key: str, as_json: bool
+) -> None:
+    """Co-sign RELEASE_DIR's provenance.intoto.json: add this key's signature over the same
+    statement bytes, for a verifier's threshold.
+
+    The release and its provenance are verified with --release-key first (as `ota verify`
+    verifies a provenance); a key that already signed is refused. Nothing is written on any error.
+    """
+    import os
+
+    from ..ota.keys import load_public
+    from ..ota.release import read_release
+    from ..ota.verify import check_release
+    from ..outputs import OutputPlan
+    from ..provenance import FILE_NAME, dsse
+    from ..provenance.errors import ProvenanceError
+    from ..provenance.verify import read_envelope, verify_provenance
+    from . import fail
+
+    public = load_public(release_key)
+    signer, inputs = _signer(key, passphrase_file, pin_file)
+    try:
+        release, files = read_release(release_dir, public)
+        errors = check_release(release, files, public)
+        data = read_envelope(release_dir)
+        if data is None:
+            raise ProvenanceError(
+                "the release has no provenance to co-sign", file=FILE_NAME, expected=FILE_NAME, actual="none"
+            )
+        errors += verify_provenance(release_dir, release, [public], data=data)
+        if errors:
+            fail(errors, as_json=as_json)
+        signed = dsse.cosign(data, signer, source=FILE_NAME)
+    finally:
+        signer.close()
+    plan = OutputPlan()
+    for path, what in (*inputs, (release_key, "the release key")):
+        plan.protect(path, what=what)
+    out = os.path.join(release_dir, FILE_NAME)
+    plan.add(out, signed, flag="RELEASE_DIR", under=release_dir)
+    plan.commit()
+    keyids = sorted(dsse.parse(signed, source=FILE_NAME).signatures)
+    if as_json:
+        emit_json({"ok": True, "signatures": keyids, "wrote": [out], "errors": []})
+    else:
+        say(f"{out}: {counted(len(keyids), 'signature')} ({', '.join(keyids)})")
 
 
 def _signer(key: str, passphrase_file: str | None, pin_file: str | None) -> tuple[Any, tuple[tuple[str, str], ...]]:

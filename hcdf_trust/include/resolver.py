@@ -252,9 +252,10 @@ class Resolution:
     locked: lockfile.Lock | None = field(default=None, repr=False)  # the lock file as read, if any
     # The URLs of the artifacts that ``--update`` names (every one under ``update_all``).
     updating: set[str] = field(default_factory=set, repr=False)
-    # A tree read out of a ``.hcdfz``: the archive's (display path, SHA-256, size), which ota
-    # build and the SBOM record; None for a tree of files.
-    bundle: tuple[str, str, int] | None = None
+    # A tree read out of a ``.hcdfz``: its entries (``bundle.archive``: path, SHA-256 and size,
+    # which ota build and the SBOM record), for a step after resolution that reads one again
+    # (the registry's stream-profile check); None for a tree of files.
+    bundle: BundleFiles | None = field(default=None, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -319,7 +320,7 @@ class Resolution:
             InputError: the lock file cannot be read (or is larger than ``limit``).
         """
         if self.bundle is not None:
-            return self.bundle[1]
+            return self.bundle.archive.sha256
         import hashlib
 
         from ..localfile import read_input
@@ -516,7 +517,7 @@ class _Run:
         # relative to a folder descriptor: closing it could hand its number to another open,
         # and the worker would read from the wrong folder. The process exit closes them.
         if not any(pool.alive() for pool in self._pools):
-            self.folders.close()  # a bundle's archive too: its bytes are copied where they are kept
+            self.folders.close()
         if self._fetcher is not None:
             self._fetcher.close()
 
@@ -542,9 +543,7 @@ class _Run:
             root_loc = Location(url=file_url(doc_path), path=str(doc_path), root=doc_path.parent)
         root = Document.from_bytes(data, source=display_url(root_loc.url))
         res = Resolution(root=root, root_location=root_loc, lock_path=lock_path)
-        if self.bundle is not None:
-            archive = self.bundle.archive
-            res.bundle = (archive.path, archive.sha256, archive.size)
+        res.bundle = self.bundle
         res.documents[root_loc.url] = root
         self._to_lock = res._urls.to_lock
         try:
@@ -883,9 +882,13 @@ class _Run:
         if loc.path is not None:
             root = loc.root or os.path.dirname(loc.path)
             if keep:  # an include: hash and parse the very same bytes
-                data = self.folders.read(
-                    loc.path, root, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
-                )
+                if self.bundle is not None:
+                    data = self.bundle.read(
+                        loc.path, file=file, line=line, limit=MAX_DOCUMENT_BYTES, source=display_url(art.url)
+                    )
+                else:
+                    with open_local(loc.path, root, file=file, line=line) as fd:
+                        data = read_bounded(fd, MAX_DOCUMENT_BYTES, source=display_url(art.url))
                 hashed = hash_bytes(data)
             else:
                 hashed = self.folders.hash(loc.path, root, file=file, line=line)

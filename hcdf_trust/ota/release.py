@@ -23,7 +23,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import unquote, urlsplit
 
 from ..digest import parse_pin
@@ -207,8 +207,8 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
         raise ErrorGroup(res.errors)
     if res.bundle is not None and options.update_hcdf:
         raise InputError(
-            f"--update-hcdf edits the description in place: {res.bundle[0]} is a bundle, rebuild it instead",
-            file=res.bundle[0],
+            f"--update-hcdf edits the description in place: {res.bundle.archive.path} is a bundle, rebuild it instead",
+            file=res.bundle.archive.path,
         )
     # What pins the tree: the lock file, or the bundle the tree was read from (recorded as the lock digest)
     lock_sha = res.pins_sha256(limit=64 << 20)
@@ -271,7 +271,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
     hash_edits: list[HashEdit] = []
     changes: list[dict[str, Any]] = []
     components: list[suit.Component] = []
-    for p, (image, version_name) in zip(todo, built, strict=True):
+    for p, (image, version_name, _) in zip(todo, built, strict=True):
         is_raw = p.settings.type == "raw"
         computed = image.image_hash  # for a raw image: its file's SHA-256
         for use in p.uses:
@@ -413,6 +413,7 @@ def build_release(doc_path: str, options: BuildOptions) -> BuildReport:
             lock_name=os.path.basename(res.lock_path),
             lock_entries=res.lock_entries(edited),
             images=[f"{p.board}/{p.app}" for p in todo],
+            firmware={f"{p.board}/{p.app}": (fw.path, fw.sha256) for p, (_, _, fw) in zip(todo, built, strict=True)},
             date=date,
             base_url=base_url,
             config_path=config_path,
@@ -512,15 +513,27 @@ def _plan(res: Any, config: OtaConfig, notices: list[Notice]) -> list[Planned]:
     return list(plans.values())
 
 
-def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig) -> list[tuple[SignedImage, str]]:
+class FirmwareInput(NamedTuple):
+    """The binary an image was built from: its path under ``--firmware-dir`` and SHA-256
+    (computed only for ``--provenance``, whose resolvedDependencies list it)."""
+
+    path: str
+    sha256: str | None
+
+
+def _build_images(
+    todo: list[Planned], options: BuildOptions, config: OtaConfig
+) -> list[tuple[SignedImage, str, FirmwareInput]]:
     """Read and sign every binary in parallel; results in ``todo`` order, errors all collected."""
     jobs = options.jobs or len(os.sched_getaffinity(0))
 
-    def one(p: Planned) -> tuple[SignedImage, str]:
-        payload, intel_hex = _read_firmware(p, options.firmware_dir)
+    def one(p: Planned) -> tuple[SignedImage, str, FirmwareInput]:
+        payload, rel, intel_hex = _read_firmware(p, options.firmware_dir)
         use = p.first
+        payload_sha = hashlib.sha256(payload).hexdigest() if options.provenance or p.settings.type == "raw" else None
+        source = FirmwareInput(rel, payload_sha)
         if p.settings.type == "raw":
-            payload_sha = hashlib.sha256(payload).hexdigest()
+            assert payload_sha is not None
             name = (p.version_text or "").strip()
             if not _SAFE.fullmatch(name):
                 raise FirmwareError(
@@ -536,7 +549,7 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
                 security_counter=None,
                 sha256=payload_sha,
             )
-            return image, name
+            return image, name, source
         if p.settings.mcuboot_version is not None:
             version = parse_version(
                 p.settings.mcuboot_version, comp=use.comp, app=p.app, file=config.source, source="mcuboot_version"
@@ -554,11 +567,11 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
             intel_hex=intel_hex,
             comp=use.comp,
         )
-        return image, str(version)
+        return image, str(version), source
 
     with quiet(), ThreadPoolExecutor(max_workers=max(1, min(jobs, len(todo)))) as pool:
         futures = [pool.submit(one, p) for p in todo]
-        results: list[tuple[SignedImage, str]] = []
+        results: list[tuple[SignedImage, str, FirmwareInput]] = []
         errors: list[HcdfTrustError] = []
         for f in futures:
             try:
@@ -570,8 +583,9 @@ def _build_images(todo: list[Planned], options: BuildOptions, config: OtaConfig)
     return results
 
 
-def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
-    """The binary for ``p`` (confined to the firmware folder): bytes and whether it is Intel HEX."""
+def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, str, bool]:
+    """The binary for ``p`` (confined to the firmware folder): bytes, path under the folder
+    and whether it is Intel HEX."""
     use = p.first
     if p.settings.file is not None:
         candidates = [p.settings.file]
@@ -587,7 +601,7 @@ def _read_firmware(p: Planned, firmware_dir: str) -> tuple[bytes, bool]:
             data = read_bounded(fd, MAX_FIRMWARE_BYTES, source=path, what="firmware binary")
         finally:
             os.close(fd)
-        return data, rel.lower().endswith(".hex")
+        return data, rel, rel.lower().endswith(".hex")
     raise FirmwareError(
         f"comp {use.comp!r}: no binary for {p.board}/{p.app} in {firmware_dir}",
         file=use.file,

@@ -57,6 +57,31 @@ def sign(payload: bytes, signers: list[Any]) -> bytes:
     env = Envelope(payload, PAYLOAD_TYPE, {})
     for s in signers:
         env.sign(sslib_signer(s))
+    return _render(env)
+
+
+def cosign(data: bytes, signer: Any, *, source: str) -> bytes:
+    """The envelope file ``data`` with ``signer``'s signature added over the same payload
+    bytes (a co-signature for a threshold: nothing else of the envelope changes). Check the
+    envelope first: the co-signer vouches for what it signs.
+
+    Raises:
+        MalformedProvenanceError: ``data`` is not a DSSE envelope (:func:`parse`).
+        KeyFileError: this key already signed it (one key never counts twice), or cannot sign.
+    """
+    env = parse(data, source=source)
+    ours = sslib_signer(signer)
+    if ours.public_key.keyid in env.signatures:
+        raise KeyFileError(
+            "this key already signed the provenance: a second signature by one key does not count twice",
+            file=source,
+            actual=ours.public_key.keyid,
+        )
+    env.sign(ours)
+    return _render(env)
+
+
+def _render(env: Any) -> bytes:
     return (json.dumps(env.to_dict(), indent=2) + "\n").encode()
 
 

@@ -9,7 +9,10 @@
 5. ``buildType`` is ours; ``externalParameters`` holds only the fields we define, and its
    root and images are the signed manifest's (SLSA: refuse unexpected parameters).
 6. ``resolvedDependencies`` names exactly one root document and one lock, with the
-   digests the SUIT manifest binds (a statement of another robot is refused).
+   digests the SUIT manifest binds (a statement of another robot is refused), and exactly
+   one firmware input per image of the manifest: a raw image's is the image itself; an
+   MCUboot image built from a ``.bin`` holds that binary between its header and its TLVs
+   (an Intel HEX input is converted by imgtool: its digest cannot be checked here).
 7. Every subject is a file of the folder with that SHA-256, and every file of the folder
    is a subject (a file added after signing, or an older release's statement, is refused).
 """
@@ -24,24 +27,42 @@ from ..localfile import open_checked, read_bounded
 from . import BUILD_TYPE, FILE_NAME, PAYLOAD_TYPE, PREDICATE_TYPE, STATEMENT_TYPE, dsse
 from .errors import MalformedProvenanceError, ProvenanceError
 from .files import release_files
-from .statement import EXTERNAL_PARAMETERS, LOCK_DEPENDENCY, ROOT_DEPENDENCY
+from .statement import EXTERNAL_PARAMETERS, FIRMWARE_DEPENDENCY, LOCK_DEPENDENCY, ROOT_DEPENDENCY
 
 
-def verify_provenance(folder: str, release: Any, public_keys: list[Any], *, threshold: int = 1) -> list[HcdfTrustError]:
+def read_envelope(folder: str) -> bytes | None:
+    """The bytes of ``folder``'s ``provenance.intoto.json`` (bounded, confined), None when
+    there is none.
+
+    Raises:
+        InputError: it is a symlink, not a regular file, or too large.
+    """
+    path = os.path.join(folder, FILE_NAME)
+    if not os.path.lexists(path):
+        return None
+    fd, _ = open_checked(path, folder, file=FILE_NAME)
+    try:
+        return read_bounded(fd, dsse.MAX_ENVELOPE_BYTES, source=FILE_NAME, what="provenance")
+    finally:
+        os.close(fd)
+
+
+def verify_provenance(
+    folder: str, release: Any, public_keys: list[Any], *, threshold: int = 1, data: bytes | None = None
+) -> list[HcdfTrustError]:
     """Every violation of steps 5–7 (steps 1–4 raise: nothing after them can be trusted).
 
-    ``release`` is the SUIT manifest, already verified. Raises:
+    ``release`` is the SUIT manifest, already verified; ``data`` the envelope's bytes when
+    the caller read them (:func:`read_envelope`: checked and then used, never read twice).
+
+    Raises:
         MalformedProvenanceError: steps 1 and 4's parsing. ProvenanceError: steps 1–4.
     """
     # 1. the envelope
-    path = os.path.join(folder, FILE_NAME)
-    if not os.path.lexists(path):
+    if data is None:
+        data = read_envelope(folder)
+    if data is None:
         raise ProvenanceError("the release has no provenance", file=FILE_NAME, expected=FILE_NAME, actual="none")
-    fd, _ = open_checked(path, folder, file=FILE_NAME)
-    try:
-        data = read_bounded(fd, dsse.MAX_ENVELOPE_BYTES, source=FILE_NAME, what="provenance")
-    finally:
-        os.close(fd)
     env = dsse.parse(data, source=FILE_NAME)
     # 2. payloadType
     if env.payload_type != PAYLOAD_TYPE:
@@ -68,6 +89,7 @@ def verify_provenance(folder: str, release: Any, public_keys: list[Any], *, thre
     errors: list[HcdfTrustError] = []
     errors += _check_build(build, release, where + "/predicate/buildDefinition")
     errors += _check_dependencies(build.get("resolvedDependencies"), release, where)
+    errors += _check_firmware(build.get("resolvedDependencies"), release, folder, where)
     errors += _check_subjects(subjects, folder)
     return errors
 
@@ -139,6 +161,85 @@ def _check_dependencies(deps: Any, release: Any, where: str) -> list[HcdfTrustEr
                 )
             )
     return errors
+
+
+def _check_firmware(deps: Any, release: Any, folder: str, where: str) -> list[HcdfTrustError]:
+    # 6. every image's input, and nothing else, with a digest the image can vouch for
+    where += "/predicate/buildDefinition/resolvedDependencies"
+    assert isinstance(deps, list)  # _check_dependencies refused anything else
+    found: dict[str, tuple[int, Any]] = {}
+    errors: list[HcdfTrustError] = []
+    for i, dep in enumerate(deps):
+        name = dep.get("name") if isinstance(dep, dict) else None
+        if not isinstance(name, str) or not name.startswith(FIRMWARE_DEPENDENCY):
+            continue
+        image = name[len(FIRMWARE_DEPENDENCY) :]
+        if image in found:
+            errors.append(ProvenanceError(f"two firmware inputs for {image}", file=f"{where}/{i}", actual=name))
+        found[image] = (i, dep)
+    for c in release.components:
+        image = f"{c.board}/{c.app}"
+        if image not in found:
+            errors.append(
+                ProvenanceError(
+                    f"resolvedDependencies has no firmware input for {image}",
+                    file=where,
+                    expected=FIRMWARE_DEPENDENCY + image,
+                    actual="none",
+                )
+            )
+            continue
+        i, dep = found.pop(image)
+        digest = dep.get("digest")
+        stated = digest.get("sha256") if isinstance(digest, dict) else None
+        uri = dep.get("uri")
+        if c.type == "raw":
+            inside: str | None = c.sha256
+        elif isinstance(uri, str) and uri.lower().endswith(".hex"):
+            continue  # imgtool converted it: the image holds its binary, not its text
+        else:
+            inside = _mcuboot_payload_sha256(folder, f"{c.board}/{c.app}/{c.version}.bin")
+            if inside is None:
+                continue  # not on disk: a missing subject, reported by step 7
+        if stated != inside:
+            errors.append(
+                ProvenanceError(
+                    f"the firmware input of {image} is not the binary its signed image holds",
+                    file=f"{where}/{i}/digest/sha256",
+                    expected=inside,
+                    actual=str(stated),
+                )
+            )
+    for image, (i, _dep) in sorted(found.items()):
+        errors.append(
+            ProvenanceError(
+                f"a firmware input for {image}, an image the signed manifest lacks",
+                file=f"{where}/{i}",
+                expected=", ".join(sorted(f"{c.board}/{c.app}" for c in release.components)),
+                actual=image,
+            )
+        )
+    return errors
+
+
+def _mcuboot_payload_sha256(folder: str, rel: str) -> str | None:
+    """SHA-256 of the bytes between an MCUboot image's header and its TLVs (what ``ota
+    build`` gave imgtool), or None when the file is not there."""
+    import hashlib
+
+    from ..ota.images import read_info
+    from ..ota.release import MAX_FIRMWARE_BYTES
+
+    path = os.path.join(folder, rel)
+    if not os.path.lexists(path):
+        return None
+    fd, _ = open_checked(path, folder, file=rel)
+    try:
+        data = read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="firmware image")
+    finally:
+        os.close(fd)
+    info = read_info(data, source=rel)
+    return hashlib.sha256(data[info.header_size : info.header_size + info.image_size]).hexdigest()
 
 
 def _check_subjects(subjects: dict[str, str], folder: str) -> list[HcdfTrustError]:

@@ -37,6 +37,7 @@ from .client import default_cache_dir as client_cache_dir
 from .validation import PROFILE_LIMIT, RegistrySchemaSource, check_document
 
 if TYPE_CHECKING:
+    from ..bundle import BundleFiles
     from ..include.resolver import Artifact, Resolution
     from ..outputs import OutputPlan
 
@@ -161,7 +162,7 @@ def check_resolution(
         store = ContentStore(cache_dir or default_cache_dir())
         for art in sorted(profiles, key=lambda a: a.url):
             try:
-                name, version = _profile_identity(art, store)
+                name, version = _profile_identity(art, store, res.bundle)
             except HcdfTrustError as exc:
                 errors.append(exc)
                 continue
@@ -187,8 +188,9 @@ def check_resolution(
     return errors, warnings
 
 
-def _profile_identity(art: Artifact, store: ContentStore) -> tuple[str | None, str | None]:
-    """The ``name`` and ``version`` on the root of the profile the resolution verified.
+def _profile_identity(art: Artifact, store: ContentStore, bundle: BundleFiles | None) -> tuple[str | None, str | None]:
+    """The ``name`` and ``version`` on the root of the profile the resolution verified (an entry
+    of ``bundle`` when the tree was read from one).
 
     Raises:
         InputError: the bytes are gone, changed since they were verified, or are not XML.
@@ -203,8 +205,11 @@ def _profile_identity(art: Artifact, store: ContentStore) -> tuple[str | None, s
     else:
         root = str(art.location.root or os.path.dirname(path))
     try:
-        with open_local(path, root, file=file, line=line) as fd:
-            data = read_bounded(fd, PROFILE_LIMIT, source=art.url, what="stream profile")
+        if bundle is not None:
+            data = bundle.read(path, file=file, line=line, limit=PROFILE_LIMIT, source=art.url)
+        else:
+            with open_local(path, root, file=file, line=line) as fd:
+                data = read_bounded(fd, PROFILE_LIMIT, source=art.url, what="stream profile")
     except NotFoundError:
         raise InputError(
             f"stream profile {use.ref.uri}: its verified content is no longer available to check against the registry",

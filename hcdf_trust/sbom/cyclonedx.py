@@ -4,7 +4,8 @@ The robot is ``metadata.component`` (a ``device``); sub-assemblies and comps are
 ``device`` components, firmware ``firmware``, sensor drivers ``device-driver``, model
 and other files ``file`` with their SHA-256. HCDF facts without a CycloneDX field are
 ``hcdf:*`` properties (see :func:`properties`). ``dependencies`` is the tree:
-robot → sub-assembly → comp → firmware / driver / file.
+robot → sub-assembly → comp → firmware / driver / file. A release's verified provenance is
+an ``attestation`` external reference of the BOM and of each firmware the release holds.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 
 from .. import __version__
 from .model import (
+    PROVENANCE_COMMENT,
     AssemblyFact,
     Facts,
     assembly_properties,
@@ -26,7 +28,7 @@ from .model import (
 def render(facts: Facts) -> bytes:
     """The BOM as CycloneDX 1.6 JSON (UTF-8, ends with a newline)."""
     from cyclonedx.contrib.license.factories import LicenseFactory
-    from cyclonedx.model import HashAlgorithm, HashType, Property
+    from cyclonedx.model import ExternalReference, ExternalReferenceType, HashAlgorithm, HashType, Property, XsUri
     from cyclonedx.model.bom import Bom
     from cyclonedx.model.component import Component, ComponentType
     from cyclonedx.model.contact import OrganizationalContact
@@ -52,7 +54,19 @@ def render(facts: Facts) -> bytes:
             properties=props(assembly_properties(a)),
         )
 
-    bom = Bom(serial_number=facts.serial)
+    def provenance() -> list[ExternalReference]:
+        p = facts.provenance
+        if p is None:
+            return []
+        ref = ExternalReference(
+            type=ExternalReferenceType.ATTESTATION,
+            url=XsUri(p.url),
+            comment=PROVENANCE_COMMENT,
+            hashes=sha256(p.sha256),
+        )
+        return [ref]
+
+    bom = Bom(serial_number=facts.serial, external_references=provenance())
     bom.metadata.timestamp = facts.created
     bom.metadata.tools.components.add(
         Component(type=ComponentType.APPLICATION, name="hcdf-trust", version=__version__, bom_ref="tool/hcdf-trust")
@@ -90,6 +104,7 @@ def render(facts: Facts) -> bytes:
             bom_ref=f.ref,
             hashes=sha256(f.signature.file_sha256 if f.signature else None),
             properties=props(firmware_properties(f)),
+            external_references=provenance() if f.signature else None,
         )
     for d in facts.drivers:
         by_ref[d.ref] = Component(type=ComponentType.DEVICE_DRIVER, name=d.name, bom_ref=d.ref)

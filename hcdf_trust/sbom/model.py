@@ -122,6 +122,18 @@ class AssemblyFact:
 
 
 @dataclass(frozen=True)
+class ProvenanceRef:
+    """A release's signed build provenance (``provenance.intoto.json``), verified: where it
+    is published and its file SHA-256. Both writers list it as an external reference."""
+
+    url: str  # the release's base URL + the file name, else the file name (relative to the release)
+    sha256: str
+
+
+PROVENANCE_COMMENT = "build provenance: in-toto Statement v1, SLSA Provenance v1 predicate, DSSE envelope"
+
+
+@dataclass(frozen=True)
 class Facts:
     robot: AssemblyFact
     assemblies: tuple[AssemblyFact, ...]  # sub-assembly instances, by ref
@@ -134,6 +146,7 @@ class Facts:
     created: datetime
     release_sequence: int | None = None
     release_key_sha256: str | None = None
+    provenance: ProvenanceRef | None = None
     notices: tuple[Notice, ...] = ()
     bundle_sha256: str | None = None  # the .hcdfz the tree was read from (then also lock_sha256)
 
@@ -170,11 +183,13 @@ class ReleaseFacts:
     manifest_sha256: str
     components: dict[tuple[str, str], Any] = field(default_factory=dict)  # suit.Component
     source: str = ""
+    provenance: ProvenanceRef | None = None
 
 
 def read_release(folder: str, public_key_path: str) -> ReleaseFacts:
     """The release in ``folder``, verified as ``ota verify`` verifies it (signature with the
-    key, every image and ``latest.json``).
+    key, every image and ``latest.json``), and its ``provenance.intoto.json`` when there is
+    one, as ``ota verify --provenance`` does (with the key, threshold 1).
 
     Raises:
         HcdfTrustError / ErrorGroup: the release does not verify (exit 1) or cannot be read (exit 3).
@@ -189,6 +204,9 @@ def read_release(folder: str, public_key_path: str) -> ReleaseFacts:
     public = load_public(public_key_path)
     release, files = ota_release.read_release(folder, public)
     errors = check_release(release, files, public)
+    provenance = None
+    if not errors:
+        provenance, errors = _provenance(folder, release, public)
     if errors:
         raise ErrorGroup(errors)
     env = suit.parse_envelope(files.manifest, source=files.manifest_source)
@@ -203,7 +221,26 @@ def read_release(folder: str, public_key_path: str) -> ReleaseFacts:
         manifest_sha256=hashlib.sha256(files.manifest).hexdigest(),
         components={(c.board, c.app): c for c in release.components},
         source=files.manifest_source,
+        provenance=provenance,
     )
+
+
+def _provenance(folder: str, release: Any, public: Any) -> tuple[ProvenanceRef | None, list[Any]]:
+    """The release's provenance, verified, and where it is published (its statement's
+    ``baseUrl``, the one the images' URLs start with); (None, []) when there is none."""
+    from ..provenance import FILE_NAME, dsse
+    from ..provenance.verify import read_envelope, verify_provenance
+
+    data = read_envelope(folder)
+    if data is None:
+        return None, []
+    errors = verify_provenance(folder, release, [public], data=data)
+    if errors:
+        return None, errors
+    stmt = dsse.strict_json(dsse.parse(data, source=FILE_NAME).payload, source=FILE_NAME, what="statement")
+    base = stmt["predicate"]["buildDefinition"]["externalParameters"].get("baseUrl")  # verified: a dict
+    url = base.rstrip("/") + "/" + FILE_NAME if isinstance(base, str) and base else FILE_NAME
+    return ProvenanceRef(url=url, sha256=hashlib.sha256(data).hexdigest()), []
 
 
 def created_time() -> datetime:
@@ -264,7 +301,14 @@ class _Collector:
         root_url = res.root_location.url
         robot = self._assembly(root_url, res.root, _Instance(), "robot", None, root_sha, len(res.root.data))
         seed = hashlib.sha256()
-        for part in (fmt, lock_sha, root_sha, self.release.manifest_sha256 if self.release else ""):
+        provenance = self.release.provenance if self.release else None
+        for part in (
+            fmt,
+            lock_sha,
+            root_sha,
+            self.release.manifest_sha256 if self.release else "",
+            *((provenance.sha256,) if provenance else ()),
+        ):
             seed.update(part.encode() + b"\0")
         return Facts(
             robot=robot,
@@ -274,11 +318,12 @@ class _Collector:
             drivers=tuple(sorted(self.drivers.values(), key=lambda d: d.ref)),
             files=tuple(sorted(self.files.values(), key=lambda f: f.ref)),
             lock_sha256=lock_sha,
-            bundle_sha256=res.bundle[1] if res.bundle is not None else None,
+            bundle_sha256=res.bundle.archive.sha256 if res.bundle is not None else None,
             identity=seed.hexdigest(),
             created=created or created_time(),
             release_sequence=self.release.sequence_number if self.release else None,
             release_key_sha256=self.release.key_sha256 if self.release else None,
+            provenance=provenance,
             notices=tuple(self.notices),
         )
 

@@ -7,7 +7,9 @@ their SHA-256. Authors are ``originatedBy`` agents, licenses ``hasDeclaredLicens
 relationships to license expressions, the tree ``contains`` relationships
 (robot → sub-assembly → comp → firmware / driver / file; firmware → its manifest file).
 HCDF facts without an SPDX field are CycloneDX-style properties
-(``extension_CdxPropertiesExtension``), named as in the CycloneDX output.
+(``extension_CdxPropertiesExtension``), named as in the CycloneDX output. A release's
+verified provenance is a ``buildMeta`` external reference of the Sbom and of each firmware
+the release holds (ExternalRef has no hash: its SHA-256 is in the comment).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import re
 from typing import Any
 
 from .. import __version__
-from .model import Facts, assembly_properties, comp_properties, file_properties, firmware_properties
+from .model import PROVENANCE_COMMENT, Facts, assembly_properties, comp_properties, file_properties, firmware_properties
 
 _NOT_IN_IDSTRING = re.compile(r"[^A-Za-z0-9.-]+")
 
@@ -99,6 +101,14 @@ def render(facts: Facts) -> bytes:
             relationships.append((f"{a.ref}/license", a.ref, [declared(a.license)]))
     for c in facts.comps:
         package(c.ref, c.name, purpose.device, description=c.description, extension=extension(comp_properties(c)))
+
+    def provenance() -> list[Any]:
+        p = facts.provenance
+        if p is None:
+            return []
+        comment = f"{PROVENANCE_COMMENT}; SHA-256 {p.sha256}"
+        return [spdx.ExternalRef(externalRefType=spdx.ExternalRefType.buildMeta, locator=[p.url], comment=comment)]
+
     for f in facts.firmware:
         package(
             f.ref,
@@ -107,6 +117,7 @@ def render(facts: Facts) -> bytes:
             software_packageVersion=f.version,
             verifiedUsing=sha256(f.signature.file_sha256 if f.signature else None),
             extension=extension(firmware_properties(f)),
+            externalRef=provenance() if f.signature else [],
         )
     for d in facts.drivers:
         package(d.ref, d.name, purpose.deviceDriver)
@@ -144,6 +155,7 @@ def render(facts: Facts) -> bytes:
             element=elements,
             software_sbomType=[spdx.software_SbomType.design],
             creationInfo=info,
+            **_given(externalRef=provenance()),
         )
     )
     # The CycloneDX properties use the Extension profile's classes, but the profile is not listed:
