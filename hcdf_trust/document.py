@@ -47,7 +47,7 @@ from typing import Any, cast
 
 from lxml import etree
 
-from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, Notice, counted, redact
+from .errors import AmbiguousError, AmbiguousReferenceError, NotHcdfError, Notice, at_lines, counted, redact
 from .xml import parse_bytes, sourceline
 
 
@@ -255,9 +255,8 @@ class Document:
                 problems.sort(key=lambda e: e.line or 0)
                 first = problems[0]
                 if len(problems) > 1:  # one error per document: every consumer reports it the same way
-                    lines = ", ".join(str(e.line) for e in problems[1:11]) + (", ..." if len(problems) > 11 else "")
-                    more = len(problems) - 1
-                    first.message += f" (and {more} more at line{'s' if more > 1 else ''} {lines})"
+                    lines = at_lines([e.line for e in problems[1:11]]) + (", ..." if len(problems) > 11 else "")
+                    first.message += f" (and {len(problems) - 1} more at {lines})"
                     first.args = (first.message,)
                 raise first
             self._references = refs
@@ -611,12 +610,12 @@ def stream_profile_selection(doc: Document) -> StreamSelection:
         chosen = [r for r in group if r.selected or (not newer and r.element.get("active") is None)]
         selected += chosen
         if len(chosen) > 1:
-            lines = ", ".join(str(r.line) for r in chosen)
+            lines = at_lines([r.line for r in chosen])
             parent = chosen[0].element.getparent()
             where = f"<{parent.tag} name={parent.get('name')!r}>" if parent.tag == "network" else "this document"
             problems.append(
                 (
-                    f"{len(chosen)} stream profiles are selected in {where} (lines {lines}): a robot runs one at a "
+                    f"{len(chosen)} stream profiles are selected in {where} ({lines}): a robot runs one at a "
                     'time; mark one selection-role="default" (or active="true"), the others active="false"',
                     chosen[1].line,
                 )
@@ -720,12 +719,12 @@ def _what(child: etree._Element) -> str:
 def _twice(parent: etree._Element, found: list[etree._Element], source: str) -> AmbiguousError:
     tag = _local(found[0])
     lines = [sourceline(e) for e in found]
-    shown = " and ".join(str(n) for n in lines[:2]) + (f" (and {len(lines) - 2} more)" if len(lines) > 2 else "")
+    shown = at_lines(lines[:2], " and ") + (f" (and {len(lines) - 2} more)" if len(lines) > 2 else "")
     return AmbiguousError(
-        f"<{_local(parent)}> has {len(found)} <{tag}> elements, at lines {shown}: the schema allows one, "
+        f"<{_local(parent)}> has {len(found)} <{tag}> elements, at {shown}: the schema allows one, "
         "and one reader would take the first, another the last",
         file=source,
         line=lines[1],
         expected=f"one <{tag}>",
-        actual=f"{len(found)} <{tag}> elements (lines {shown})",
+        actual=f"{len(found)} <{tag}> elements ({shown})",
     )

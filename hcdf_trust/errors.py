@@ -141,6 +141,20 @@ class Pointer(int):
         return f"Pointer({int(self)}, {self.pointer!r})"
 
 
+def at_line(line: int | None) -> str:
+    """Where, inside a sentence: ``line 42`` for XML, the bare pointer (``/hcdf/comp/3``) for a
+    JSON document, whose :class:`Pointer` would otherwise print as ``line /hcdf/comp/3``."""
+    return str(line) if isinstance(line, Pointer) else f"line {line}"
+
+
+def at_lines(lines: list[int | None], joiner: str = ", ") -> str:
+    """:func:`at_line` of several places: ``lines 3, 7`` or ``/hcdf/comp/0, /hcdf/comp/1``."""
+    if len(lines) == 1:
+        return at_line(lines[0])
+    shown = joiner.join(str(n) for n in lines)
+    return shown if any(isinstance(n, Pointer) for n in lines) else f"lines {shown}"
+
+
 def json_locations(value: Any) -> Any:
     """``value`` (a ``--json`` payload) with every ``"line": Pointer`` written as
     ``"line": null, "pointer": "/hcdf/..."`` (json's encoder would print the integer)."""

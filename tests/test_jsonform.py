@@ -353,3 +353,91 @@ def test_ota_update_hcdf_refuses_to_edit_a_json_document():
         replace_text(doc, doc.root.find("comp/software/hash"), "cd" * 32)
     assert "does not edit in place" in exc.value.message and "hcdf-trust convert r.json r.hcdf" in exc.value.message
     assert str(exc.value.line) == "/hcdf/comp/software/hash"
+
+
+def test_no_message_about_a_json_robot_says_line_and_a_pointer(json_robot, cli):
+    """Messages that name a place inside a sentence (``at line 42``, ``(lines 3, 7)``) name a JSON
+    document's place by its bare pointer: never ``line /hcdf/...`` (errors.at_line)."""
+    r = cli("validate", json_robot / "robot.json")  # the note naming the selected stream profile
+    assert r.exit_code == 0 and "(/hcdf/network/stream-profile)" in r.stdout + r.stderr
+    assert "line /" not in r.stdout + r.stderr
+    assert cli("resolve", json_robot / "robot.json").exit_code == 0  # sbom reads the lock
+    value = json.loads((json_robot / "robot.json").read_text())
+    profile = value["hcdf"]["network"]["stream-profile"]
+    value["hcdf"]["network"]["stream-profile"] = [profile, dict(profile)]  # two selected: refused
+    (json_robot / "robot.json").write_text(json.dumps(value))
+    runs = {
+        verb: cli(*args)
+        for verb, args in {
+            "validate": ("validate", json_robot / "robot.json"),
+            "audit": ("audit", json_robot / "robot.json", "--json"),
+            "sbom": ("sbom", json_robot / "robot.json", "--format", "spdx", "-o", json_robot / "bom.json"),
+        }.items()
+    }
+    for verb, r in runs.items():
+        out = r.stdout + r.stderr
+        assert r.exit_code != 0, (verb, out)
+        assert "/hcdf/network/stream-profile/0, /hcdf/network/stream-profile/1" in out, (verb, out)
+        assert "line /" not in out and "lines /" not in out, (verb, out)
+
+
+def test_at_line_names_an_xml_line_or_a_bare_pointer():
+    from hcdf_trust.errors import at_line, at_lines
+
+    assert at_line(42) == "line 42" and at_line(Pointer(3, "/hcdf/comp/2")) == "/hcdf/comp/2"
+    assert at_lines([3, 7]) == "lines 3, 7" and at_lines([7]) == "line 7"
+    assert at_lines([Pointer(1, "/a/0"), Pointer(2, "/a/1")]) == "/a/0, /a/1"
+
+
+def test_the_key_store_records_a_json_documents_pointer(json_robot, cli):
+    """The key store (a JSON file, not ``--json``) names where each association is described:
+    for a JSON robot its pointer, as a string, never the element's index in document order."""
+    from hcdf_trust.macsec.backends import PassphraseWrapper
+    from hcdf_trust.macsec.store import STORE_NAME, KeyStore
+
+    assert cli("resolve", json_robot / "robot.json").exit_code == 0
+    (json_robot / "pass").write_bytes(b"correct horse battery staple\n")
+    store = json_robot / "keys-out"
+    r = cli(
+        "macsec",
+        "generate",
+        json_robot / "robot.json",
+        "--store",
+        store,
+        "--passphrase-file",
+        json_robot / "pass",
+        "--now",
+        "2026-01-01T00:00:00Z",
+    )
+    assert r.exit_code == 0, r.stderr
+    sources = [json.loads(line)[1]["source"] for line in (store / STORE_NAME).read_text().splitlines()[1:]]
+    ours = [s for s in sources if s["file"].endswith("robot.json")]
+    assert ours and all(s["line"] is None and s["pointer"].startswith("/hcdf/network/") for s in ours), sources
+    opened = KeyStore.open(store, PassphraseWrapper(b"correct horse battery staple"))
+    read = {str(e.source_line) for e in opened.entries.values() if e.source_file.endswith("robot.json")}
+    assert read == {s["pointer"] for s in ours}
+
+
+def test_sbom_properties_name_a_json_documents_pointer(json_robot, cli):
+    """hcdf:file is ``robot.json:/hcdf/comp`` (``path:line`` for XML) and hcdf:include-line the
+    include's pointer, in both formats, which still pass their official validators."""
+    import re
+
+    from tests._sbom import cdx_components, cdx_props, spdx_graph, spdx_props, validate_cyclonedx, validate_spdx
+
+    assert cli("resolve", json_robot / "robot.json").exit_code == 0
+    for fmt in ("cyclonedx", "spdx"):
+        out = json_robot / f"bom.{fmt}.json"
+        r = cli("sbom", json_robot / "robot.json", "--format", fmt, "-o", out)
+        assert r.exit_code == 0, r.stderr
+        if fmt == "cyclonedx":
+            validate_cyclonedx(out.read_text())
+            props = [cdx_props(c) for c in cdx_components(json.loads(out.read_text())).values()]
+        else:
+            validate_spdx(out.read_bytes())
+            props = [spdx_props(e) for e in spdx_graph(out.read_bytes())[0].values()]
+        files = {p["hcdf:file"] for p in props if "hcdf:file" in p}
+        assert "robot.json:/hcdf/comp" in files, files
+        assert not any(re.fullmatch(r"robot\.json:\d+", f) for f in files), files
+        includes = {p["hcdf:include-line"] for p in props if "hcdf:include-line" in p}
+        assert includes and all(i.startswith("/hcdf/include/") for i in includes), includes

@@ -11,7 +11,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from ..errors import AmbiguousError, HcdfTrustError
+from ..errors import AmbiguousError, HcdfTrustError, at_line
 from ..include.flatten import SEPARATOR
 from ..include.resolver import Resolution
 from ..macsec.plan import Element, Plan, plan_resolution
@@ -127,7 +127,7 @@ def _control_networks(res: Resolution) -> dict[tuple[str, str], str]:
                 if pcp.isdigit() and int(pcp) >= CONTROL_PCP:
                     tc = pcp_el.getparent()
                     name_tc = tc.get("name") if tc is not None else "?"
-                    why = f"traffic class {name_tc!r} pcp {pcp} at line {sourceline(pcp_el)}"
+                    why = f"traffic class {name_tc!r} pcp {pcp} at {at_line(sourceline(pcp_el))}"
                     break
             if why:
                 out[(doc.source, name)] = why
@@ -140,7 +140,7 @@ def _control_networks(res: Resolution) -> dict[tuple[str, str], str]:
             for vlan in net.iter("vlan"):
                 pcp = (vlan.get("pcp") or "").strip()
                 if pcp.isdigit() and int(pcp) >= CONTROL_PCP:
-                    why = f"VLAN {vlan.get('id')} pcp {pcp} at line {sourceline(vlan)}"
+                    why = f"VLAN {vlan.get('id')} pcp {pcp} at {at_line(sourceline(vlan))}"
                     break
             if why:
                 out[(doc.source, name)] = why

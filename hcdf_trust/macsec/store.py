@@ -7,7 +7,7 @@ association, sorted by CA id::
     {"mac":HEX,"format":"hcdf-trust-macsec-store","robot":NAME,"store_id":HEX,"version":2,
      "wrap":{"method":"scrypt" | "pkcs11" | "tpm",...}}        # the wrapped 256-bit data key
     [CA_ID,{"cipher","generations":[{"activation","ciphertext","ckn","created","expiry",
-            "generation","nonce","state"}],"key_bytes","kind","source":{"file","line"}}]
+            "generation","nonce","state"}],"key_bytes","kind","source":{"file","line"[,"pointer"]}}]
     ...
 
 Opening reads the header and indexes the lines by CA id; an association's line is parsed
@@ -56,7 +56,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError, IntegrityError
+from ..errors import InputError, IntegrityError, Pointer, json_locations
 from ..flock import flock
 from ..localfile import JsonError, parse_json, read_input
 from ..outputs import KEY_STORE, OutputPlan, sweep_folder
@@ -550,7 +550,7 @@ class KeyStore:
                 "kind": e.kind,
                 "cipher": e.cipher,
                 "key_bytes": e.key_bytes,
-                "source": {"file": e.source_file, "line": e.source_line},
+                "source": json_locations({"file": e.source_file, "line": e.source_line}),
                 "generations": [g.to_json(now) for g in e.generations],
             }
             lines.append(encode([e.ca_id, entry]))
@@ -646,6 +646,15 @@ def _line(ca_id: str, line: str, source: str) -> Any:
     return item[1]
 
 
+def _source_line(line: Any, pointer: Any) -> int | None:
+    """Where the association is described: a line (XML), or the JSON Pointer a JSON document's
+    element was written at (``"line": null, "pointer": "/hcdf/..."``, as ``--json`` writes it).
+    The store keeps no document order: the Pointer is 1, so that it is set and prints."""
+    if type(line) is int:
+        return line
+    return Pointer(1, pointer) if isinstance(pointer, str) and pointer.startswith("/") else None
+
+
 def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:
     where = f"association {ca_id!r}"
     if not isinstance(raw, dict) or not isinstance(raw.get("generations"), list):
@@ -686,6 +695,6 @@ def _entry(ca_id: str, raw: Any, *, source: str) -> Entry:
         cipher=raw.get("cipher") if isinstance(raw.get("cipher"), str) else None,
         key_bytes=key_bytes,
         source_file=str(src.get("file")),
-        source_line=line if type(line) is int else None,
+        source_line=_source_line(line, src.get("pointer")),
         generations=gens,
     )

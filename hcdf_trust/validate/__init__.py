@@ -33,6 +33,7 @@ from ..document import (
     require_root,
     stream_profile_selection,
 )
+from ..errors import at_line
 from ..include.locate import display_path
 from ..include.resolver import TreeOptions, link_stub_target
 from ..localfile import absolute
@@ -114,7 +115,7 @@ def validate_document(
             findings.append(Finding(STREAM_SELECTION, "error", text, file=source, line=line))
         if len(streams.selected) == 1:
             chosen = streams.selected[0]
-            report.notes.append(f"selected stream profile: {chosen.uri} (line {chosen.line})")
+            report.notes.append(f"selected stream profile: {chosen.uri} ({at_line(chosen.line)})")
 
     source_of_schema = _schema_source(schema)
     if source_of_schema is not None:

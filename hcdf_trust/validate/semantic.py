@@ -24,6 +24,7 @@ from typing import NamedTuple
 from lxml import etree
 
 from ..document import single
+from ..errors import at_line
 from ..include.flatten import SEPARATOR
 from ..include.locate import redact
 from ..xml import sourceline
@@ -280,7 +281,7 @@ class _Checker:
                 self.add(
                     "duplicate-name",
                     "error",
-                    f"{what} {name!r} is defined twice (first at line {sourceline(table[name])}); "
+                    f"{what} {name!r} is defined twice (first at {at_line(sourceline(table[name]))}); "
                     "references to it are ambiguous",
                     el,
                 )
@@ -338,7 +339,7 @@ class _Checker:
             self.add(code, "error", message, el)
             return
         _, uri, file, line = unread
-        where = f"line {line}" if file == self.source else f"{file}:{line}"
+        where = at_line(line) if file == self.source else f"{file}:{line}"
         self.add(
             code,
             "warning",
@@ -822,9 +823,9 @@ class _Checker:
                 cipher, policy = m.get("cipher", DEFAULT_CIPHER), m.get("policy")
                 diffs = []
                 if cipher != first_cipher:
-                    diffs.append(f"cipher {cipher} here, {first_cipher} at line {sourceline(first)}")
+                    diffs.append(f"cipher {cipher} here, {first_cipher} at {at_line(sourceline(first))}")
                 if policy != first_policy:
-                    diffs.append(f"policy {policy} here, {first_policy} at line {sourceline(first)}")
+                    diffs.append(f"policy {policy} here, {first_policy} at {at_line(sourceline(first))}")
                 if diffs:
                     self.add(
                         "macsec-key-ref-conflict",
