@@ -53,10 +53,15 @@ _CENTRAL = struct.Struct("<IHHHHHHIIIHHHHHII")  # 46 bytes
 _EOCD = struct.Struct("<IHHHHIIH")  # 22 bytes
 _SIG_LOCAL, _SIG_CENTRAL, _SIG_EOCD = 0x04034B50, 0x02014B50, 0x06054B50
 _VERSION = 20  # 2.0: what upstream writes as "version made by" (MS-DOS host) and "needed"
+_MODE_REFUSED = 0o7022  # setuid, setgid, sticky, group- or world-writable: never on a verified file
 _UTF8_FLAG = 0x800  # general purpose bit 11: the name is UTF-8 (other writers set it)
 _DRIVE = re.compile(r"[A-Za-z]:")
 _ADDRESSED = re.compile(r"_([0-9a-f]{12,64})(?:\.[^./]*)?\Z")  # <stem>_<hex>[.<ext>]
 _UNSAFE_STEM = re.compile(r"[^0-9A-Za-z._-]")
+# Every name the writer writes: the root at the top, every other file one level under assets/,
+# in safe_stem's ASCII alphabet. Anything else (a subfolder, ':' an NTFS stream, a fullwidth dot
+# that Windows' best-fit maps to '.', names equal but for Unicode normalization) is refused.
+_WRITTEN_NAME = re.compile(r"(?:assets/)?[0-9A-Za-z._-]+")
 
 
 class BundleFormatError(InputError):
@@ -182,8 +187,9 @@ def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = 
     1. the end record is the last 22 bytes (no comment), one disk, no ZIP64;
     2. the central directory ends where the end record starts, and holds at most ``max_entries``;
     3. each entry is a regular file (no directory, symlink or device in its external attributes),
-       stored (method 0), unencrypted, sizes equal, no extra field or comment, a safe name that is
-       not a duplicate (also ignoring case: one file on a case-insensitive disk);
+       stored (method 0), unencrypted, sizes equal, no extra field or comment, a name the writer
+       writes (``<root>.hcdf`` or ``assets/<[0-9A-Za-z._-]+>``) that is not a duplicate (also
+       ignoring case: one file on a case-insensitive disk);
     4. entries lie back to back from byte 0 to the central directory, in central-directory order:
        nothing before, between, after or shared, so the bytes read are exactly the file's bytes;
     5. each local header repeats its central record (name, method, flags, CRC, sizes, time);
@@ -274,6 +280,14 @@ def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = 
         if pos > cd_offset + cd_size:
             raise bad(f"central directory record {index + 1} runs past the central directory", entry=name)
         _check_name(name, bad)
+        if not _WRITTEN_NAME.fullmatch(name):
+            raise bad(
+                "is not a name the writer writes (ASCII only: names equal but for case or Unicode"
+                " normalization, a subfolder, an NTFS stream or a Windows device would alias or extract elsewhere)",
+                entry=name,
+                expected=f"<root>.hcdf or {ASSETS}/<[0-9A-Za-z._-]+>",
+                actual=name,
+            )
         folded = name.casefold()
         if folded in seen:
             what = "a duplicate name" if seen[folded] == name else f"the same name as {seen[folded]!r} but for case"
@@ -282,6 +296,22 @@ def check_structure(data: memoryview | bytes, *, shown: str, max_entries: int = 
         kind = _special(made_by, external)
         if kind is not None:
             raise bad(f"is {kind}, not a regular file (external attributes {external:#010x})", entry=name)
+        if needed > _VERSION:
+            raise bad(
+                f"needs ZIP version {needed // 10}.{needed % 10} to extract (a reader older than that skips it)",
+                entry=name,
+                expected=f"at most {_VERSION // 10}.{_VERSION % 10}",
+                actual=f"{needed // 10}.{needed % 10}",
+            )
+        mode = _unix_mode(made_by, external)
+        if mode & _MODE_REFUSED:
+            raise bad(
+                f"has Unix mode {mode:04o}: setuid, setgid, sticky or writable by group or others"
+                " (unzip restores it on the verified file)",
+                entry=name,
+                expected="no mode, or one without 7022 (as 0644 or 0755)",
+                actual=f"{mode:04o}",
+            )
         if method != 0:
             raise bad(
                 "is compressed: every bundle entry is ZIP_STORED",
@@ -401,6 +431,11 @@ def _check_name(name: str, bad: _Bad) -> None:
         raise bad("has an empty, '.' or '..' segment (it escapes or aliases another path)", entry=name)
 
 
+def _unix_mode(made_by: int, external: int) -> int:
+    """The permission bits an extractor restores (Unix host only; the writer records none)."""
+    return (external >> 16) & 0o7777 if made_by >> 8 == 3 else 0
+
+
 def _special(made_by: int, external: int) -> str | None:
     """What a non-regular entry is, from its external attributes (None for a regular file)."""
     host = made_by >> 8
@@ -495,7 +530,8 @@ def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityE
     """The bundle's own rules, once the walker has read what the document references (pure).
 
     Every entry but the root is referenced, lies under ``assets/`` and is content-addressed
-    (``<stem>_<hex>.<ext>``, the hex a prefix of its SHA-256), and the document has no
+    (``<stem>_<hex>.<ext>``, the hex a prefix of its SHA-256), every pin is full (there is no
+    lock to complete a prefix), and the document has no
     ``<include>`` (a bundle is flat). The pins themselves are the walker's (a digest mismatch).
     """
     errors: list[BundleIntegrityError] = []
@@ -528,6 +564,18 @@ def check_contents(res: Resolution, files: BundleFiles) -> list[BundleIntegrityE
                     line=use.ref.line,
                     expected=f"{ASSETS}/<name>_<sha256 prefix>.<ext>",
                     actual=name,
+                )
+            )
+        elif art.pin_status == "weak":  # no lock completes it: the writer writes full pins only
+            pin = next(u.pin for u in art.uses if u.pin is not None)
+            errors.append(
+                BundleIntegrityError(
+                    f"{archive.path}: entry {name!r} is pinned by {len(pin.hex)} hex digits: a bundle has no lock,"
+                    " every pin in it is a full sha256",
+                    file=use.doc,
+                    line=use.ref.line,
+                    expected="sha256:<64 hex digits>",
+                    actual=f"sha256:{pin.hex}",
                 )
             )
         elif not art.sha256.startswith(m.group(1)):
@@ -628,6 +676,7 @@ def asset_name(source: str, sha256: str, *, full: bool, default_ext: str = "") -
         stem, ext = base, default_ext
     hexpart = sha256 if full else sha256[:SHORT_SHA]
     name = f"{safe_stem(stem, 'file')}_{hexpart}"
+    ext = _UNSAFE_STEM.sub("_", ext)  # the reader accepts only safe_stem's alphabet (_WRITTEN_NAME)
     return f"{ASSETS}/{name}.{ext}" if ext else f"{ASSETS}/{name}"
 
 

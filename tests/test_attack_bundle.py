@@ -296,29 +296,19 @@ def test_the_writer_refuses_a_bundle_its_reader_would_refuse(cli, robot, tmp_pat
 # --- names and header fields the writer never writes ----------------------------------------------
 # The writer names every asset ``assets/<[0-9A-Za-z._-]+>`` (safe_stem) and writes every header field
 # as upstream does (version 2.0, MS-DOS host, no attributes, time 0). The reader's docstring promises
-# it "accepts exactly the archives the writer writes"; these archives verify (exit 0) and are not.
-
-_NAME_HOLE = (
-    "the reader accepts an entry name the writer never writes and that extracts elsewhere or not at all on "
-    "another system; refuse names outside the writer's alphabet (assets/[0-9A-Za-z._-]+)"
-)
+# it "accepts exactly the archives the writer writes": a name outside that alphabet is refused (exit 3).
 
 
 @pytest.mark.parametrize(
     "name",
     [
         # NTFS: 'chassis' with an alternate data stream 'x_14662db9eb3d.glb' (the file itself is empty)
-        pytest.param("assets/chassis:x_14662db9eb3d.glb", id="ntfs-stream", marks=pytest.mark.xfail(
-            strict=True, reason=_NAME_HOLE)),
+        pytest.param("assets/chassis:x_14662db9eb3d.glb", id="ntfs-stream"),
         # Windows: a folder named after a device cannot be created
-        pytest.param("assets/con/chassis_14662db9eb3d.glb", id="windows-device", marks=pytest.mark.xfail(
-            strict=True, reason=_NAME_HOLE)),
+        pytest.param("assets/con/chassis_14662db9eb3d.glb", id="windows-device"),
         # Windows' best-fit mapping turns U+FF0E into '.' for an ANSI extractor: '../chassis...' ("WorstFit")
-        pytest.param("assets/\uff0e\uff0e/chassis_14662db9eb3d.glb", id="fullwidth-dot-dot", marks=pytest.mark.xfail(
-            strict=True, reason=_NAME_HOLE)),
-        pytest.param("assets/sub/chassis_14662db9eb3d.glb", id="subfolder", marks=pytest.mark.xfail(
-            strict=True, reason=_NAME_HOLE)),
-        # refused today, kept as regressions
+        pytest.param("assets/\uff0e\uff0e/chassis_14662db9eb3d.glb", id="fullwidth-dot-dot"),
+        pytest.param("assets/sub/chassis_14662db9eb3d.glb", id="subfolder"),
         pytest.param("assets/chassis\u0085_14662db9eb3d.glb", id="c1-control"),
         pytest.param("assets/chassis\u202e_14662db9eb3d.glb", id="bidi-override"),
         pytest.param("assets/chassis_14662db9eb3d.glb.", id="trailing-dot"),
@@ -330,12 +320,16 @@ def test_a_name_the_writer_never_writes_is_refused(cli, pristine, tmp_path, name
     assert r.json["errors"], r.stdout
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="two entry names equal under Unicode normalization (NFC 'café' and NFD 'cafe\\u0301') are accepted "
-    "although names equal but for case are refused: on macOS (APFS/HFS+) they are one file, and with a 48-bit "
-    "name hash a birthday search (~2^24 hashes) finds two contents to put there",
-)
+def test_the_writer_names_every_asset_in_the_alphabet_its_reader_accepts():
+    """The extension was kept as found (``m.gl b``): the reader would refuse the writer's own bundle."""
+    from hcdf_trust.bundle import _WRITTEN_NAME, asset_name
+
+    sha = hashlib.sha256(b"x").hexdigest()
+    for source in ("dir/m.gl b", "caf\u00e9.st\uff0el", "m.a:b", "con"):
+        name = asset_name(source, sha, full=False)
+        assert _WRITTEN_NAME.fullmatch(name), name
+
+
 def test_names_equal_but_for_unicode_normalization_are_refused_as_case_duplicates_are(cli, pristine, tmp_path):
     nfc = "assets/caf\u00e9_14662db9eb3d.glb"
     nfd = unicodedata.normalize("NFD", nfc)
@@ -364,11 +358,6 @@ def test_names_equal_but_for_unicode_normalization_are_refused_as_case_duplicate
         pytest.param({"needed": 63}, "skipping", id="version-needed-6.3"),
     ],
 )
-@pytest.mark.xfail(
-    strict=True,
-    reason="header fields the writer never writes (Unix modes, a later 'version needed') are accepted; "
-    "unzip then extracts the verified file world-writable, or skips it",
-)
 def test_header_fields_the_writer_never_writes_are_refused(cli, pristine, tmp_path, fields, oracle):
     zs = [replace(z, **fields) if z.name == CHASSIS else z for z in _zs(pristine)]
     data = _archive(zs)
@@ -388,11 +377,6 @@ def test_header_fields_the_writer_never_writes_are_refused(cli, pristine, tmp_pa
 # --- the bundle is its own lock: pins must be full ------------------------------------------------
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a bundle's reference pinned by a 32-bit prefix (sha256:14662db9) verifies with exit 0 and a "
-    "warning: a bundle has no lock to complete the pin, and the writer only writes full pins",
-)
 def test_a_weak_pin_in_a_bundle_is_refused(cli, pristine, tmp_path):
     full = hashlib.sha256(dict(pristine)[CHASSIS]).hexdigest()
     root = _root(pristine).replace(f"sha256:{full}".encode(), f"sha256:{full[:8]}".encode())
