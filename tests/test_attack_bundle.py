@@ -474,11 +474,6 @@ def test_a_symlink_to_a_bundle_is_read_as_the_bundle(cli, pristine, tmp_path):
     assert cli("verify", tmp_path / "link.hcdfz").exit_code == 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="`bundle X.hcdfz Y.hcdfz` resolves the bundle and then reads its assets as files: exit 3 "
-    "'X.hcdfz/assets/chassis_14662db9eb3d.glb: cannot open: Not a directory' (an internal path, no reason given)",
-)
 def test_bundling_a_bundle_gives_the_same_bytes_or_says_why_not(cli, pristine, tmp_path):
     src = tmp_path / "src.hcdfz"
     src.write_bytes(_archive(_zs(pristine)))

@@ -99,6 +99,11 @@ def write(
 
     if not is_bundle(out):
         raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="OUT")
+    if is_bundle(doc):  # its assets are entries, not files: flatten/build read a tree
+        raise click.BadParameter(
+            f"{doc} is already a bundle: check it with `hcdf-trust verify {doc}`, or copy it as it is",
+            param_hint="DOC",
+        )
     if provenance and key is None:
         raise click.UsageError("--provenance needs --key (the key that signs it)")
     if not provenance and (key or passphrase_file or pin_file or builder_id):
