@@ -680,12 +680,6 @@ def test_every_verb_refuses_a_bundle_breaking_its_content_rules(cli, robot, pris
     assert "hostile.hcdfz" in r.stderr
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="audit reports a bundle as not-locked ('no lock file (X.hcdfz/scout2.hcdf.lock)', a path inside the "
-    "archive) although a bundle is its own lock: under a policy that makes not-locked an error, the bundle "
-    "fails where its tree passes",
-)
 def test_audit_does_not_ask_a_bundle_for_a_lock_file(cli, robot, tmp_path):
     policy = tmp_path / "policy.toml"
     policy.write_text(

@@ -38,6 +38,10 @@ def check(report: Report, res: Resolution, lock: lockfile.Lock | None) -> None:
                     file=use.doc,
                     line=use.ref.line,
                 )
+    if res.bundle is not None:  # a bundle is its own lock: every pin in it is full, or an error
+        for error in res.errors:
+            report.add_error(error)
+        return
     _lock(report, res, lock)
     for error in res.errors:
         if not isinstance(error, LockDriftError | UnpinnedError):  # the lock is compared below, once
