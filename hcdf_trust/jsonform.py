@@ -20,7 +20,8 @@ What the JSON form cannot say, and what is done about it (docs/json-form.md):
 - numbers keep their literal here (``1.0`` stays ``1.0``, ``0.0450`` stays ``0.0450``): the
   strict reader hands over the text of each number, never a float. Other JSON readers lose
   trailing zeros and ``1.0`` vs ``1``; so where the schema wants a string (a version, a name)
-  a number is accepted only when every reader writes it back the same (``1.0``, ``2``), and
+  a number is accepted only when every reader writes it back the same (``1.0``, ``2``), the
+  root's ``version`` (which selects the schema) included, and
   a ``uri``, ``href``, ``sha``, ``<hash>`` or ``<firmware-manifest-uri>`` must be a string;
 - comments, processing instructions and whitespace between elements are dropped (XML -> JSON);
 - the order between differently named siblings (``<a/><b/><a/>`` becomes ``a: [..], b: ..``):
@@ -269,6 +270,15 @@ def read(data: bytes, *, source: str) -> JsonDocument:
         )
     body = doc[ROOT]
     version = body.get("version") if isinstance(body, dict) else None
+    if isinstance(version, Number) and not _canonical_number(version):  # it picks the schema: read it alike
+        raise JsonFormError(
+            f"the root's version is the number {version}, which JSON readers read differently "
+            f"(as {_float_text(version)}), and it selects the schema: write it as a string",
+            file=source,
+            line=Pointer(1, f"/{ROOT}/version"),
+            expected=f'"{version}"',
+            actual=str(version),
+        )
     form = form_for(str(version) if isinstance(version, (str, Number)) else None, source=source)
     builder = _Builder(form, source)
     root = builder.element(None, ROOT, body, form.xsd.elements.get(ROOT), "/" + ROOT, root=True)
