@@ -20,7 +20,8 @@ What the JSON form cannot say, and what is done about it (docs/json-form.md):
 - numbers keep their literal here (``1.0`` stays ``1.0``, ``0.0450`` stays ``0.0450``): the
   strict reader hands over the text of each number, never a float. Other JSON readers lose
   trailing zeros and ``1.0`` vs ``1``; so where the schema wants a string (a version, a name)
-  a number is accepted only when every reader writes it back the same (``1.0``, ``2``), and
+  a number is accepted only when every reader writes it back the same (``1.0``, ``2``), the
+  root's ``version`` (which selects the schema) included, and
   a ``uri``, ``href``, ``sha``, ``<hash>`` or ``<firmware-manifest-uri>`` must be a string;
 - comments, processing instructions and whitespace between elements are dropped (XML -> JSON);
 - the order between differently named siblings (``<a/><b/><a/>`` becomes ``a: [..], b: ..``):
@@ -45,7 +46,7 @@ from lxml import etree
 from .errors import InputError, Pointer
 from .localfile import JsonNumber as Number
 from .localfile import absolute, open_local, parse_json, read_bounded
-from .xml import MAX_DOCUMENT_BYTES, LocationTable
+from .xml import MAX_DOCUMENT_BYTES, MAX_ELEMENTS, LocationTable
 
 TEXT = "$text"
 ROOT = "hcdf"
@@ -259,7 +260,9 @@ def read(data: bytes, *, source: str) -> JsonDocument:
         JsonFormError: not HCDF's shape, or a key or value the converter would have to drop
             or guess (named by JSON Pointer).
     """
-    doc = parse_json(data, source=source, what="HCDF JSON document", limit=MAX_DOCUMENT_BYTES, exact=True)
+    doc = parse_json(  # every element but a scalar one is an object: a flood of {} stops mid-parse
+        data, source=source, what="HCDF JSON document", limit=MAX_DOCUMENT_BYTES, exact=True, max_objects=MAX_ELEMENTS
+    )
     if not isinstance(doc, dict) or list(doc) != [ROOT]:
         keys = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
         raise JsonFormError(
@@ -267,12 +270,42 @@ def read(data: bytes, *, source: str) -> JsonDocument:
             file=source,
             expected=f'{{"{ROOT}": {{...}}}}',
         )
+    if _elements_at_least(doc) > MAX_ELEMENTS:  # a flood of "" in a list, before any is built
+        raise JsonFormError(
+            f"more than {MAX_ELEMENTS:,} elements: over the cap on a JSON document's elements",
+            file=source,
+            expected=f"at most {MAX_ELEMENTS:,} elements",
+        )
     body = doc[ROOT]
     version = body.get("version") if isinstance(body, dict) else None
+    if isinstance(version, Number) and not _canonical_number(version):  # it picks the schema: read it alike
+        raise JsonFormError(
+            f"the root's version is the number {version}, which JSON readers read differently "
+            f"(as {_float_text(version)}), and it selects the schema: write it as a string",
+            file=source,
+            line=Pointer(1, f"/{ROOT}/version"),
+            expected=f'"{version}"',
+            actual=str(version),
+        )
     form = form_for(str(version) if isinstance(version, (str, Number)) else None, source=source)
     builder = _Builder(form, source)
     root = builder.element(None, ROOT, body, form.xsd.elements.get(ROOT), "/" + ROOT, root=True)
     return JsonDocument(root.getroottree(), builder.table, form)
+
+
+def _elements_at_least(doc: Any) -> int:
+    """How many elements ``doc`` builds at least: every list item, every object not in a list.
+
+    One level at a time in C-speed comprehensions, as localfile's depth check walks.
+    """
+    count = 0
+    level = [doc]
+    while level:
+        lists = [v for node in level if type(node) is dict for v in node.values() if type(v) is list]
+        objects = [v for node in level if type(node) is dict for v in node.values() if type(v) is dict]
+        count += len(objects) + sum(map(len, lists))
+        level = objects + [v for items in lists for v in items if type(v) is dict or type(v) is list]
+    return count
 
 
 class _Builder:
@@ -290,8 +323,14 @@ class _Builder:
     ) -> etree._Element:
         if not _NCNAME.fullmatch(name):
             raise self.fail(pointer, f"key {name!r} cannot be an XML element name")
-        el = etree.Element(name) if parent is None else etree.SubElement(parent, name)
         self.count += 1
+        if self.count > MAX_ELEMENTS:  # scalar elements too (a list of strings)
+            raise self.fail(
+                pointer,
+                f"more than {MAX_ELEMENTS:,} elements: over the cap on a JSON document's elements",
+                expected=f"at most {MAX_ELEMENTS:,} elements",
+            )
+        el = etree.Element(name) if parent is None else etree.SubElement(parent, name)
         self.table.add(el, Pointer(self.count, pointer))
         content = self.form.content(decl)
         if isinstance(value, dict):

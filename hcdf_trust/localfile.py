@@ -529,7 +529,14 @@ class _Duplicated(dict):  # type: ignore[type-arg]
 
 
 def parse_json(
-    data: bytes, *, source: str, what: str = "document", limit: int, floats: bool = True, exact: bool = False
+    data: bytes,
+    *,
+    source: str,
+    what: str = "document",
+    limit: int,
+    floats: bool = True,
+    exact: bool = False,
+    max_objects: int | None = None,
 ) -> Any:
     """``data`` as JSON, read so that every reader sees the same values as every other parser.
 
@@ -539,7 +546,8 @@ def parse_json(
     UTF-16 input and nesting deep enough to exhaust the stack. All are refused here, with
     a JSON Pointer or line naming where; ``floats=False`` refuses non-integer numbers too.
     ``exact=True`` gives every number as its literal (a :class:`JsonNumber`, a str): HCDF's
-    JSON form keeps ``1.0`` and ``0.0450`` as written.
+    JSON form keeps ``1.0`` and ``0.0450`` as written. ``max_objects`` stops the parse at the
+    first object over it: ~100 bytes of memory each, a 32 MiB flood of ``{}`` would be ~8M.
 
     Raises:
         JsonError: over ``limit`` bytes, not UTF-8, not JSON, or any ambiguity above.
@@ -569,9 +577,17 @@ def parse_json(
         raise JsonError(f"{what}: {token} is not a JSON number", file=source)
 
     duplicated = False
+    objects = 0
 
     def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        nonlocal duplicated
+        nonlocal duplicated, objects
+        objects += 1
+        if max_objects is not None and objects > max_objects:
+            raise JsonError(
+                f"{what} has more than {max_objects:,} objects: over the cap on elements",
+                file=source,
+                expected=f"at most {max_objects:,} objects",
+            )
         out = dict(items)
         if len(out) == len(items):
             return out

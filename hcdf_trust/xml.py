@@ -20,6 +20,10 @@ from .errors import Pointer, XmlError
 # and keeps lxml's ~13x memory blow-up (notes/env.md §3) under half a gigabyte.
 MAX_DOCUMENT_BYTES = 32 << 20
 MAX_DEPTH = 200
+#: The most elements a flattened tree (``flatten``/``bundle``, unless ``--max-elements``
+#: raises it) or one JSON-form document may have: the JSON form costs ~15x its XML per
+#: element while it is built, so it is capped while read (docs/json-form.md).
+MAX_ELEMENTS = 250_000
 
 
 class _ExternalLoadRefused(Exception):

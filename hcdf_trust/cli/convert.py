@@ -34,6 +34,11 @@ def convert(source: str, dest: str, as_json: bool) -> None:
     from ..outputs import DOCUMENT, ORDINARY, OutputPlan
     from ..validate.includes import read_local
 
+    if is_bundle(source):  # a ZIP of many documents: read as XML it would only be "malformed XML"
+        raise click.UsageError(
+            f"{source}: a bundle (.hcdfz) holds a whole tree, and convert converts one document: convert the "
+            "root document the bundle was written from; resolve, validate and verify read the bundle as it is"
+        )
     if is_bundle(dest):  # every verb would read it as a ZIP: bundles are written by `bundle`
         raise click.UsageError(
             f"{dest}: a converted document is XML or JSON, not a bundle (hcdf-trust bundle writes those)"

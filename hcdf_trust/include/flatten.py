@@ -114,7 +114,7 @@ from lxml import etree
 from ..document import URI_ATTRS, Document, Kind
 from ..errors import FlattenError, counted
 from ..localfile import absolute
-from ..xml import sourceline
+from ..xml import MAX_ELEMENTS, sourceline
 from .locate import _normalise, display_path, file_url
 from .resolver import Resolution, display_url
 
@@ -132,7 +132,7 @@ __all__ = [
 SEPARATOR = "_"
 #: The most elements a flattened document may have unless ``--max-elements`` raises it.
 #: About 20 MB of output, 360 MB of memory and 5 s here; the published humanoid has about 2,000.
-DEFAULT_MAX_ELEMENTS = 250_000
+DEFAULT_MAX_ELEMENTS = MAX_ELEMENTS
 
 #: Names defined at document level, in the schema's order of <hcdf> children.
 DOCUMENT_KINDS = ("comp", "joint", "group", "state", "network", "transmission", "material")
