@@ -155,6 +155,32 @@ def test_dependencies_must_be_the_bundles_assets(cli, setup, tmp_path):
     assert "not a dependency of its provenance" in r.stderr
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("buildType", "https://hcdf.cognipilot.org/hcdf-trust/buildtypes/ota-build/v1", "buildType is not a bundle's"),
+        ("externalParameters", {"root": "robot.hcdf", "bundle": "scout2.hcdfz", "extra": "x"}, "unexpected"),
+    ],
+)
+def test_a_statement_of_another_build_type_is_refused(cli, setup, tmp_path, field, value, message):
+    """Signed by the right key over the right subject, but a release's build type, or a
+    parameter a bundle build never sets (SLSA: refuse unexpected externalParameters)."""
+    from hcdf_trust.ota.keys import load_private
+    from hcdf_trust.ota.signer import FileSigner
+    from hcdf_trust.provenance import dsse
+    from hcdf_trust.provenance.statement import serialize
+
+    robot, keys = setup
+    out = tmp_path / "scout2.hcdfz"
+    env = _bundle(cli, robot, out, keys["release"][0])
+    stmt = _statement(env)
+    stmt["predicate"]["buildDefinition"][field] = value
+    env.write_bytes(dsse.sign(serialize(stmt), [FileSigner(load_private(str(keys["release"][0])))]))
+    r = _verify(cli, out, keys["release"][1])
+    assert r.exit_code == 1, (r.stdout, r.stderr)
+    assert message in r.stderr
+
+
 def test_nothing_is_written_when_the_key_fails(cli, setup, tmp_path):
     robot, _keys = setup
     out = tmp_path / "scout2.hcdfz"

@@ -26,7 +26,6 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..errors import HcdfTrustError
-from . import PAYLOAD_TYPE, PREDICATE_TYPE, STATEMENT_TYPE, dsse
 from .errors import MalformedProvenanceError, ProvenanceError
 from .statement import LOCK_DEPENDENCY, ROOT_DEPENDENCY, Dependency
 
@@ -82,47 +81,13 @@ def verify_bundle_provenance(
         MalformedProvenanceError, ProvenanceError: the envelope, its signatures or its statement.
     """
     from ..bundle import ASSETS
-    from .verify import _object, _subjects
+    from .verify import check_build_type, open_statement
 
-    env = dsse.parse(data, source=source)
-    if env.payload_type != PAYLOAD_TYPE:
-        raise ProvenanceError(
-            "payloadType is not an in-toto statement's",
-            file=source + "#/payloadType",
-            expected=PAYLOAD_TYPE,
-            actual=env.payload_type,
-        )
-    dsse.verify(env, [dsse.sslib_key(k) for k in public_keys], threshold, source=source)
-    where = source + "#/payload"
-    stmt = _object(dsse.strict_json(env.payload, source=where, what="statement"), where)
-    for key, want in (("_type", STATEMENT_TYPE), ("predicateType", PREDICATE_TYPE)):
-        if stmt.get(key) != want:
-            raise ProvenanceError(
-                f"statement {key} is not ours", file=f"{where}/{key}", expected=want, actual=str(stmt.get(key))
-            )
-    subjects = _subjects(stmt.get("subject"), where)
-    build = _object(_object(stmt.get("predicate"), where + "/predicate").get("buildDefinition"), where)
+    subjects, build, where = open_statement(data, public_keys, threshold, source=source)
     bwhere = where + "/predicate/buildDefinition"
-    errors: list[HcdfTrustError] = []
-    if build.get("buildType") != BUNDLE_BUILD_TYPE:
-        errors.append(
-            ProvenanceError(
-                "buildType is not a bundle's",
-                file=bwhere + "/buildType",
-                expected=BUNDLE_BUILD_TYPE,
-                actual=str(build.get("buildType")),
-            )
-        )
-    params = _object(build.get("externalParameters"), bwhere + "/externalParameters")
-    for key in sorted(set(params) - BUNDLE_PARAMETERS):
-        errors.append(
-            ProvenanceError(
-                f"unexpected externalParameters field {key!r}",
-                file=f"{bwhere}/externalParameters/{key}",
-                expected=", ".join(sorted(BUNDLE_PARAMETERS)),
-                actual=key,
-            )
-        )
+    errors = check_build_type(
+        build, bwhere, build_type=BUNDLE_BUILD_TYPE, parameters=BUNDLE_PARAMETERS, whose="a bundle's"
+    )
     # the subject: this bundle, and nothing else
     if len(subjects) != 1 or archive.sha256 not in subjects.values():
         errors.append(

@@ -63,19 +63,36 @@ def verify_provenance(
         data = read_envelope(folder)
     if data is None:
         raise ProvenanceError("the release has no provenance", file=FILE_NAME, expected=FILE_NAME, actual="none")
-    env = dsse.parse(data, source=FILE_NAME)
-    # 2. payloadType
+    subjects, build, where = open_statement(data, public_keys, threshold, source=FILE_NAME)
+    errors: list[HcdfTrustError] = []
+    errors += _check_build(build, release, where + "/predicate/buildDefinition")
+    errors += _check_dependencies(build.get("resolvedDependencies"), release, where)
+    errors += _check_firmware(build.get("resolvedDependencies"), release, folder, where)
+    errors += _check_subjects(subjects, folder)
+    return errors
+
+
+def open_statement(
+    data: bytes, public_keys: list[Any], threshold: int, *, source: str
+) -> tuple[dict[str, str], dict[str, Any], str]:
+    """Steps 2–4 for any of our envelopes (a release's, a bundle's): payloadType, the signatures
+    over the PAE, then the statement parsed from the very bytes that were verified, its
+    ``_type`` and ``predicateType``. Returns its subjects (name -> sha256), its
+    ``buildDefinition`` and the JSON Pointer prefix of the statement (``source#/payload``).
+
+    Raises:
+        MalformedProvenanceError, ProvenanceError: nothing after a failed step can be trusted.
+    """
+    env = dsse.parse(data, source=source)
     if env.payload_type != PAYLOAD_TYPE:
         raise ProvenanceError(
             "payloadType is not an in-toto statement's",
-            file=FILE_NAME + "#/payloadType",
+            file=source + "#/payloadType",
             expected=PAYLOAD_TYPE,
             actual=env.payload_type,
         )
-    # 3. signatures over the PAE
-    dsse.verify(env, [dsse.sslib_key(k) for k in public_keys], threshold, source=FILE_NAME)
-    # 4. the statement, from the bytes that were verified
-    where = FILE_NAME + "#/payload"
+    dsse.verify(env, [dsse.sslib_key(k) for k in public_keys], threshold, source=source)
+    where = source + "#/payload"
     stmt = dsse.strict_json(env.payload, source=where, what="statement")
     if not isinstance(stmt, dict):
         raise MalformedProvenanceError("the statement is not a JSON object", file=where)
@@ -86,36 +103,42 @@ def verify_provenance(
             )
     subjects = _subjects(stmt.get("subject"), where)
     build = _object(_object(stmt.get("predicate"), where + "/predicate").get("buildDefinition"), where)
+    return subjects, build, where
+
+
+def check_build_type(
+    build: dict[str, Any], where: str, *, build_type: str, parameters: frozenset[str] | set[str], whose: str
+) -> list[HcdfTrustError]:
+    """``buildType`` is ``build_type`` and ``externalParameters`` holds no field outside
+    ``parameters`` (SLSA's advice: refuse what you do not expect). ``where`` is the
+    ``buildDefinition``'s pointer; ``whose`` names the build type in the message."""
     errors: list[HcdfTrustError] = []
-    errors += _check_build(build, release, where + "/predicate/buildDefinition")
-    errors += _check_dependencies(build.get("resolvedDependencies"), release, where)
-    errors += _check_firmware(build.get("resolvedDependencies"), release, folder, where)
-    errors += _check_subjects(subjects, folder)
+    if build.get("buildType") != build_type:
+        errors.append(
+            ProvenanceError(
+                f"buildType is not {whose}",
+                file=where + "/buildType",
+                expected=build_type,
+                actual=str(build.get("buildType")),
+            )
+        )
+    params = _object(build.get("externalParameters"), where + "/externalParameters")
+    for key in sorted(set(params) - set(parameters)):
+        errors.append(
+            ProvenanceError(
+                f"unexpected externalParameters field {key!r}",
+                file=f"{where}/externalParameters/{key}",
+                expected=", ".join(sorted(parameters)),
+                actual=key,
+            )
+        )
     return errors
 
 
 def _check_build(build: dict[str, Any], release: Any, where: str) -> list[HcdfTrustError]:
     # 5. buildType and externalParameters
-    errors: list[HcdfTrustError] = []
-    if build.get("buildType") != BUILD_TYPE:
-        errors.append(
-            ProvenanceError(
-                "buildType is not hcdf-trust's",
-                file=where + "/buildType",
-                expected=BUILD_TYPE,
-                actual=str(build.get("buildType")),
-            )
-        )
+    errors = check_build_type(build, where, build_type=BUILD_TYPE, parameters=EXTERNAL_PARAMETERS, whose="hcdf-trust's")
     params = _object(build.get("externalParameters"), where + "/externalParameters")
-    for key in sorted(set(params) - EXTERNAL_PARAMETERS):
-        errors.append(
-            ProvenanceError(
-                f"unexpected externalParameters field {key!r}",
-                file=f"{where}/externalParameters/{key}",
-                expected=", ".join(sorted(EXTERNAL_PARAMETERS)),
-                actual=key,
-            )
-        )
     images = sorted(f"{c.board}/{c.app}" for c in release.components)
     for key, want in (("root", release.root), ("images", images)):
         if params.get(key) != want:
