@@ -254,3 +254,17 @@ def running_registry(folder: Path, **kw: Any) -> Iterator[Registry]:
         yield reg
     finally:
         stop_registry(reg)
+
+
+def module_cli() -> Any:
+    """The CLI in-process, for module-scoped fixtures (conftest's ``cli`` is function-scoped)."""
+    from click.testing import CliRunner
+
+    from hcdf_trust.cli import main
+    from tests.conftest import CliResult
+
+    def run(*args: Any) -> CliResult:
+        r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+        return CliResult(r.exit_code, r.stdout, r.stderr)
+
+    return run

@@ -12,30 +12,17 @@ import shutil
 
 import pytest
 
-from tests._oci import MANIFEST_TYPE, mirror, registry  # noqa: F401 -- fixture
+from tests._oci import MANIFEST_TYPE, mirror, module_cli, registry  # noqa: F401 -- fixture
 from tests._ota import make_robot, tree
 
 REPO = "robots/scout"
 pytestmark = pytest.mark.filterwarnings("ignore::ResourceWarning")
 
 
-def _cli():
-    from click.testing import CliRunner
-
-    from hcdf_trust.cli import main
-    from tests.conftest import CliResult
-
-    def run(*args):
-        r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-        return CliResult(r.exit_code, r.stdout, r.stderr)
-
-    return run
-
-
 @pytest.fixture(scope="module")
 def releases(tmp_path_factory, registry):  # noqa: F811
     """Two releases of one robot (r2 built on r1), pushed as r1 and r2."""
-    cli = _cli()
+    cli = module_cli()
     tmp = tmp_path_factory.mktemp("releases")
     robot = make_robot(tmp, cli)
     r1, r2 = tmp / "r1", tmp / "r2"

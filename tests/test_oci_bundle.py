@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._oci import MANIFEST_TYPE, PASSWORD, USER, auth_registry, registry, running_registry  # noqa: F401 -- fixtures
+from tests._oci import MANIFEST_TYPE, PASSWORD, USER, auth_registry, module_cli, registry, running_registry  # noqa: F401 -- fixtures
 from tests.test_bundle import _entries, _hostile_cases, _zip
 
 PROJECT = Path(__file__).resolve().parent.parent
@@ -27,23 +27,10 @@ LAYER_TYPE = "application/vnd.hcdf.bundle.v1+zip"
 pytestmark = pytest.mark.filterwarnings("ignore::ResourceWarning")
 
 
-def _cli():
-    from click.testing import CliRunner
-
-    from hcdf_trust.cli import main
-    from tests.conftest import CliResult
-
-    def run(*args):
-        r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-        return CliResult(r.exit_code, r.stdout, r.stderr)
-
-    return run
-
-
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory, registry):  # noqa: F811
     """The example robot bundled (pushed as b1), and a second revision of it (pushed as b2)."""
-    cli = _cli()
+    cli = module_cli()
     tmp = tmp_path_factory.mktemp("bundles")
     shutil.copytree(PROJECT / "examples", tmp / "examples", ignore=shutil.ignore_patterns("out"))
     doc = tmp / "examples" / "robot" / "robot.hcdf"

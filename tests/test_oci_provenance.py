@@ -15,7 +15,7 @@ import json
 
 import pytest
 
-from tests._oci import INDEX_TYPE, MANIFEST_TYPE, mirror, registry  # noqa: F401 -- fixture
+from tests._oci import INDEX_TYPE, MANIFEST_TYPE, mirror, module_cli, registry  # noqa: F401 -- fixture
 from tests._ota import make_robot, tree
 
 pytestmark = pytest.mark.filterwarnings("ignore::ResourceWarning")
@@ -24,24 +24,11 @@ SIGNATURE_TYPE = "application/vnd.hcdf.release.signature.v1"
 SBOM_TYPE = "application/vnd.hcdf.release.sbom.v1"
 
 
-def _cli():
-    from click.testing import CliRunner
-
-    from hcdf_trust.cli import main
-    from tests.conftest import CliResult
-
-    def run(*args):
-        r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-        return CliResult(r.exit_code, r.stdout, r.stderr)
-
-    return run
-
-
 @pytest.fixture(scope="module")
 def releases(tmp_path_factory):
     """Release 1 and release 2 of one robot (one key), both built with --provenance; and
     release 1 again, built without."""
-    cli = _cli()
+    cli = module_cli()
     tmp = tmp_path_factory.mktemp("prov")
     robot = make_robot(tmp, cli)
     r1, r2, bare = tmp / "r1", tmp / "r2", tmp / "bare"
