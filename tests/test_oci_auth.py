@@ -22,9 +22,9 @@ B64 = base64.b64encode(f"{USER}:{PASSWORD}".encode()).decode()
 
 @pytest.fixture(scope="module")
 def release(tmp_path_factory):
-    from tests.test_oci_attacks import _cli
+    from tests._oci import module_cli
 
-    cli = _cli()
+    cli = module_cli()
     tmp = tmp_path_factory.mktemp("release")
     robot = make_robot(tmp, cli)
     assert robot.build(cli, tmp / "r1").exit_code == 0
