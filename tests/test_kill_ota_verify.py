@@ -621,3 +621,80 @@ def test_a_previous_entry_no_release_signed_is_named_with_its_latest_json(built)
             f"0.0.1 {flex.mcuboot_hash} {flex.size} https://evil.example/x.bin",
         )
     ]
+
+
+# --- open_envelope / verify_envelope: what the CLI refuses before any image is read -------
+
+
+def _resigned(data: bytes, private, *, protected: dict) -> bytes:
+    """``data``'s envelope with its COSE_Sign1 made again, for real, by ``private`` over the same
+    manifest digest, with ``protected`` as the protected header (cwt adds nothing to it)."""
+    from cwt import COSE
+
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.signer import FileSigner
+
+    tag = cbor2.loads(data)
+    top = dict(tag.value)
+    digest = cbor2.loads(top[suit.AUTHENTICATION])[0]
+    sign1 = COSE.new(deterministic_header=True).encode_and_sign(
+        digest, FileSigner(private).cose_key(b""), protected=protected, out="cbor2/CBORTag"
+    )
+    sign1.value[2] = None  # detached, as ota build writes it
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    return cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True)
+
+
+def test_a_manifest_signed_by_the_key_without_a_kid_is_refused(built, cli):
+    """The signature is good and made by the trusted key, but the protected header names no key:
+    ota verify demands the kid (only the working group's examples may lack it)."""
+    from hcdf_trust.ota.signer import COSE_ALGS, key_id
+    from hcdf_trust.ota.verify import open_envelope
+
+    robot, out = built
+    private = load_private(str(robot.key), None)
+    pub = load_public(str(robot.pub))
+    manifest = out / "release.suit"
+    data = _resigned(manifest.read_bytes(), private, protected={1: COSE_ALGS["ecdsa-p256"][0]})
+    # the oracle: a correct signature by this key, with no kid anywhere
+    env = open_envelope(data, pub, source="x", require_kid=False)
+    assert 4 not in env.protected_map and env.protected_map == {1: COSE_ALGS["ecdsa-p256"][0]}
+    manifest.write_bytes(data)
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "bad-signature",
+            "message": "manifest was signed by another key (COSE kid)",
+            "file": str(manifest),
+            "expected": key_id(pub).hex(),
+            "actual": "None",
+        }
+    ]
+
+
+def test_a_signed_manifest_ota_build_would_not_write_is_named_with_its_file(built, cli):
+    """An envelope that verifies with the key, around a manifest parse_release refuses (its
+    sequence number is a string): the refusal names the manifest file."""
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.release import sign_manifest
+    from hcdf_trust.ota.signer import FileSigner
+    from hcdf_trust.ota.verify import open_envelope
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    path = out / "release.suit"
+    env = open_envelope(path.read_bytes(), pub, source="x")
+    manifest = cbor2.loads(env.manifest)
+    manifest[suit.SEQUENCE_NUMBER] = "7"
+    data = sign_manifest(
+        cbor2.dumps(manifest, canonical=True), FileSigner(load_private(str(robot.key), None)), env.payloads
+    )[0]
+    open_envelope(data, pub, source="x")  # the oracle: it verifies
+    path.write_bytes(data)
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 3, r.stderr
+    [error] = r.json["errors"]
+    assert (error["code"], error["message"], error["file"]) == (
+        "malformed-release",
+        "manifest sequence-number is not an unsigned integer",
+        str(path),
+    )
