@@ -8,6 +8,7 @@ functions, on a real signed release.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 
 import cbor2
 import pytest
@@ -287,6 +288,24 @@ def test_an_older_image_of_another_size_is_named_with_its_size(two_releases):
     assert error.actual == f"(not read) ({signed_size + 7} bytes)"
 
 
+def test_an_older_image_that_cannot_be_opened_is_named_missing(two_releases, cli):
+    """A dangling symlink in place of release 1's image: refused, and named missing (not a size)."""
+    robot, out = two_releases
+    image = out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin"
+    signed_size, signed_sha = image.stat().st_size, hashlib.sha256(image.read_bytes()).hexdigest()
+    image.unlink()
+    image.symlink_to("gone.bin")
+    [error] = errors_of(cli, robot, out)
+    assert error == {
+        "code": "release",
+        "message": "mr_mcxn_t1/flex-io: image mr_mcxn_t1/flex-io/0.2.0.bin of release 1 "
+        "is not the one that release signed",
+        "file": "mr_mcxn_t1/flex-io/0.2.0.bin",
+        "expected": f"{signed_sha} ({signed_size} bytes)",
+        "actual": "(missing)",
+    }
+
+
 def test_a_re_release_names_both_contents(signed, tmp_path):
     """check_release against a history release that listed flex-io 0.2.0 with another hash."""
     from hcdf_trust.ota.verify import ReleaseFiles, check_release
@@ -322,8 +341,6 @@ def test_a_rollback_found_through_previous_names_the_manifest(signed):
 
 
 def test_a_swapped_older_image_is_named_with_its_digest(two_releases):
-    import hashlib
-
     from hcdf_trust.ota.verify import check_release
 
     robot, out = two_releases
@@ -384,8 +401,6 @@ def test_a_missing_image_and_a_uri_that_does_not_name_it_are_named_in_full(built
 
 
 def test_an_image_of_the_signed_size_with_other_bytes_is_named_in_full(built):
-    import hashlib
-
     robot, out = built
     pub = load_public(str(robot.pub))
     release, files = read_release(str(out), pub)

@@ -319,17 +319,22 @@ def _check_history_images(release: suit.Release, files: ReleaseFiles) -> list[Hc
                 continue
             current.add(rel)
             data = files.history_images[rel]
-            size = files.sizes.get(rel, len(data) if data is not None else -1)
-            if size != c.size or data is None or hashlib.sha256(data).hexdigest() != c.sha256:
-                errors.append(
-                    ReleaseIntegrityError(
-                        f"{c.name}: image {rel} of release {r.sequence_number} is not the one that release signed",
-                        file=rel,
-                        expected=f"{c.sha256} ({c.size} bytes)",
-                        actual=f"{hashlib.sha256(data).hexdigest() if data is not None else '(not read)'} "
-                        f"({size} bytes)",
-                    )
+            if data is None:  # not read: its size is not the signed one, or it cannot be opened (a dangling link)
+                size = files.sizes.get(rel)
+                actual = "(missing)" if size is None else f"(not read) ({size} bytes)"
+            else:
+                sha = hashlib.sha256(data).hexdigest()
+                if (sha, len(data)) == (c.sha256, c.size):
+                    continue
+                actual = f"{sha} ({len(data)} bytes)"
+            errors.append(
+                ReleaseIntegrityError(
+                    f"{c.name}: image {rel} of release {r.sequence_number} is not the one that release signed",
+                    file=rel,
+                    expected=f"{c.sha256} ({c.size} bytes)",
+                    actual=actual,
                 )
+            )
     return errors
 
 
