@@ -437,6 +437,56 @@ def test_another_components_image_in_place_is_named_with_both_sizes(built):
     ]
 
 
+def test_an_image_another_key_signed_is_named_with_imgtools_result(built, tmp_path):
+    """The manifest lists the file's digest and size, but MCUboot's signature is not this key's."""
+    from hcdf_trust.ota.keys import generate, public_pem
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    (tmp_path / "other.pub.pem").write_bytes(public_pem(generate("ecdsa-p256")))
+    other = load_public(str(tmp_path / "other.pub.pem"))
+    got = [(e.code, e.message, e.file) for e in _flex_errors(release, files, other)]
+    assert got == [
+        (
+            "bad-signature",
+            "mr_mcxn_t1/flex-io: MCUboot image does not verify with the key (INVALID_SIGNATURE)",
+            "mr_mcxn_t1/flex-io/0.2.0.bin",
+        )
+    ]
+
+
+def test_each_mcuboot_field_the_manifest_lists_otherwise_is_named_in_full(built):
+    """A manifest (not signed: check_release is pure) listing flex-io's file as it is, but another
+    MCUboot hash, header version or security counter than the image's own."""
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    rel, moved = "mr_mcxn_t1/flex-io/0.2.0.bin", "mr_mcxn_t1/flex-io/0.9.0.bin"
+    files = dataclasses.replace(files, images={**files.images, moved: files.images[rel]})
+
+    def errors(**changes):
+        listed = tuple(dataclasses.replace(c, **changes) if c is flex else c for c in release.components)
+        got = _flex_errors(dataclasses.replace(release, components=listed), files, pub)
+        return [(e.message, e.file, e.expected, e.actual) for e in got if "latest.json" not in e.message]
+
+    assert errors(mcuboot_hash="ab" * 32) == [
+        ("mr_mcxn_t1/flex-io: mcuboot_hash differs from the signed manifest", rel, "ab" * 32, flex.mcuboot_hash)
+    ]
+    assert errors(version="0.9.0", uri=flex.uri.replace("0.2.0.bin", "0.9.0.bin")) == [
+        ("mr_mcxn_t1/flex-io: image header version differs from the signed manifest", moved, "0.9.0", "0.2.0")
+    ]
+    assert errors(security_counter=flex.security_counter + 1) == [
+        (
+            "mr_mcxn_t1/flex-io: image security_counter differs from the signed manifest",
+            rel,
+            str(flex.security_counter + 1),
+            str(flex.security_counter),
+        )
+    ]
+
+
 # --- _check_rendering: a release.suit.json that is not what the envelope renders ----------
 
 
