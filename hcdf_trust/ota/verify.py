@@ -126,11 +126,12 @@ def open_envelope(data: bytes, public_key: Any, *, source: str, require_kid: boo
         )
     want = suit.manifest_digest(env.manifest)
     if env.digest != want:
+        alg, got_hash = cbor2.loads(env.digest)  # a SUIT_Digest: parse_envelope checked its shape
         raise ReleaseIntegrityError(
             "authentication wrapper digest is not the manifest's",
             file=source,
-            expected=cbor2.loads(want)[1].hex(),
-            actual=env.digest.hex(),
+            expected=f"SHA-256 {cbor2.loads(want)[1].hex()}",
+            actual=f"{'SHA-256' if alg == suit.SHA256 else f'algorithm {alg}'} {got_hash.hex()}",
         )
     cose_key = COSEKey.from_pem(public_key.get_public_pem(), alg=CWT_ALG[kind], kid=kid)
     try:
