@@ -763,6 +763,59 @@ def test_a_cose_alg_not_bound_to_the_key_is_named_with_the_ones_that_are(built, 
     ]
 
 
+@pytest.mark.parametrize(("kid", "shown"), [(b"another key", b"another key".hex()), (7, "7")])
+def test_another_kid_is_named_as_found(built, cli, kid, shown):
+    """A kid that is not the key's: a byte string shown in hex, anything else as it is."""
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.signer import key_id
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    sign1 = cbor2.loads(sign1)
+    sign1.value[0] = cbor2.dumps({1: -7, 4: kid})
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "bad-signature",
+            "message": "manifest was signed by another key (COSE kid)",
+            "file": str(path),
+            "expected": key_id(load_public(str(robot.pub))).hex(),
+            "actual": shown,
+        }
+    ]
+
+
+@pytest.mark.parametrize(("alg", "flip", "shown"), [(-16, 1, "SHA-256"), (-44, 0, "algorithm -44")])
+def test_a_wrapper_digest_that_is_not_the_manifests_is_named_with_both_digests(built, cli, alg, flip, shown):
+    """Another SHA-256, or the right bytes labelled with another algorithm (SHA-384): both
+    digests shown in one form, with the algorithm the wrapper names."""
+    from hcdf_trust.ota import suit
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    manifest_sha = hashlib.sha256(cbor2.dumps(top[suit.MANIFEST])).digest()  # over the bstr-wrapped manifest
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    assert cbor2.loads(digest) == [-16, manifest_sha]
+    wrong = bytes([manifest_sha[0] ^ flip]) + manifest_sha[1:]
+    top[suit.AUTHENTICATION] = cbor2.dumps([cbor2.dumps([alg, wrong]), sign1])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "release",
+            "message": "authentication wrapper digest is not the manifest's",
+            "file": str(path),
+            "expected": f"SHA-256 {manifest_sha.hex()}",
+            "actual": f"{shown} {wrong.hex()}",
+        }
+    ]
+
+
 def test_a_signed_manifest_ota_build_would_not_write_is_named_with_its_file(built, cli):
     """An envelope that verifies with the key, around a manifest parse_release refuses (its
     sequence number is a string): the refusal names the manifest file."""
