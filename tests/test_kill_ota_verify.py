@@ -789,6 +789,24 @@ def test_another_kid_is_named_as_found(built, cli, kid, shown):
     ]
 
 
+def test_a_signature_that_does_not_verify_is_named_with_its_file(built, cli):
+    """alg, kid and wrapper digest right, one bit of the signature changed."""
+    from hcdf_trust.ota import suit
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    sign1 = cbor2.loads(sign1)
+    sign1.value[3] = sign1.value[3][:-1] + bytes([sign1.value[3][-1] ^ 1])
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    [error] = errors_of(cli, robot, out)
+    assert (error["code"], error["file"]) == ("bad-signature", str(path))
+    assert error["message"].startswith("manifest signature does not verify with the key: "), error["message"]
+
+
 @pytest.mark.parametrize(("alg", "flip", "shown"), [(-16, 1, "SHA-256"), (-44, 0, "algorithm -44")])
 def test_a_wrapper_digest_that_is_not_the_manifests_is_named_with_both_digests(built, cli, alg, flip, shown):
     """Another SHA-256, or the right bytes labelled with another algorithm (SHA-384): both
