@@ -261,6 +261,28 @@ def test_an_image_the_current_release_also_lists_does_not_end_the_history_images
         ]
 
 
+def test_an_older_image_that_is_the_signed_one_does_not_end_the_checks_of_the_next(two_releases):
+    """Release 1 as history, with flex-io 0.2.0 (intact) listed before another older image
+    whose bytes are not the ones it lists: that one is still checked."""
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = two_releases
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    [r1] = files.history
+    flex = r1.component("mr_mcxn_t1", "flex-io")
+    older = dataclasses.replace(flex, version="0.1.0", uri=flex.uri.replace("0.2.0.bin", "0.1.0.bin"))
+    r1 = dataclasses.replace(r1, components=(flex, older))
+    images = {**files.history_images, "mr_mcxn_t1/flex-io/0.1.0.bin": b"not the image"}
+    errors = check_release(release, dataclasses.replace(files, history=(r1,), history_images=images), pub)
+    assert [(e.message, e.actual) for e in errors] == [
+        (
+            "mr_mcxn_t1/flex-io: image mr_mcxn_t1/flex-io/0.1.0.bin of release 1 is not the one that release signed",
+            f"{hashlib.sha256(b'not the image').hexdigest()} (13 bytes)",
+        )
+    ]
+
+
 def test_an_image_two_history_releases_list_is_reported_once(two_releases):
     from hcdf_trust.ota.verify import check_release
 
