@@ -185,11 +185,13 @@ def push(path: str, target: str, ca_bundle: str | None, insecure_registries: tup
     bundle as its one layer). Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
     from ..bundle import is_bundle
     from ..oci.bundle import push_bundle
-    from .ota import _client
+    from ..oci.client import connect
 
     if not is_bundle(path):
         raise click.BadParameter(f"{path}: a bundle's name ends in .hcdfz", param_hint="X.hcdfz")
-    ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
+    ref, client = connect(
+        target, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True, need_tag=True
+    )
     with client:
         result = push_bundle(path, ref, client)
     warnings = result.pop("warnings")
@@ -236,12 +238,12 @@ def pull(
     from ..bundle import is_bundle
     from ..errors import display_path
     from ..oci.bundle import pull_bundle
+    from ..oci.client import connect
     from ..store import default_cache_dir
-    from .ota import _client
 
     if not is_bundle(out):
         raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="--out")
-    ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
+    ref, client = connect(source, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
     with client:
         report = pull_bundle(ref, client, out=out, cache_dir=cache_dir or str(default_cache_dir()))
     checked = report.checked

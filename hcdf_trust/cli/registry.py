@@ -402,14 +402,11 @@ def publish(
     plan.commit()
     pushed = None
     if ref is not None:
-        from ..oci.auth import find_credentials
-        from ..oci.client import RegistryClient
+        from ..oci.client import connect
         from ..oci.site import push_site
 
-        creds = find_credentials(ref.netloc)
-        with RegistryClient(
-            ref, credentials=creds, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True
-        ) as client:
+        _, client = connect(ref, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True)
+        with client:
             pushed = push_site(site, ref, client)
     if as_json:
         emit_json(
