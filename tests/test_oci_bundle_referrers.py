@@ -236,6 +236,8 @@ def test_push_verifies_the_provenance_first_given_a_key(cli, registry, made, tmp
     with registry.http() as c:
         for tag in ("bad", "lone"):
             assert c.get(f"/v2/robots/pv/manifests/{tag}").status_code == 404
+    r = cli("bundle", "push", made["one"], registry.ref("robots/pv", "t2"), "--threshold", "2")
+    assert r.exit_code == 2 and "--threshold needs --provenance-key" in r.stderr, r.stderr
     bad_sbom = tmp_path / "x.json"
     bad_sbom.write_text('{"not": "an sbom"}')
     r = cli("bundle", "push", made["one"], registry.ref("robots/pv", "sb"), "--sbom", bad_sbom)
@@ -343,3 +345,21 @@ def test_ota_pull_messages_name_the_reference_not_the_staging_folder(cli, tmp_pa
     assert f"{ref}/release.suit" in r.stderr, r.stderr
     assert ".oci-pull-" not in r.stderr and str(cache) not in r.stderr
     assert not dest.exists()
+
+
+def test_the_library_refuses_an_unbound_tag_before_any_request(tmp_path):
+    """pull_bundle itself (not only the CLI) refuses a tag with neither keys nor trust_tag,
+    and --require-provenance without keys: an InputError before the registry is asked."""
+    from hcdf_trust.errors import InputError
+    from hcdf_trust.oci.bundle import pull_bundle
+    from hcdf_trust.oci.client import connect
+
+    ref, client = connect("oci://127.0.0.1:9/none/such:t")  # nothing listens there: any request fails otherwise
+    with client:
+        with pytest.raises(InputError, match="a tag names whatever the registry says today"):
+            pull_bundle(ref, client, out=str(tmp_path / "o.hcdfz"), cache_dir=str(tmp_path / "c"))
+        pinned, _ = connect("oci://127.0.0.1:9/none/such@sha256:" + "0" * 64)
+        with pytest.raises(InputError, match="--require-provenance needs --provenance-key"):
+            pull_bundle(pinned, client, out=str(tmp_path / "o.hcdfz"), cache_dir=str(tmp_path / "c"),
+                        require_provenance=True)  # fmt: skip
+    assert not (tmp_path / "o.hcdfz").exists()
