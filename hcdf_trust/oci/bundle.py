@@ -297,10 +297,10 @@ def pull_bundle(
             (exit 1) or InputError (exit 3) before any write. Messages name ``oci://…@sha256:…``
             and the entry inside the bundle, never the staging folder.
     """
-    from ..bundle import MAX_BYTES
+    from ..bundle import MAX_BYTES, is_bundle
     from ..errors import HcdfTrustError, relabel
     from ..outputs import BUNDLE, ORDINARY, FileContent, OutputPlan
-    from ..provenance.bundle import SUFFIX, envelope_path
+    from ..provenance.bundle import envelope_path
     from ..store import ContentStore
     from .release import STAGE_PREFIX, _fetch_blob, _hold, sweep_stages
 
@@ -361,8 +361,7 @@ def pull_bundle(
     stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
     lock = _hold(stage)
     try:
-        name = title if title.endswith(".hcdfz") and not title.endswith(SUFFIX) else "bundle.hcdfz"
-        staged = os.path.join(stage, name)
+        staged = os.path.join(stage, title if is_bundle(title) else "bundle.hcdfz")  # as messages name it
         try:
             os.link(blob, staged, follow_symlinks=False)
         except OSError:  # another filesystem, or links not allowed
