@@ -196,3 +196,23 @@ def test_every_json_object_has_ok_and_errors(cli, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     _shape(cli("macsec", "plan", "robot/robot.hcdf", "--json"), "associations")
     _shape(cli("verify", "robot/robot.hcdf", "--json"), "artifacts")
+
+
+def test_provenance_key_and_threshold_are_one_pair_of_options():
+    """--provenance-key and --threshold come from one decorator (cli/params.py): the same type,
+    bounds and default in every verb that verifies a provenance; the help differs only where
+    the verb has a release --key that counts as a signer too (ota verify, ota pull)."""
+    besides_key = {"ota verify", "ota pull"}
+    verbs = [*sorted(besides_key), "verify", "bundle pull", "bundle push"]
+    helps: dict[bool, set[tuple[str | None, str | None]]] = {True: set(), False: set()}
+    for verb in verbs:
+        key, threshold = _option(VERBS[verb], "--provenance-key"), _option(VERBS[verb], "--threshold")
+        assert key is not None and threshold is not None, verb
+        assert key.multiple and key.name == "provenance_keys", verb
+        assert isinstance(threshold.type, click.IntRange), verb
+        assert (threshold.type.min, threshold.type.max, threshold.default) == (1, 64, 1), verb
+        helps[verb in besides_key].add((key.help, threshold.help))
+    assert len(helps[True]) == 1 and len(helps[False]) == 1, helps
+    [(with_key, _)] = helps[True]
+    [(without_key, _)] = helps[False]
+    assert "besides --key" in (with_key or "") and "--key" not in (without_key or "")

@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, handle_errors, say, tree_options
+from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 from .params import ConfigOption, from_config, project_config
 
@@ -39,7 +39,7 @@ from .params import ConfigOption, from_config, project_config
     "registry_site",
     cls=ConfigOption,
     config_key="registry.site",
-    help="Registry (URL or folder): extension domains and schemas.",
+    help="Registry (https URL, oci:// artifact or folder): extension domains and schemas.",
 )
 @click.option(
     "--trusted-root",
@@ -48,6 +48,8 @@ from .params import ConfigOption, from_config, project_config
     type=click.Path(dir_okay=False),
     help="The registry's root.json you trust.",
 )
+@CA_BUNDLE_OPTION  # an https or oci:// --registry, and --online fetches: as in every verb that talks https
+@INSECURE_REGISTRY_OPTION
 @functools.partial(store_options, required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (shape: docs/audit.md).")
 @handle_errors
@@ -61,6 +63,8 @@ def audit_cmd(
     fleet_key: str | None,
     registry_site: str | None,
     trusted_root: str | None,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
     store_dir: str | None,
     passphrase_file: str | None,
     now_given: datetime | None,
@@ -102,7 +106,9 @@ def audit_cmd(
         from .registry import _client
 
         assert trusted_root is not None
-        schemas = RegistrySchemaSource(_client(registry_site, trusted_root, None))
+        schemas = RegistrySchemaSource(
+            _client(registry_site, trusted_root, None, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
+        )
     report = run(
         doc,
         AuditOptions(
@@ -116,6 +122,7 @@ def audit_cmd(
             store_wrapper=wrapper,
             now=now,
             registry=schemas,
+            ca_bundle=ca_bundle,
         ),
     )
     if as_json:
