@@ -50,7 +50,6 @@ class AuditOptions:
     registry: Any = None  # a RegistrySchemaSource
     fleet_report: str | None = None  # `fleet status --out` (a signed, host-attested version report)
     fleet_key: str | None = None  # the host's public key that signed it
-    ca_bundle: str | None = None  # --ca-bundle: extra CAs for the --online fetches (the registry's are its client's)
 
 
 def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> Report:
@@ -64,7 +63,7 @@ def audit(doc: str | os.PathLike[str], options: AuditOptions | None = None) -> R
     lock_path = o.tree.lock_path
     if lock_path is not None and not os.path.lexists(lock_path):
         raise LockFileError(f"lock file {lock_path} does not exist", file=lock_path)
-    res = resolve(doc, o.tree.resolve_options(write_cache=False, ca_bundle=o.ca_bundle))
+    res = resolve(doc, o.tree.resolve_options(write_cache=False))
     for error in res.errors:
         # A lock that cannot be read, or a document that reads two ways: nothing about the tree
         # can be trusted to it (exit 3, as every other verb refuses it).

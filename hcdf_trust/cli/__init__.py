@@ -265,7 +265,7 @@ SCHEMA_OPTION = click.option(
     help=SCHEMA_HELP,
 )
 _LOCATION_KEYS = ("base", "mirrors", "root")
-_TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
+_TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline", "ca_bundle")
 
 
 def tree_location_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -276,18 +276,28 @@ def tree_location_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def tree_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock`` and
+    """Resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock``,
     ``--offline`` (default here; ``--online`` fetches what the cache lacks, still checked
-    against the lock), passed to ``func`` as one ``tree``: a
+    against the lock) and ``--ca-bundle``, passed to ``func`` as one ``tree``: a
     :class:`~hcdf_trust.include.resolver.TreeOptions`. For every verb that reads a description
-    tree under its lock (audit, sbom, macsec, ota build)."""
+    tree under its lock (audit, sbom, macsec, ota build, bundle, fleet); a verb's own https
+    (a registry, --previous) takes ``tree.ca_bundle`` too: one flag, one meaning."""
     offline = click.option(
         "--offline/--online",
         default=True,
         show_default=True,
         help=OFFLINE_HELP + " --online fetches what they lack (still checked against the lock).",
     )
-    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline, SCHEMA_OPTION)
+    options = (
+        LOCK_OPTION,
+        CACHE_DIR_OPTION,
+        BASE_OPTION,
+        ROOT_OPTION,
+        MIRROR_OPTION,
+        offline,
+        CA_BUNDLE_OPTION,
+        SCHEMA_OPTION,
+    )
     return _tree_decorator(func, options, _TREE_KEYS)
 
 

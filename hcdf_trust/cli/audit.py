@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
+from . import INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 from .params import ConfigOption, from_config, project_config
 
@@ -48,8 +48,7 @@ from .params import ConfigOption, from_config, project_config
     type=click.Path(dir_okay=False),
     help="The registry's root.json you trust.",
 )
-@CA_BUNDLE_OPTION  # an https or oci:// --registry, and --online fetches: as in every verb that talks https
-@INSECURE_REGISTRY_OPTION
+@INSECURE_REGISTRY_OPTION  # --ca-bundle comes with tree_options: --online fetches and the --registry
 @functools.partial(store_options, required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (shape: docs/audit.md).")
 @handle_errors
@@ -63,7 +62,6 @@ def audit_cmd(
     fleet_key: str | None,
     registry_site: str | None,
     trusted_root: str | None,
-    ca_bundle: str | None,
     insecure_registries: tuple[str, ...],
     store_dir: str | None,
     passphrase_file: str | None,
@@ -107,7 +105,9 @@ def audit_cmd(
 
         assert trusted_root is not None
         schemas = RegistrySchemaSource(
-            _client(registry_site, trusted_root, None, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
+            _client(
+                registry_site, trusted_root, None, ca_bundle=tree.ca_bundle, insecure_registries=insecure_registries
+            )
         )
     report = run(
         doc,
@@ -122,7 +122,6 @@ def audit_cmd(
             store_wrapper=wrapper,
             now=now,
             registry=schemas,
-            ca_bundle=ca_bundle,
         ),
     )
     if as_json:

@@ -51,7 +51,6 @@ def bundle() -> None:
     show_default=True,
     help="Most elements the bundled document may have once every include is expanded.",
 )
-@CA_BUNDLE_OPTION  # one --ca-bundle, one meaning, in every verb that talks https
 @click.option(
     "--provenance",
     is_flag=True,
@@ -69,7 +68,6 @@ def write(
     out: str,
     tree: Any,
     max_elements: int,
-    ca_bundle: str | None,
     provenance: bool,
     key: str | None,
     passphrase_file: str | None,
@@ -113,7 +111,7 @@ def write(
 
     # Under the lock when there is one; a tree whose document pins everything needs none.
     locked = tree.lock_path is not None or os.path.lexists(default_path(os.path.abspath(doc)))
-    options = tree.resolve_options(locked=locked, ca_bundle=ca_bundle)
+    options = tree.resolve_options(locked=locked)
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:

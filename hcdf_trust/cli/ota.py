@@ -108,7 +108,6 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     is_flag=True,
     help="Accept a --previous without a signed manifest; its latest.json history is taken on your word.",
 )
-@CA_BUNDLE_OPTION
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
 @click.option(
@@ -136,7 +135,6 @@ def build(
     allow_http: bool,
     previous: str | None,
     import_unsigned_history: bool,
-    ca_bundle: str | None,
     config: str | None,
     changelog: str | None,
     update_hcdf: bool,
@@ -171,7 +169,7 @@ def build(
                 date=format_date(source_date.timestamp()) if source_date is not None else None,
                 tree=tree,
                 jobs=jobs,
-                ca_bundle=ca_bundle,
+                ca_bundle=tree.ca_bundle,  # tree_options' --ca-bundle: --previous and --online alike
                 allow_http=allow_http,
                 import_unsigned_history=import_unsigned_history,
                 provenance=provenance,
