@@ -14,15 +14,16 @@ fleet pins (``oci://…@sha256:…``).
 2. The manifest is a bundle artifact: artifact type, empty config, exactly one layer of
    :data:`BUNDLE_LAYER_TYPE`, a size within a bundle's cap (``bundle.MAX_BYTES``), a plain title.
 3. The blob comes from the content store (verified before: a repeated pull) or is fetched by
-   digest, hashed while it streams and refused past its declared size; only a blob whose
-   SHA-256 and size are the manifest's enters the store.
-4. In a private staging folder the blob is read as ``verify X.hcdfz`` reads it: the same strict
+   digest, hashed while it streams (into the store and a file of a private staging folder)
+   and refused past its declared size; only a blob whose SHA-256 and size are the manifest's
+   enters the store or stays staged.
+4. In the staging folder the blob is read as ``verify X.hcdfz`` reads it: the same strict
    archive reader and the same walk, every pin re-hashed (exit 3 for the structure, 1 for the
    content); the manifest's annotations must say what the verified bundle says.
-5. Only then is the bundle written to ``--out`` through the OutputPlan, copied from the staged
-   file and hashed again as it is copied.
+5. Only then is the bundle written to ``--out`` through the OutputPlan: the staged file, which
+   this pull wrote from the bytes it hashed and held open since, is moved into place.
 
-The staging folder and the content store are the ones ``ota pull`` uses (:mod:`.release`), so a
+The staging folder and the content store are the ones ``ota pull`` uses (:mod:`.blobs`), so a
 killed pull of either kind is swept by the next.
 """
 
@@ -30,8 +31,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -107,10 +106,10 @@ def manifest_for(checked: Checked, title: str) -> bytes:
 def layer_title(path: str) -> str:
     """The layer's title: the bundle's file name when it is a plain one, else ``bundle.hcdfz``
     (pull checks it as a one-segment path; it never names where the bundle is written)."""
-    from .release import _SEGMENT
+    from .blobs import SEGMENT
 
     name = os.path.basename(path)
-    return name if _SEGMENT.fullmatch(name) else "bundle.hcdfz"
+    return name if SEGMENT.fullmatch(name) else "bundle.hcdfz"
 
 
 def push_bundle(path: str, ref: Reference, client: RegistryClient) -> dict[str, Any]:
@@ -176,9 +175,9 @@ class BundlePullReport:
 def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: str) -> BundlePullReport:
     """Steps 1-5 above. Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
     from ..bundle import MAX_BYTES, is_bundle
-    from ..outputs import BUNDLE, ORDINARY, FileContent, OutputPlan
+    from ..outputs import BUNDLE, ORDINARY, OutputPlan
     from ..store import ContentStore
-    from .release import STAGE_PREFIX, _fetch_blob, _hold, sweep_stages
+    from .blobs import Stage, fetch_blob
 
     # 1. the manifest, pinned by the hash of its body
     got = client.get_manifest(ref.reference)
@@ -206,25 +205,17 @@ def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: 
         )
     layer = layers[0]
     hex_ = layer["digest"].split(":", 1)[1]
-    # 3. the blob, into the content store only if it is the manifest's
+    # 3. the blob into the content store, only if it is the manifest's, and into a file of our
+    # own in a private staging folder, under --out's name (messages name it)
     store = ContentStore(cache_dir)
-    blob = store.verified_path(hex_)
-    cached = blob is not None and blob.stat().st_size == layer["size"]
-    if blob is None or not cached:
-        blob = _fetch_blob(client, store, layer, title=layer["annotations"][TITLE], where=f"{source}#/layers/0")
-    # 4. verify X.hcdfz in a private staging folder, under --out's name (messages name it)
-    os.makedirs(cache_dir, exist_ok=True)
-    sweep_stages(cache_dir)
-    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
-    lock = _hold(stage)
-    try:
-        staged = os.path.join(stage, os.path.basename(out) if is_bundle(out) else "bundle.hcdfz")
-        try:
-            os.link(blob, staged, follow_symlinks=False)
-        except OSError:  # another filesystem, or links not allowed
-            shutil.copyfile(blob, staged, follow_symlinks=False)
-        checked = verify_bundle(staged)
-        if checked.sha256 != hex_:  # the store handed over another file than the one hashed
+    with Stage(cache_dir) as stage:
+        name = os.path.basename(out) if is_bundle(out) else "bundle.hcdfz"
+        held, cached = fetch_blob(
+            client, store, layer, title=layer["annotations"][TITLE], where=f"{source}#/layers/0", stage=stage, rel=name
+        )
+        # 4. verify X.hcdfz on the staged file
+        checked = verify_bundle(held.path)
+        if checked.sha256 != hex_:  # the staged file is not the one hashed
             raise DigestMismatchError(
                 f"{source}: the staged bundle is not the layer's blob", expected=layer["digest"], actual=checked.sha256
             )
@@ -238,12 +229,9 @@ def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: 
                     expected=value,
                     actual=str(said.get(key))[:100],
                 )
-        # 5. into --out, all or nothing, hashed again as it is copied
+        # 5. into --out, all or nothing: the staged file moved into place
         plan = OutputPlan()
         plan.protect_tree(cache_dir, what="the cache")
-        plan.add(out, FileContent(staged, checked.size, checked.sha256), flag="--out", replaces=(ORDINARY, BUNDLE))
+        plan.add(out, held, flag="--out", replaces=(ORDINARY, BUNDLE))
         wrote = [str(p) for p in plan.commit()]
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        os.close(lock)
     return BundlePullReport(str(ref), digest, checked, cached, wrote)
