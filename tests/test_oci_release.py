@@ -110,6 +110,28 @@ def test_demo_release_through_the_registry_with_only_the_public_key(cli, registr
     assert cli("ota", "verify", dest, "--key", pub_only / "demo.pub.pem").exit_code == 0
 
 
+def test_pulled_files_are_files_of_their_own_never_links_to_the_cache(cli, registry, release, tmp_path):  # noqa: F811
+    """Each staged blob is a new file moved into --out (one link, mode 0644), never the content
+    store's blob (a shared inode would let an edit of one change the other); the store keeps
+    its read-only blobs and no staging folder is left, fetched or resumed."""
+    robot, out = release
+    assert cli("ota", "push", out, registry.ref(tag="own")).exit_code == 0
+    cache = tmp_path / "cache"
+    for dest in (tmp_path / "first", tmp_path / "again"):  # fetched, then from the content store
+        r = cli("ota", "pull", registry.ref(tag="own"), "--key", robot.pub, "--out", dest, "--cache-dir", cache)
+        assert r.exit_code == 0, r.stderr
+        blobs = [p.stat() for p in (cache / "sha256").rglob("*") if p.is_file()]
+        assert blobs and all(oct(st.st_mode & 0o777) == "0o444" for st in blobs)
+        inodes = {(st.st_dev, st.st_ino) for st in blobs}
+        pulled = [p.stat() for p in dest.rglob("*") if p.is_file()]
+        assert len(pulled) == len(tree(out))
+        for st in pulled:
+            assert st.st_nlink == 1 and oct(st.st_mode & 0o777) == "0o644"
+            assert (st.st_dev, st.st_ino) not in inodes
+        assert tree(dest) == tree(out)
+        assert not list(cache.glob(".oci-pull-*"))
+
+
 def test_a_killed_pulls_staging_folder_is_swept_a_live_ones_kept(cli, registry, release, tmp_path):  # noqa: F811
     import fcntl
     import os
