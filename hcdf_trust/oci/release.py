@@ -475,7 +475,6 @@ def _fetch_and_check(
         from ..ota.images import verify_image_fd
 
         verdict = verify_image_fd(held.fd, public_key)
-    os.fsync(held.fd)  # now, while other blobs arrive (the commit's own fsync then finds it clean)
     return held, cached, verdict
 
 
