@@ -660,7 +660,9 @@ class _OptionalValueCommand(click.Command):
 )
 @click.option(
     "--max-elements",
-    type=click.IntRange(1, 1_000_000_000),
+    # At most xml.MAX_DOCUMENT_ELEMENTS (not imported: lxml stays out of start-up), so that
+    # what is written can be read again; tests/test_bounds.py checks the two agree.
+    type=click.IntRange(1, 1_000_000),
     default=250_000,
     show_default=True,
     help="Most elements the --out document may have once every include is expanded.",
