@@ -36,6 +36,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -390,8 +391,9 @@ def pull_release(
         jobs = []
         try:
             warm = pool.submit(_import_verifier)
+            imgtool = threading.Lock()  # it reads a whole image: one at a time, as ota verify
             jobs = [
-                pool.submit(_fetch_and_check, client, store, stage, x, f"{source}#/layers/{i}", public_key)
+                pool.submit(_fetch_and_check, client, store, stage, x, f"{source}#/layers/{i}", public_key, imgtool)
                 for i, x in enumerate(layers)
             ]
             warm.result()
@@ -462,10 +464,17 @@ def _import_verifier() -> None:
 
 
 def _fetch_and_check(
-    client: RegistryClient, store: Any, stage: Any, layer: dict[str, Any], where: str, public_key: Any
+    client: RegistryClient,
+    store: Any,
+    stage: Any,
+    layer: dict[str, Any],
+    where: str,
+    public_key: Any,
+    imgtool: threading.Lock,
 ) -> tuple[HeldFile, bool, tuple[str, str | None] | None]:
     """One layer staged (:func:`.blobs.fetch_blob`), whether it came from the content store, and,
-    for an MCUboot image, imgtool's verdict on the staged file (the very file ``--out`` gets)."""
+    for an MCUboot image, imgtool's verdict on the staged file (the very file ``--out`` gets),
+    under the lock ``imgtool`` (imgtool holds the whole image: memory stays one image)."""
     from .blobs import fetch_blob
 
     title = layer["annotations"][TITLE]
@@ -474,7 +483,8 @@ def _fetch_and_check(
     if layer["mediaType"] == MCUBOOT_TYPE:
         from ..ota.images import verify_image_fd
 
-        verdict = verify_image_fd(held.fd, public_key)
+        with imgtool:
+            verdict = verify_image_fd(held.fd, public_key)
     return held, cached, verdict
 
 
