@@ -61,7 +61,10 @@ def main() -> None:
                 cache, out = OCI / f"cache-{who}{i}", OCI / f"pulled-{who}{i}.hcdfz"
                 shutil.rmtree(cache, ignore_errors=True)
                 res[who].append(
-                    timed([pullers[who], "bundle", "pull", ref, "--out", str(out), "--cache-dir", str(cache), "--json"])
+                    timed(
+                        [pullers[who], "bundle", "pull", ref, "--trust-tag", "--out", str(out),
+                         "--cache-dir", str(cache), "--json"]
+                    )  # fmt: skip
                 )
                 assert out.read_bytes() == bundle.read_bytes()
     finally:

@@ -48,8 +48,11 @@ class _RefuseExternal(etree.Resolver):
         raise _ExternalLoadRefused(str(system_url))
 
 
-def _parser() -> etree.XMLParser:
+def _parser(target: object = None) -> etree.XMLParser:
+    """The one parser configuration; ``target`` (an lxml parser target) builds no tree."""
     parser = etree.XMLParser(
+        # lxml calls only the callbacks a target has; the stubs' protocol wants all five.
+        target=cast("etree.ParserTarget | None", target),
         resolve_entities=False,
         no_network=True,
         load_dtd=False,
@@ -122,18 +125,8 @@ def _check_element_count(data: bytes, source: str) -> None:
     Counting costs one Python call per element, so it runs only when the text has more
     ``<`` than the cap allows elements. Any other fault is left to the real parse.
     """
-    parser = etree.XMLParser(
-        # lxml calls only the callbacks a target has; the stubs' protocol wants all five.
-        target=cast("etree.ParserTarget", _ElementCounter()),
-        resolve_entities=False,
-        no_network=True,
-        load_dtd=False,
-        huge_tree=False,
-        collect_ids=False,
-    )
-    parser.resolvers.add(_RefuseExternal())
     try:
-        etree.fromstring(data, parser)
+        etree.fromstring(data, _parser(_ElementCounter()))
     except _TooManyElements:
         raise XmlError(
             f"more than {MAX_DOCUMENT_ELEMENTS:,} elements: over the cap on one XML document's elements",
