@@ -36,7 +36,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -111,7 +110,7 @@ class _Layer:
 
 def release_layers(folder: str, release: Any) -> list[_Layer]:
     """The files ``ota verify`` reads in ``folder``, with their media types and annotations."""
-    from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME
+    from ..ota.read import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME
     from ..ota.verify import image_path
 
     wanted: list[tuple[str, str, dict[str, str]]] = [(MANIFEST_NAME, SUIT_TYPE, {})]
@@ -365,7 +364,7 @@ def pull_release(
     from ..errors import relabel
     from ..outputs import FileContent, OutputPlan
     from ..store import ContentStore
-    from .blobs import Stage
+    from .blobs import Stage, fetch_blob
 
     # 1. the manifest, pinned by the hash of its body
     got = client.get_manifest(ref.reference)
@@ -391,23 +390,40 @@ def pull_release(
         pool = ThreadPoolExecutor(max_workers=FETCH_THREADS)
         jobs = []
         try:
-            warm = pool.submit(_import_verifier)
-            imgtool = threading.Lock()  # it reads a whole image: one at a time, as ota verify
             jobs = [
-                pool.submit(_fetch_and_check, client, store, stage, x, f"{source}#/layers/{i}", public_key, imgtool)
+                pool.submit(
+                    fetch_blob,
+                    client,
+                    store,
+                    x,
+                    title=t,
+                    where=f"{source}#/layers/{i}",
+                    stage=stage,
+                    rel=f"release/{t}",
+                )
                 for i, x in enumerate(layers)
+                for t in [x["annotations"][TITLE]]
             ]
-            warm.result()
-            results = [job.result() for job in jobs]
+            # while they arrive: the verify stack loads (COSE, CBOR, imgtool), then each image is
+            # checked by imgtool in layer order as soon as it is staged
+            from ..ota import read, verify  # noqa: F401
+            from ..ota.images import verify_image_fd
+
+            held: dict[str, HeldFile] = {}
+            images: dict[str, tuple[str, str | None]] = {}
+            cached = 0
+            for x, job in zip(layers, jobs, strict=True):  # in order, each as soon as it is in
+                title = x["annotations"][TITLE]
+                held[title], hit = job.result()
+                cached += hit
+                if x["mediaType"] == MCUBOOT_TYPE:  # imgtool, on this thread: one image held at a time
+                    images[title] = verify_image_fd(held[title].fd, public_key)
         except BaseException:
             for job in jobs:
                 job.cancel()
             raise
         finally:
             pool.shutdown(wait=True)
-        held = {x["annotations"][TITLE]: r[0] for x, r in zip(layers, results, strict=True)}
-        cached = sum(1 for r in results if r[1])
-        images = {x["annotations"][TITLE]: r[2] for x, r in zip(layers, results, strict=True) if r[2] is not None}
         # 4. ota verify of the staged release, with the public key
         release, errors = _verify_staged(staged, public_key, previous, set(held), layers, images)
         if errors:
@@ -462,36 +478,6 @@ def pull_release(
 PROVENANCE_NAME = "provenance.intoto.json"  # == provenance.FILE_NAME (not imported: that package loads lazily)
 
 
-def _import_verifier() -> None:
-    """Load the ``ota verify`` stack (COSE, CBOR, imgtool) while the blobs arrive."""
-    from ..ota import images, release, verify  # noqa: F401
-
-
-def _fetch_and_check(
-    client: RegistryClient,
-    store: Any,
-    stage: Any,
-    layer: dict[str, Any],
-    where: str,
-    public_key: Any,
-    imgtool: threading.Lock,
-) -> tuple[HeldFile, bool, tuple[str, str | None] | None]:
-    """One layer staged (:func:`.blobs.fetch_blob`), whether it came from the content store, and,
-    for an MCUboot image, imgtool's verdict on the staged file (the very file ``--out`` gets),
-    under the lock ``imgtool`` (imgtool holds the whole image: memory stays one image)."""
-    from .blobs import fetch_blob
-
-    title = layer["annotations"][TITLE]
-    held, cached = fetch_blob(client, store, layer, title=title, where=where, stage=stage, rel=f"release/{title}")
-    verdict = None
-    if layer["mediaType"] == MCUBOOT_TYPE:
-        from ..ota.images import verify_image_fd
-
-        with imgtool:
-            verdict = verify_image_fd(held.fd, public_key)
-    return held, cached, verdict
-
-
 def _verify_staged(
     stage: str,
     public_key: Any,
@@ -502,7 +488,7 @@ def _verify_staged(
 ) -> tuple[Any, list[HcdfTrustError]]:
     import dataclasses
 
-    from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
+    from ..ota.read import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
     from ..ota.verify import check_release, image_path
 
     release, files = read_release(stage, public_key)
