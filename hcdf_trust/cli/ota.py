@@ -488,12 +488,15 @@ def pull(
     `ota verify` verifies a provenance), and only then written to --out (all or nothing)."""
     from ..oci.release import pull_release
     from ..ota.keys import load_public
-    from ..ota.release import previous_manifest
     from ..store import default_cache_dir
 
     public = load_public(key)
     others = tuple(load_provenance_keys(provenance_keys, threshold, key=public)[1:])
-    before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
+    before = None
+    if previous is not None:
+        from ..ota.release import previous_manifest  # the build module: only for --previous
+
+        before = previous_manifest(previous, public, ca_bundle=ca_bundle)
     from ..oci.client import connect
 
     ref, client = connect(source, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
