@@ -1,0 +1,168 @@
+"""Mutation killers for how a registry URL that cannot be reached is reported
+(hcdf_trust/registry/client.py: ``_unreachable`` and ``_attack``'s transport branch; see tests/MUTATION.md).
+
+Each failure is made for real on 127.0.0.1 (a refused port, a server that never answers the
+TLS handshake, one whose certificate the client does not trust, one that answers garbage) and
+checked through ``registry verify --json``: the whole message, so the host, the reason, what
+was being fetched and the advice are each pinned.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import socket
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests._oci import module_cli
+from tests._registry import PASSPHRASE, build
+from tests.servers import LoopbackServer
+
+ADVICE = "and the network, or give a folder holding a copy of the site"
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    """A published registry's first root: a valid trust anchor for any site URL."""
+    base = tmp_path_factory.mktemp("reg")
+    cli = module_cli()
+    (base / "content").mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+        for args in (
+            ("init", base / "src", "--keys", base / "keys"),
+            ("publish", base / "src", "--keys", base / "keys", "--content", base / "content", "--out", base / "site"),
+        ):
+            res = cli("registry", *args)
+            assert res.exit_code == 0, res.stderr
+    return base / "site" / "metadata" / "1.root.json"
+
+
+def _message(cli, root: Path, tmp_path: Path, site: str, *extra: object) -> str:
+    res = cli("registry", "verify", site, "--trusted-root", root, "--cache-dir", tmp_path / "c", "--json", *extra)
+    assert res.exit_code == 3, res.stdout + res.stderr
+    [err] = res.json["errors"]
+    assert err["code"] == "registry-transport", err
+    message: str = err["message"]
+    return message
+
+
+@contextlib.contextmanager
+def _raw_server(reply: bytes | None) -> Iterator[int]:
+    """A TCP server on 127.0.0.1 that answers every connection with ``reply`` then closes it,
+    or (``None``) accepts and never says anything."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(16)
+    held: list[socket.socket] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = sock.accept()
+            except OSError:
+                return
+            held.append(conn)
+            if reply is not None:
+                with contextlib.suppress(OSError):
+                    conn.recv(65536)
+                    conn.sendall(reply)
+                    conn.close()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield sock.getsockname()[1]
+    finally:
+        sock.close()
+        for conn in held:
+            conn.close()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+    return port
+
+
+def test_a_refused_connection_names_host_port_reason_role_and_site(cli, root, tmp_path):
+    port = _free_port()
+    site = f"http://127.0.0.1:{port}/"
+    assert _message(cli, root, tmp_path, site) == (
+        f"cannot reach the registry at 127.0.0.1:{port} (Connection refused) to fetch top-level metadata; "
+        f"check SITE {site} {ADVICE}"
+    )
+
+
+def test_a_url_without_a_port_names_the_host_alone(cli, root, tmp_path):
+    with socket.socket() as probe:
+        if probe.connect_ex(("127.0.0.1", 80)) == 0:
+            pytest.skip("something listens on 127.0.0.1:80")
+    assert _message(cli, root, tmp_path, "http://127.0.0.1/") == (
+        f"cannot reach the registry at 127.0.0.1 (Connection refused) to fetch top-level metadata; "
+        f"check SITE http://127.0.0.1/ {ADVICE}"
+    )
+
+
+def test_a_url_without_a_host_is_named_as_given(cli, root, tmp_path):
+    assert _message(cli, root, tmp_path, "http:///site") == (
+        f"cannot reach the registry at http:///site (No host specified.) to fetch top-level metadata; "
+        f"check SITE http:///site {ADVICE}"
+    )
+
+
+def test_credentials_in_the_url_are_not_repeated(cli, root, tmp_path):
+    port = _free_port()
+    message = _message(cli, root, tmp_path, f"http://user:secret@127.0.0.1:{port}/")
+    assert message == (
+        f"cannot reach the registry at 127.0.0.1:{port} (Connection refused) to fetch top-level metadata; "
+        f"check SITE http://***@127.0.0.1:{port}/ {ADVICE}"
+    )
+
+
+def test_a_tls_handshake_that_never_completes_is_a_timeout(cli, root, tmp_path):
+    """The handshake's own timeout ("The handshake operation timed out") arrives wrapped in
+    urllib3's ProtocolError: the reason is found in its text, not its type."""
+    with _raw_server(None) as port:
+        site = f"https://127.0.0.1:{port}/"
+        assert _message(cli, root, tmp_path, site, "--timeout", "0.5") == (
+            f"cannot reach the registry at 127.0.0.1:{port} (timed out) to fetch top-level metadata; "
+            f"check SITE {site} {ADVICE}"
+        )
+
+
+def test_an_untrusted_certificate_is_a_tls_failure(cli, root, tmp_path, serve):
+    srv = serve("untrusted")
+    message = _message(cli, root, tmp_path, srv.base)
+    head = f"cannot reach the registry at 127.0.0.1:{srv.port} (TLS failed: [SSL: CERTIFICATE_VERIFY_FAILED] "
+    tail = f") to fetch top-level metadata; check SITE {srv.base} {ADVICE}"
+    assert message.startswith(head) and message.endswith(tail), message
+    assert re.fullmatch(r"certificate verify failed: [^()]+ \(_ssl\.c:\d+\)", message[len(head) : -len(tail)]), message
+
+
+def test_a_garbage_answer_is_named_by_its_first_200_characters(cli, root, tmp_path):
+    with _raw_server(b"GARBAGE" + b"x" * 400 + b"\r\n\r\n") as port:
+        site = f"http://127.0.0.1:{port}/"
+        reason = "('Connection aborted.', BadStatusLine('GARBAGE" + "x" * 400
+        assert _message(cli, root, tmp_path, site) == (
+            f"cannot reach the registry at 127.0.0.1:{port} ({reason[:200]}) to fetch top-level metadata; "
+            f"check SITE {site} {ADVICE}"
+        )
+
+
+def test_a_domain_role_that_cannot_be_fetched_names_the_role_and_the_site(cli, tmp_path, monkeypatch):
+    """The top-level metadata loads; the domain's role (loaded on demand) then times out."""
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path / "reg", cli)
+    with LoopbackServer(root=reg.site) as srv:
+        srv.stall("/metadata/1.org.ros2.json")
+        site = srv.base + "/"
+        assert _message(cli, reg.root_json, tmp_path, site, "--timeout", "0.5") == (
+            f"cannot reach the registry at 127.0.0.1:{srv.port} (timed out) to fetch org.ros2.json; "
+            f"check SITE {site} {ADVICE}"
+        )
