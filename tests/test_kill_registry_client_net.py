@@ -166,3 +166,16 @@ def test_a_domain_role_that_cannot_be_fetched_names_the_role_and_the_site(cli, t
             f"cannot reach the registry at 127.0.0.1:{srv.port} (timed out) to fetch org.ros2.json; "
             f"check SITE {site} {ADVICE}"
         )
+
+
+def test_a_target_that_cannot_be_fetched_names_the_target_and_the_site(cli, tmp_path, monkeypatch):
+    """Every role loads; the first schema download then times out."""
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path / "reg", cli)
+    with LoopbackServer(root=reg.site) as srv:
+        srv.stall("/" + reg.target_file("extensions/org.gazebosim/1.0.xsd").relative_to(reg.site).as_posix())
+        site = srv.base + "/"
+        assert _message(cli, reg.root_json, tmp_path, site, "--timeout", "0.5") == (
+            f"cannot reach the registry at 127.0.0.1:{srv.port} (timed out) to fetch target "
+            f"extensions/org.gazebosim/1.0.xsd; check SITE {site} {ADVICE}"
+        )
