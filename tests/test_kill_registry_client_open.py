@@ -128,3 +128,29 @@ def test_a_replaced_core_schema_is_refused_on_the_next_run(reg, tmp_path):
     [again] = _errors(reg, reg.site, reg.root_json, cache, 1)
     assert again["message"] == err["message"]
     assert json.loads((cache / "metadata" / "targets.json").read_text())["signed"]["targets"]["schemas/hcdf/1.0.xsd"]
+
+
+def test_site_metadata_with_a_duplicate_key_is_named_by_file(reg, tmp_path):
+    """``check_metadata`` on a download: the file (as the URL names it) and the parser's reason,
+    whole. python-tuf alone would keep the last "signed" and verify."""
+    path = reg.site / "metadata" / "timestamp.json"
+    doc = json.loads(path.read_bytes())
+    evil = json.dumps({**doc["signed"], "version": 999})
+    path.write_text(path.read_text().replace('"signed":', f'"signed": {evil}, "signed":', 1))
+    [err] = _errors(reg, reg.site, reg.root_json, tmp_path / "c", 1)
+    assert (err["file"], err["code"]) == ("timestamp.json", "registry-attack"), err
+    assert err["message"] == (
+        "ambiguous or malformed metadata: timestamp.json: key 'signed' appears twice in the object at "
+        "(the document) (parsers disagree on which one counts)"
+    ), err
+
+
+def test_site_metadata_that_is_not_json_is_named_by_file_and_line(reg, tmp_path):
+    path = reg.site / "metadata" / "timestamp.json"
+    path.write_text('{\n"signed":\n  {,\n')
+    [err] = _errors(reg, reg.site, reg.root_json, tmp_path / "c", 1)
+    assert (err["file"], err["line"], err["code"]) == ("timestamp.json", 3, "registry-attack"), err
+    assert err["message"] == (
+        "ambiguous or malformed metadata: timestamp.json is not JSON: "
+        "Expecting property name enclosed in double quotes (column 4)"
+    ), err
