@@ -179,3 +179,36 @@ def test_a_target_that_cannot_be_fetched_names_the_target_and_the_site(cli, tmp_
             f"cannot reach the registry at 127.0.0.1:{srv.port} (timed out) to fetch target "
             f"extensions/org.gazebosim/1.0.xsd; check SITE {site} {ADVICE}"
         )
+
+
+def test_with_a_ca_bundle_the_client_names_itself_to_the_server(cli, tmp_path, monkeypatch, tls):
+    """``--ca-bundle`` replaces python-tuf's connection pool; the replacement keeps a User-Agent
+    naming this tool. Seen by a real TLS server on 127.0.0.1 that records every request's header."""
+    import functools
+    import http.server
+
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path / "reg", cli)
+    agents: list[str | None] = []
+
+    class Recording(http.server.SimpleHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802
+            agents.append(self.headers.get("User-Agent"))
+            super().do_GET()
+
+        def log_message(self, format: str, *args: object) -> None:  # noqa: A002
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Recording, directory=str(reg.site)))
+    httpd.socket = tls.server_context("good").wrap_socket(httpd.socket, server_side=True)
+    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    try:
+        site = f"https://127.0.0.1:{httpd.server_address[1]}/"
+        res = cli("registry", "verify", site, "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c",
+                  "--ca-bundle", tls.ca_pem)  # fmt: skip
+        assert res.exit_code == 0, res.stderr
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+    assert agents and set(agents) == {"hcdf-trust python-tuf"}, agents

@@ -58,7 +58,7 @@ def test_a_trusted_root_over_the_limit_is_not_read(reg, tmp_path):
     assert _errors(reg, reg.site, root, tmp_path / "c", 0) == []  # at the limit: read
     root.write_bytes(root.read_bytes() + b" ")
     [err] = _errors(reg, reg.site, root, tmp_path / "c2", 3)
-    assert "trusted root" in err["message"] and err["file"] == str(root)
+    assert (err["message"], err["file"]) == ("trusted root is over the 512000-byte limit", str(root))
     assert not (tmp_path / "c2").exists()  # refused before the client made its folder
 
 
