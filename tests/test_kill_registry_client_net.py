@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._oci import module_cli
+from tests._oci import module_cli, registry  # noqa: F401 -- fixture
 from tests._registry import PASSPHRASE, build
 from tests.servers import LoopbackServer
 
@@ -212,3 +212,24 @@ def test_with_a_ca_bundle_the_client_names_itself_to_the_server(cli, tmp_path, m
         httpd.shutdown()
         httpd.server_close()
     assert agents and set(agents) == {"hcdf-trust python-tuf"}, agents
+
+
+def test_an_oci_site_named_insecure_is_reached_over_plain_http_despite_a_ca_bundle(
+    cli,
+    tmp_path,
+    monkeypatch,
+    tls,
+    registry,  # noqa: F811
+):
+    """``--insecure-registry`` reaches the OCI transport of a TUF site: with a ``--ca-bundle`` a
+    loopback registry is spoken to over TLS, unless it is named insecure (the test registry is
+    plain http: over TLS the refresh fails)."""
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path / "reg", cli)
+    ref = registry.ref("hcdf/insecure-site", "v1")
+    assert reg.publish("--oci", ref).exit_code == 0
+    common = ("registry", "verify", ref, "--trusted-root", reg.root_json, "--ca-bundle", tls.ca_pem)
+    res = cli(*common, "--cache-dir", tmp_path / "c1")
+    assert res.exit_code == 3, res.stderr  # TLS to a plain-http registry
+    res = cli(*common, "--cache-dir", tmp_path / "c2", "--insecure-registry", registry.netloc)
+    assert res.exit_code == 0, res.stderr
