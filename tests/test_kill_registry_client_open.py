@@ -154,3 +154,17 @@ def test_site_metadata_that_is_not_json_is_named_by_file_and_line(reg, tmp_path)
         "ambiguous or malformed metadata: timestamp.json is not JSON: "
         "Expecting property name enclosed in double quotes (column 4)"
     ), err
+
+
+def test_a_client_cache_file_that_cannot_be_written_is_named_with_the_cache(reg, tmp_path):
+    """The metadata python-tuf writes goes through the output planner, whose refusal names the file
+    as the client's cache (a folder where timestamp.json belongs)."""
+    cache = tmp_path / "c"
+    blocked = cache / "metadata" / "timestamp.json"
+    blocked.mkdir(parents=True)
+    [err] = _errors(reg, reg.site, reg.root_json, cache, 3)
+    assert (err["message"], err["file"], err["code"]) == (
+        f"the registry client cache {blocked} is a directory",
+        str(blocked),
+        "output",
+    )
