@@ -233,3 +233,17 @@ def test_an_oci_site_named_insecure_is_reached_over_plain_http_despite_a_ca_bund
     assert res.exit_code == 3, res.stderr  # TLS to a plain-http registry
     res = cli(*common, "--cache-dir", tmp_path / "c2", "--insecure-registry", registry.netloc)
     assert res.exit_code == 0, res.stderr
+
+
+def test_a_site_url_whose_path_ends_in_x_is_used_as_written(cli, tmp_path, monkeypatch):
+    """Only the final slashes of a site URL are dropped (``/siteX`` stays ``/siteX``)."""
+    import shutil
+
+    monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
+    reg = build(tmp_path / "reg", cli)
+    served = tmp_path / "served"
+    shutil.copytree(reg.site, served / "siteX")
+    with LoopbackServer(root=served) as srv:
+        for site in (srv.url("/siteX"), srv.url("/siteX/")):
+            res = cli("registry", "verify", site, "--trusted-root", reg.root_json, "--cache-dir", tmp_path / "c")
+            assert res.exit_code == 0, res.stderr
