@@ -183,17 +183,20 @@ def test_a_target_that_cannot_be_fetched_names_the_target_and_the_site(cli, tmp_
 
 def test_with_a_ca_bundle_the_client_names_itself_to_the_server(cli, tmp_path, monkeypatch, tls):
     """``--ca-bundle`` replaces python-tuf's connection pool; the replacement keeps a User-Agent
-    naming this tool. Seen by a real TLS server on 127.0.0.1 that records every request's header."""
+    naming this tool. Seen by a real TLS server on 127.0.0.1 that records every request's header
+    and path (a site URL given with its final slash asks for ``/metadata/...``, not ``//metadata/...``)."""
     import functools
     import http.server
 
     monkeypatch.setenv("HCDF_TRUST_PASSPHRASE", PASSPHRASE)
     reg = build(tmp_path / "reg", cli)
     agents: list[str | None] = []
+    paths: list[str] = []
 
     class Recording(http.server.SimpleHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802
             agents.append(self.headers.get("User-Agent"))
+            paths.append(self.requestline.split(" ")[1])  # as sent (http.server collapses a leading //)
             super().do_GET()
 
         def log_message(self, format: str, *args: object) -> None:  # noqa: A002
@@ -212,6 +215,8 @@ def test_with_a_ca_bundle_the_client_names_itself_to_the_server(cli, tmp_path, m
         httpd.shutdown()
         httpd.server_close()
     assert agents and set(agents) == {"hcdf-trust python-tuf"}, agents
+    # the site's final slash is not doubled: every request is /metadata/... or /targets/...
+    assert all(p.split("/")[1] in ("metadata", "targets") and "//" not in p for p in paths), paths
 
 
 def test_an_oci_site_named_insecure_is_reached_over_plain_http_despite_a_ca_bundle(
