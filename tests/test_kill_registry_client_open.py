@@ -168,3 +168,38 @@ def test_a_client_cache_file_that_cannot_be_written_is_named_with_the_cache(reg,
         str(blocked),
         "output",
     )
+
+
+def test_an_unreadable_cached_role_does_not_make_the_client_forget_the_others(reg, tmp_path):
+    """A cached role file that fails the strict reader is skipped, and the client still remembers
+    every other role it trusted: a core schema replaced in top-level targets is refused although an
+    ambiguous cached file comes before ``targets.json`` in the folder's listing order."""
+    import os
+
+    from tests.conftest import HCDFORMAT
+
+    reg.run("add", reg.src, "--core", "hcdf", "--version", "1.0", "--schema", HCDFORMAT / "hcdf.xsd",
+            "--content", reg.content)  # fmt: skip
+    reg.publish()
+    cache = tmp_path / "c"
+    assert _errors(reg, reg.site, reg.root_json, cache, 0) == []
+    meta = cache / "metadata"
+    # ambiguous role files until one is listed before targets.json (the client reads the folder in
+    # that order, os.scandir's, which the file system decides)
+    for n in range(200):
+        (meta / f"broken-{n}.json").write_text('{"signed": {}, "signed": {}}')
+        order = [e.name for e in os.scandir(meta)]
+        if any(name.startswith("broken-") for name in order[: order.index("targets.json")]):
+            break
+    else:
+        pytest.skip("no file was listed before targets.json")
+    evil = b"<xs:schema xmlns:xs='http://www.w3.org/2001/XMLSchema'/>"
+
+    def replace(signed):
+        signed.targets["schemas/hcdf/1.0.xsd"] = reg.put_target("schemas/hcdf/1.0.xsd", evil)
+
+    reg.forge("targets", replace, signer=reg.top_signer("targets"))
+    [err] = _errors(reg, reg.site, reg.root_json, cache, 1)
+    assert err["message"] == (
+        "replaced published version: schemas/hcdf/1.0.xsd (targets) changed content since this client last saw it"
+    )
