@@ -475,3 +475,37 @@ class Notice:
 
     def __repr__(self) -> str:
         return f"Notice({self.code!r}, {str(self)!r})"
+
+
+def relabel(item: HcdfTrustError | Notice, folder: str | os.PathLike[str], shown: str) -> None:
+    """Make ``item`` (an error, each error of a group, or a notice) name ``shown`` wherever it
+    names the private folder ``folder`` or a file in it, in place.
+
+    A pull verifies what it fetched in a staging folder of its own (``.oci-pull-*``), which the
+    user never named and which is gone once the command ends: its messages must name what the
+    user asked for (``oci://HOST/REPO@sha256:…``) and the place inside it, as every other
+    message names a file the user gave. The folder appears as its absolute path, its real
+    path, as :func:`display_path` shows it or as a ``file:`` URL; each is replaced, in every
+    text field.
+    """
+    from pathlib import Path
+
+    paths = {os.path.abspath(folder), os.path.realpath(folder)}
+    forms = {*paths, *(display_path(p) for p in paths), *(Path(p).as_uri() for p in paths)}  # a file: URL too
+    ordered = sorted(forms, key=len, reverse=True)
+
+    def fix(text: str | None) -> str | None:
+        if text is None:
+            return None
+        for form in ordered:
+            text = text.replace(form, shown)
+        return text
+
+    for name in ("message", "file", "url", "expected", "actual"):
+        if hasattr(item, name):
+            setattr(item, name, fix(getattr(item, name)))
+    if isinstance(item, HcdfTrustError):
+        item.args = tuple(fix(a) if isinstance(a, str) else a for a in item.args)
+    if isinstance(item, ErrorGroup):
+        for error in item.errors:
+            relabel(error, folder, shown)

@@ -24,6 +24,9 @@ MAX_DEPTH = 200
 #: raises it) or one JSON-form document may have: the JSON form costs ~15x its XML per
 #: element while it is built, so it is capped while read (docs/json-form.md).
 MAX_ELEMENTS = 250_000
+#: The most elements one XML document may have (~130 bytes each in lxml, so ~130 MB):
+#: 32 MiB of ``<a/>`` would otherwise be 8 million elements and 1.2 GB.
+MAX_DOCUMENT_ELEMENTS = 1_000_000
 
 
 class _ExternalLoadRefused(Exception):
@@ -45,8 +48,11 @@ class _RefuseExternal(etree.Resolver):
         raise _ExternalLoadRefused(str(system_url))
 
 
-def _parser() -> etree.XMLParser:
+def _parser(target: object = None) -> etree.XMLParser:
+    """The one parser configuration; ``target`` (an lxml parser target) builds no tree."""
     parser = etree.XMLParser(
+        # lxml calls only the callbacks a target has; the stubs' protocol wants all five.
+        target=cast("etree.ParserTarget | None", target),
         resolve_entities=False,
         no_network=True,
         load_dtd=False,
@@ -72,6 +78,8 @@ def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
             f"document is {len(data)} bytes, over the {MAX_DOCUMENT_BYTES}-byte limit",
             file=source,
         )
+    if data.count(b"<") > MAX_DOCUMENT_ELEMENTS:  # every element needs one: most documents stop here
+        _check_element_count(data, source)
     try:
         tree = etree.fromstring(data, _parser()).getroottree()
     except _ExternalLoadRefused as exc:
@@ -90,6 +98,43 @@ def parse_bytes(data: bytes, *, source: str) -> etree._ElementTree:
         raise XmlError("a DOCTYPE is not allowed in HCDF (entities and DTDs are refused)", file=source, line=1)
     _check_depth(tree, source)
     return tree
+
+
+class _TooManyElements(Exception):
+    pass
+
+
+class _ElementCounter:
+    """An lxml parser target that builds nothing and stops one element past the cap."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def start(self, tag: str, attrib: dict[str, str]) -> None:
+        self.count += 1
+        if self.count > MAX_DOCUMENT_ELEMENTS:
+            raise _TooManyElements
+
+    def close(self) -> None:
+        return None
+
+
+def _check_element_count(data: bytes, source: str) -> None:
+    """Refuse a flood of elements before lxml builds a tree of them.
+
+    Counting costs one Python call per element, so it runs only when the text has more
+    ``<`` than the cap allows elements. Any other fault is left to the real parse.
+    """
+    try:
+        etree.fromstring(data, _parser(_ElementCounter()))
+    except _TooManyElements:
+        raise XmlError(
+            f"more than {MAX_DOCUMENT_ELEMENTS:,} elements: over the cap on one XML document's elements",
+            file=source,
+            expected=f"at most {MAX_DOCUMENT_ELEMENTS:,} elements",
+        ) from None
+    except (etree.XMLSyntaxError, ValueError, _ExternalLoadRefused):
+        return
 
 
 # Any element MAX_DEPTH + 1 levels down; evaluated by libxml2, not a Python walk.

@@ -11,12 +11,15 @@ import textwrap
 import time
 from pathlib import Path
 
+import click
 import pytest
 from lxml import etree
 
 from hcdf_trust.cli import main
+from hcdf_trust.errors import XmlError
 from hcdf_trust.include import ResolveOptions, resolve
 from hcdf_trust.include.flatten import DEFAULT_MAX_ELEMENTS, expanded_elements
+from hcdf_trust.xml import MAX_DOCUMENT_ELEMENTS, parse_bytes
 
 # The refusal must come before any copying: well under this address space and time.
 MEMORY_LIMIT = 1 << 30
@@ -93,12 +96,12 @@ def test_deep_exponential_tree_with_a_large_max_depth_is_refused_too(tmp_path):
         "--out",
         tmp_path / "f.hcdf",
         "--max-elements",
-        str(10**9),
+        "1000000",
     )
     assert done.returncode == 3, done.stderr[-2000:]
     total = sum(_elements(tmp_path / "deep" / f"level{level}.hcdf") * 2**level for level in range(200))
     assert f"about 10^{len(str(total)) - 1} elements" in done.stderr
-    assert "over the limit of 1,000,000,000" in done.stderr
+    assert "over the limit of 1,000,000" in done.stderr
 
 
 def test_the_count_is_instances_times_elements_over_the_include_graph(cli, tmp_path):
@@ -128,6 +131,40 @@ def test_the_count_is_instances_times_elements_over_the_include_graph(cli, tmp_p
 def test_the_cli_default_is_the_documented_one():
     (param,) = [p for p in main.commands["resolve"].params if p.name == "max_elements"]
     assert param.default == DEFAULT_MAX_ELEMENTS
+
+
+@pytest.mark.parametrize("verb", [("resolve",), ("bundle", "write")])
+def test_max_elements_cannot_exceed_what_the_xml_reader_accepts(cli, tmp_path, verb):
+    """A flattened or bundled document over the reader's cap could never be read again."""
+    command = main
+    for name in verb:
+        command = command.get_command(click.Context(command), name)  # type: ignore[attr-defined]
+    (param,) = [p for p in command.params if p.name == "max_elements"]
+    assert param.type.max == MAX_DOCUMENT_ELEMENTS
+    doc = tmp_path / "r.hcdf"
+    doc.write_text(hcdf('<comp name="a"/>'))
+    refused = cli(
+        *verb,
+        doc,
+        *(["--out", tmp_path / "f.hcdf"] if verb == ("resolve",) else [tmp_path / "r.hcdfz"]),
+        "--max-elements",
+        MAX_DOCUMENT_ELEMENTS + 1,
+    )
+    assert refused.exit_code == 2 and "--max-elements" in refused.stderr
+
+
+def test_an_xml_document_of_too_many_elements_is_refused_before_its_tree_is_built():
+    """32 MiB of ``<a/>`` is 8 million elements (~1.2 GB in lxml); the count stops at the cap."""
+    flood = b'<hcdf version="1.0">' + b"<a/>" * (MAX_DOCUMENT_ELEMENTS + 1) + b"</hcdf>"
+    with pytest.raises(XmlError) as refused:
+        parse_bytes(flood, source="flood.hcdf")
+    assert refused.value.args[0].startswith(f"more than {MAX_DOCUMENT_ELEMENTS:,} elements")
+    assert (refused.value.file, refused.value.expected) == ("flood.hcdf", f"at most {MAX_DOCUMENT_ELEMENTS:,} elements")
+    at_cap = b'<hcdf version="1.0">' + b"<a/>" * (MAX_DOCUMENT_ELEMENTS - 1) + b"</hcdf>"
+    assert len(parse_bytes(at_cap, source="ok.hcdf").getroot()) == MAX_DOCUMENT_ELEMENTS - 1
+    # "<" in a comment is not an element: counted, then accepted
+    many_lt = b'<hcdf version="1.0"><!--' + b"<" * (MAX_DOCUMENT_ELEMENTS + 1) + b"--></hcdf>"
+    assert parse_bytes(many_lt, source="c.hcdf").getroot().tag == "hcdf"
 
 
 # --- a 1,000-file chain ------------------------------------------------------------------------

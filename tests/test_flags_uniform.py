@@ -2,14 +2,15 @@
 reads the same in --help, in every verb.
 
 - Every verb that reads a description tree takes resolve's ``--base``, ``--mirror``, ``--root``,
-  ``--cache-dir``, ``--lock`` and ``--offline`` (validate, which reads local files only, the
-  first three), with resolve's help text.
+  ``--cache-dir``, ``--lock``, ``--ca-bundle`` and ``--offline`` (validate, which reads local
+  files only, the first three), with resolve's help text.
 - Every verb takes ``--json``; every verb that writes spells its output ``-o``/``--out``.
 - Options are accepted before or after the positional arguments.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 
@@ -19,6 +20,7 @@ import pytest
 from hcdf_trust.cli import main
 
 from .conftest import PROJECT
+from .servers import https_server, serve, tls  # noqa: F401  (fixtures are used by name)
 
 
 def _leaves(cmd: click.Command, path: tuple[str, ...] = ()) -> list[tuple[str, click.Command]]:
@@ -45,7 +47,7 @@ TREE_VERBS = [
     *(f"macsec {v}" for v in ("plan", "generate", "status", "rotate", "export")),
 ]
 LOCATION_FLAGS = ["--base", "--mirror", "--root"]
-TREE_FLAGS = [*LOCATION_FLAGS, "--cache-dir", "--lock"]
+TREE_FLAGS = [*LOCATION_FLAGS, "--cache-dir", "--lock", "--ca-bundle"]
 
 
 def _option(cmd: click.Command, flag: str) -> click.Option | None:
@@ -69,6 +71,29 @@ def test_tree_verbs_take_resolves_flags_with_resolves_help(verb):
         assert theirs is not None
         assert ours.help == theirs.help, flag
         assert ours.multiple == theirs.multiple and ours.metavar == theirs.metavar, flag
+
+
+@pytest.mark.parametrize("verb", ["sbom", "audit", "macsec plan"])
+def test_online_tree_verbs_trust_the_ca_bundle_they_are_given(cli, https_server, tls, tmp_path, verb):
+    """--online fetches over https with --ca-bundle's CAs, in every tree verb (sbom and macsec had none)."""
+    data = b"model bytes"
+    url = https_server.add("/a.glb", data)
+    doc = tmp_path / "r.hcdf"
+    doc.write_text(
+        '<?xml version="1.0"?>\n<hcdf version="1.0" name="r">\n<comp name="a"><visual>'
+        f'<model uri="{url}" sha="{hashlib.sha256(data).hexdigest()}"/></visual></comp>\n</hcdf>\n'
+    )
+    assert cli("resolve", doc, "--ca-bundle", tls.ca_pem, "--cache-dir", tmp_path / "warm").exit_code == 0
+    extra = ["--format", "cyclonedx"] if verb == "sbom" else []
+    args = (*verb.split(), doc, *extra, "--online", "--cache-dir", tmp_path / "cold", "--json")
+    untrusted = cli(*args)
+    assert untrusted.exit_code == (1 if verb == "audit" else 3), untrusted.stdout  # audit: a finding
+    assert "certificate" in json.dumps(untrusted.json["errors"]).lower()
+    trusted = cli(*args, "--ca-bundle", tls.ca_pem)
+    assert trusted.exit_code in (0, 1) and not any(  # audit may find other things; none about the fetch
+        "certificate" in json.dumps(e).lower() for e in trusted.json.get("errors", [])
+    ), trusted.stdout
+    assert https_server.hits["/a.glb"] == 2  # resolve's, then the trusted run's (the untrusted one never got it)
 
 
 @pytest.mark.parametrize("verb", TREE_VERBS)
@@ -196,3 +221,23 @@ def test_every_json_object_has_ok_and_errors(cli, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     _shape(cli("macsec", "plan", "robot/robot.hcdf", "--json"), "associations")
     _shape(cli("verify", "robot/robot.hcdf", "--json"), "artifacts")
+
+
+def test_provenance_key_and_threshold_are_one_pair_of_options():
+    """--provenance-key and --threshold come from one decorator (cli/params.py): the same type,
+    bounds and default in every verb that verifies a provenance; the help differs only where
+    the verb has a release --key that counts as a signer too (ota verify, ota pull)."""
+    besides_key = {"ota verify", "ota pull"}
+    verbs = [*sorted(besides_key), "verify", "bundle pull", "bundle push"]
+    helps: dict[bool, set[tuple[str | None, str | None]]] = {True: set(), False: set()}
+    for verb in verbs:
+        key, threshold = _option(VERBS[verb], "--provenance-key"), _option(VERBS[verb], "--threshold")
+        assert key is not None and threshold is not None, verb
+        assert key.multiple and key.name == "provenance_keys", verb
+        assert isinstance(threshold.type, click.IntRange), verb
+        assert (threshold.type.min, threshold.type.max, threshold.default) == (1, 64, 1), verb
+        helps[verb in besides_key].add((key.help, threshold.help))
+    assert len(helps[True]) == 1 and len(helps[False]) == 1, helps
+    [(with_key, _)] = helps[True]
+    [(without_key, _)] = helps[False]
+    assert "besides --key" in (with_key or "") and "--key" not in (without_key or "")

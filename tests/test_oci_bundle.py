@@ -52,7 +52,9 @@ def _doc(registry, tag="b1"):  # noqa: F811
 
 
 def _pull(cli, ref, dest, *extra):
-    return cli("bundle", "pull", ref, "--out", dest, *extra)
+    """``bundle pull``; a tag reference (unsigned bundles here) is taken as it is (--trust-tag)."""
+    trust = () if "@sha256:" in str(ref) else ("--trust-tag",)
+    return cli("bundle", "pull", ref, "--out", dest, *trust, *extra)
 
 
 def _refused(r, dest, code, *words, before=None):
@@ -147,14 +149,14 @@ def test_tls_registry_trusted_through_ca_bundle_only(cli, bundles, tls, tmp_path
         ref = reg.ref(REPO, "tls")
         r = cli("bundle", "push", one, ref, "--ca-bundle", tls.ca_pem)
         assert r.exit_code == 0, r.stderr
-        r = cli("bundle", "pull", ref, "--out", tmp_path / "o.hcdfz", "--ca-bundle", tls.ca_pem)
+        r = _pull(cli, ref, tmp_path / "o.hcdfz", "--ca-bundle", tls.ca_pem)
         assert r.exit_code == 0, r.stderr
         assert (tmp_path / "o.hcdfz").read_bytes() == one.read_bytes()
         other = tmp_path / "other-ca.pem"
         tls.other_ca.cert_pem.write_to_path(str(other))
-        r = cli("bundle", "pull", ref, "--out", tmp_path / "o2.hcdfz", "--ca-bundle", other)
+        r = _pull(cli, ref, tmp_path / "o2.hcdfz", "--ca-bundle", other)
         assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.stderr, r.stderr
-        r = cli("bundle", "pull", ref, "--out", tmp_path / "o2.hcdfz")  # loopback without a CA: plain http
+        r = _pull(cli, ref, tmp_path / "o2.hcdfz")  # loopback without a CA: plain http
         assert r.exit_code == 3, r.stderr
         assert not (tmp_path / "o2.hcdfz").exists()
 
@@ -201,7 +203,9 @@ def test_manifest_swapped_under_the_tag_is_refused_when_pinned(cli, registry, bu
     assert _pull(cli, pinned, dest).exit_code == 0  # the pin fetches by digest: the tag does not matter
     dest.unlink()
     r = cli("bundle", "pull", registry.ref(REPO, "swapped"), "--out", dest, "--json")
-    assert r.exit_code == 0 and r.json["digest"] == d2  # a tag is what the registry says it is
+    assert r.exit_code == 2 and "--trust-tag" in r.stderr and not dest.exists()  # an unsigned tag: refused
+    r = cli("bundle", "pull", registry.ref(REPO, "swapped"), "--out", dest, "--json", "--trust-tag")
+    assert r.exit_code == 0 and r.json["digest"] == d2  # a tag taken as it is: what the registry says it is
 
 
 def test_manifest_edited_on_disk_under_its_digest(cli, registry, bundles, edited, tmp_path):  # noqa: F811
@@ -350,14 +354,14 @@ def test_credentials_from_the_environment_never_printed(cli, auth_registry, bund
     monkeypatch.setenv("HCDF_TRUST_OCI_USERNAME", USER)
     monkeypatch.setenv("HCDF_TRUST_OCI_PASSWORD", PASSWORD)
     runs = [cli("bundle", "push", one, auth_registry.ref(tag="b1"), "--json")]
-    runs.append(cli("bundle", "pull", auth_registry.ref(tag="b1"), "--out", tmp_path / "o.hcdfz", "--json"))
+    runs.append(_pull(cli, auth_registry.ref(tag="b1"), tmp_path / "o.hcdfz", "--json"))
     assert [r.exit_code for r in runs] == [0, 0], [r.stderr for r in runs]
     assert (tmp_path / "o.hcdfz").read_bytes() == one.read_bytes()
     wrong = "Wr0ng-" + PASSWORD
     monkeypatch.setenv("HCDF_TRUST_OCI_PASSWORD", wrong)
     secrets += [wrong, base64.b64encode(f"{USER}:{wrong}".encode()).decode()]
     for args in ([], ["--json"]):
-        r = cli("bundle", "pull", auth_registry.ref(tag="b1"), "--out", tmp_path / "w.hcdfz", *args)
+        r = _pull(cli, auth_registry.ref(tag="b1"), tmp_path / "w.hcdfz", *args)
         assert r.exit_code == 3 and "the credentials were refused" in r.stdout + r.stderr
         runs.append(r)
     monkeypatch.delenv("HCDF_TRUST_OCI_PASSWORD")

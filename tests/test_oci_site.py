@@ -139,13 +139,17 @@ def test_ca_bundle_and_insecure_registry_mean_the_same_in_every_verb():
     from tests.test_flags_uniform import VERBS, _option
 
     tls_verbs = ["ota build", "ota verify", "ota push", "ota pull", "registry publish", "registry verify",
-                 "registry fetch", "resolve", "pin"]  # fmt: skip
+                 "registry fetch", "resolve", "pin", "validate", "audit", "bundle write", "bundle push",
+                 "bundle pull"]  # fmt: skip
     for verb in tls_verbs:
         opt = _option(VERBS[verb], "--ca-bundle")
         assert opt is not None, verb
         assert (opt.help, opt.envvar) == (_option(VERBS["ota pull"], "--ca-bundle").help, "HCDF_TRUST_CA_BUNDLE")
-    for verb in ("ota push", "ota pull", "registry publish", "registry verify", "registry fetch"):
+    oci_verbs = ("ota push", "ota pull", "registry publish", "registry verify", "registry fetch", "validate", "audit",
+                 "bundle push", "bundle pull")  # fmt: skip
+    for verb in oci_verbs:
         opt = _option(VERBS[verb], "--insecure-registry")
         assert opt is not None and opt.multiple, verb
+        assert opt.help == _option(VERBS["ota pull"], "--insecure-registry").help, verb
     helps = {v: _option(c, "--ca-bundle").help for v, c in VERBS.items() if _option(c, "--ca-bundle") is not None}
     assert len(set(helps.values())) == 1, helps

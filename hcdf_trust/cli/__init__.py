@@ -19,7 +19,16 @@ import click
 
 from .. import __version__
 from ..errors import ErrorGroup, HcdfTrustError, counted, json_locations
-from .params import TIMEOUT, ConfigOption, acknowledged, from_config, project_config, with_project_config
+from .params import (
+    TIMEOUT,
+    ConfigOption,
+    acknowledged,
+    from_config,
+    load_provenance_keys,
+    project_config,
+    provenance_key_options,
+    with_project_config,
+)
 
 _QUIET = "hcdf_trust.quiet"  # ctx.meta key (one per run, shared by a verb and its groups)
 
@@ -256,7 +265,7 @@ SCHEMA_OPTION = click.option(
     help=SCHEMA_HELP,
 )
 _LOCATION_KEYS = ("base", "mirrors", "root")
-_TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline")
+_TREE_KEYS = (*_LOCATION_KEYS, "cache_dir", "lock_path", "offline", "ca_bundle")
 
 
 def tree_location_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -267,18 +276,28 @@ def tree_location_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def tree_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock`` and
+    """Resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock``,
     ``--offline`` (default here; ``--online`` fetches what the cache lacks, still checked
-    against the lock), passed to ``func`` as one ``tree``: a
+    against the lock) and ``--ca-bundle``, passed to ``func`` as one ``tree``: a
     :class:`~hcdf_trust.include.resolver.TreeOptions`. For every verb that reads a description
-    tree under its lock (audit, sbom, macsec, ota build)."""
+    tree under its lock (audit, sbom, macsec, ota build, bundle, fleet); a verb's own https
+    (a registry, --previous) takes ``tree.ca_bundle`` too: one flag, one meaning."""
     offline = click.option(
         "--offline/--online",
         default=True,
         show_default=True,
         help=OFFLINE_HELP + " --online fetches what they lack (still checked against the lock).",
     )
-    options = (LOCK_OPTION, CACHE_DIR_OPTION, BASE_OPTION, ROOT_OPTION, MIRROR_OPTION, offline, SCHEMA_OPTION)
+    options = (
+        LOCK_OPTION,
+        CACHE_DIR_OPTION,
+        BASE_OPTION,
+        ROOT_OPTION,
+        MIRROR_OPTION,
+        offline,
+        CA_BUNDLE_OPTION,
+        SCHEMA_OPTION,
+    )
     return _tree_decorator(func, options, _TREE_KEYS)
 
 
@@ -660,7 +679,9 @@ class _OptionalValueCommand(click.Command):
 )
 @click.option(
     "--max-elements",
-    type=click.IntRange(1, 1_000_000_000),
+    # At most xml.MAX_DOCUMENT_ELEMENTS (not imported: lxml stays out of start-up), so that
+    # what is written can be read again; tests/test_bounds.py checks the two agree.
+    type=click.IntRange(1, 1_000_000),
     default=250_000,
     show_default=True,
     help="Most elements the --out document may have once every include is expanded.",
@@ -774,16 +795,7 @@ def resolve(
     is_flag=True,
     help="Also verify DOC.intoto.json, a bundle's provenance (signed by --provenance-key).",
 )
-@click.option(
-    "--provenance-key",
-    "provenance_keys",
-    multiple=True,
-    type=click.Path(dir_okay=False),
-    help="A public key (PEM) that may sign the provenance (repeatable).",
-)
-@click.option(
-    "--threshold", type=click.IntRange(1, 64), default=1, show_default=True, help="Provenance signatures needed."
-)
+@provenance_key_options(besides_key=False)
 @handle_errors
 def verify(
     doc: str,
@@ -829,14 +841,10 @@ def _verify_bundle_provenance(doc: str, key_files: tuple[str, ...], threshold: i
     from ..bundle import read_archive
     from ..errors import display_path
     from ..localfile import read_input
-    from ..ota.keys import load_public
-    from ..ota.signer import key_id
     from ..provenance import dsse
     from ..provenance.bundle import envelope_path, verify_bundle_provenance
 
-    keys = [load_public(k) for k in key_files]
-    if len({key_id(k) for k in keys}) < threshold:
-        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--provenance-key)")
+    keys = load_provenance_keys(key_files, threshold)
     path = envelope_path(doc)
     data = read_input(path, limit=dsse.MAX_ENVELOPE_BYTES, what="provenance")
     archive = read_archive(doc)

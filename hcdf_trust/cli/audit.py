@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import emit_json, handle_errors, say, tree_options
+from . import INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .macsec import store_options
 from .params import ConfigOption, from_config, project_config
 
@@ -39,7 +39,7 @@ from .params import ConfigOption, from_config, project_config
     "registry_site",
     cls=ConfigOption,
     config_key="registry.site",
-    help="Registry (URL or folder): extension domains and schemas.",
+    help="Registry (https URL, oci:// artifact or folder): extension domains and schemas.",
 )
 @click.option(
     "--trusted-root",
@@ -48,6 +48,7 @@ from .params import ConfigOption, from_config, project_config
     type=click.Path(dir_okay=False),
     help="The registry's root.json you trust.",
 )
+@INSECURE_REGISTRY_OPTION  # --ca-bundle comes with tree_options: --online fetches and the --registry
 @functools.partial(store_options, required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout (shape: docs/audit.md).")
 @handle_errors
@@ -61,6 +62,7 @@ def audit_cmd(
     fleet_key: str | None,
     registry_site: str | None,
     trusted_root: str | None,
+    insecure_registries: tuple[str, ...],
     store_dir: str | None,
     passphrase_file: str | None,
     now_given: datetime | None,
@@ -102,7 +104,11 @@ def audit_cmd(
         from .registry import _client
 
         assert trusted_root is not None
-        schemas = RegistrySchemaSource(_client(registry_site, trusted_root, None))
+        schemas = RegistrySchemaSource(
+            _client(
+                registry_site, trusted_root, None, ca_bundle=tree.ca_bundle, insecure_registries=insecure_registries
+            )
+        )
     report = run(
         doc,
         AuditOptions(

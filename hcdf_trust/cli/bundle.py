@@ -15,7 +15,7 @@ import click
 
 from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .ota import signing_key_options
-from .params import source_date_epoch_option
+from .params import load_provenance_keys, provenance_key_options, source_date_epoch_option
 
 
 class _WriterByDefault(click.Group):
@@ -44,12 +44,13 @@ def bundle() -> None:
 @tree_options
 @click.option(
     "--max-elements",
-    type=click.IntRange(1, 1_000_000_000),
+    # At most xml.MAX_DOCUMENT_ELEMENTS (not imported: lxml stays out of start-up), so that
+    # what is written can be read again; tests/test_bounds.py checks the two agree.
+    type=click.IntRange(1, 1_000_000),
     default=250_000,
     show_default=True,
     help="Most elements the bundled document may have once every include is expanded.",
 )
-@CA_BUNDLE_OPTION  # one --ca-bundle, one meaning, in every verb that talks https
 @click.option(
     "--provenance",
     is_flag=True,
@@ -67,7 +68,6 @@ def write(
     out: str,
     tree: Any,
     max_elements: int,
-    ca_bundle: str | None,
     provenance: bool,
     key: str | None,
     passphrase_file: str | None,
@@ -111,7 +111,7 @@ def write(
 
     # Under the lock when there is one; a tree whose document pins everything needs none.
     locked = tree.lock_path is not None or os.path.lexists(default_path(os.path.abspath(doc)))
-    options = tree.resolve_options(locked=locked, ca_bundle=ca_bundle)
+    options = tree.resolve_options(locked=locked)
     res = resolve(doc, options)
     if not as_json:
         for w in res.warnings:
@@ -176,22 +176,49 @@ def write(
 @bundle.command()
 @click.argument("path", metavar="X.hcdfz", type=click.Path(dir_okay=False))
 @click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
+@click.option(
+    "--sbom",
+    "sboms",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    help="A CycloneDX or SPDX 3 JSON SBOM of this bundle (`hcdf-trust sbom X.hcdfz`) to attach as a "
+    "referrer. Repeatable.",
+)
+@provenance_key_options(besides_key=False)
 @CA_BUNDLE_OPTION
 @INSECURE_REGISTRY_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
-def push(path: str, target: str, ca_bundle: str | None, insecure_registries: tuple[str, ...], as_json: bool) -> None:
+def push(
+    path: str,
+    target: str,
+    sboms: tuple[str, ...],
+    provenance_keys: tuple[str, ...],
+    threshold: int,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
+    as_json: bool,
+) -> None:
     """Verify X.hcdfz as `verify` does, then push it to an OCI registry as one artifact (the
-    bundle as its one layer). Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
+    bundle as its one layer), with its provenance (X.hcdfz.intoto.json, if any; verified first
+    with --provenance-key) and each --sbom attached as referrers.
+    Credentials: $HCDF_TRUST_OCI_USERNAME/PASSWORD or the Docker config."""
     from ..bundle import is_bundle
     from ..oci.bundle import push_bundle
-    from .ota import _client
+    from ..oci.client import connect
+    from ..oci.release import read_sbom
 
     if not is_bundle(path):
         raise click.BadParameter(f"{path}: a bundle's name ends in .hcdfz", param_hint="X.hcdfz")
-    ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
+    if threshold != 1 and not provenance_keys:
+        raise click.UsageError("--threshold needs --provenance-key")
+    keys = load_provenance_keys(provenance_keys, threshold) if provenance_keys else None
+    attached = [read_sbom(p) for p in sboms]  # refused before anything is sent
+    ref, client = connect(
+        target, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True, need_tag=True
+    )
     with client:
-        result = push_bundle(path, ref, client)
+        result = push_bundle(path, ref, client, sboms=attached, provenance_keys=keys, threshold=threshold)
     warnings = result.pop("warnings")
     if as_json:
         emit_json(
@@ -207,6 +234,8 @@ def push(path: str, target: str, ca_bundle: str | None, insecure_registries: tup
     for n in warnings:
         say(f"warning: {n}", always=True)
     say(f"pushed {path} ({result['size']} bytes, sha256 {result['sha256']}) to {ref} ({result['digest']})")
+    for r in result["referrers"]:
+        say(f"attached {r['artifactType']} ({r['digest']})")
     say(f"pull it with: hcdf-trust bundle pull {ref.with_digest(result['digest'])} --out X.hcdfz")
 
 
@@ -218,6 +247,19 @@ def push(path: str, target: str, ca_bundle: str | None, insecure_registries: tup
     type=click.Path(file_okay=False),
     help="Content store of verified blobs [default: $XDG_CACHE_HOME/hcdf-trust].",
 )
+@click.option(
+    "--require-provenance",
+    is_flag=True,
+    help="Fail unless a provenance referrer of this bundle is listed (it is verified whenever one is "
+    "and --provenance-key is given; needs --provenance-key).",
+)
+@provenance_key_options(besides_key=False)
+@click.option(
+    "--trust-tag",
+    is_flag=True,
+    help="Pull by tag without a provenance to check: take whatever bundle the tag names today "
+    "(a digest reference needs no flag).",
+)
 @CA_BUNDLE_OPTION
 @INSECURE_REGISTRY_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
@@ -226,24 +268,52 @@ def pull(
     source: str,
     out: str,
     cache_dir: str | None,
+    require_provenance: bool,
+    provenance_keys: tuple[str, ...],
+    threshold: int,
+    trust_tag: bool,
     ca_bundle: str | None,
     insecure_registries: tuple[str, ...],
     as_json: bool,
 ) -> None:
     """Pull a bundle from an OCI registry: the manifest pinned by its body's hash, the blob hashed
-    while it streams, then verified as `verify X.hcdfz` verifies it in a staging folder, and only
-    then written to --out."""
+    while it streams, then verified as `verify X.hcdfz` verifies it (and its provenance referrer
+    as `verify X.hcdfz` checks a provenance, given --provenance-key) in a staging folder, and only then
+    written to --out (the verified provenance beside it, as OUT.intoto.json).
+
+    A tag names whatever the registry says today: pulling by tag needs --provenance-key (and a
+    provenance that verifies) or --trust-tag; a digest (@sha256:) needs neither."""
     from ..bundle import is_bundle
     from ..errors import display_path
     from ..oci.bundle import pull_bundle
+    from ..oci.client import connect
+    from ..oci.reference import parse_reference
     from ..store import default_cache_dir
-    from .ota import _client
 
     if not is_bundle(out):
         raise click.BadParameter(f"{out}: a bundle's name ends in .hcdfz", param_hint="--out")
-    ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
+    if (require_provenance or threshold != 1) and not provenance_keys:
+        raise click.UsageError("--require-provenance and --threshold need --provenance-key")
+    ref = parse_reference(source)
+    if ref.digest is None and not provenance_keys and not trust_tag:
+        raise click.UsageError(
+            f"{source} names a tag, which is whatever the registry says today: pull by digest "
+            "(oci://…@sha256:…, as `bundle push` prints it), give --provenance-key to have the bundle's "
+            "provenance verify what the tag names, or --trust-tag to take it as it is"
+        )
+    keys = load_provenance_keys(provenance_keys, threshold) if provenance_keys else None
+    ref, client = connect(ref, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
     with client:
-        report = pull_bundle(ref, client, out=out, cache_dir=cache_dir or str(default_cache_dir()))
+        report = pull_bundle(
+            ref,
+            client,
+            out=out,
+            cache_dir=cache_dir or str(default_cache_dir()),
+            provenance_keys=keys,
+            threshold=threshold,
+            require_provenance=require_provenance,
+            trust_tag=trust_tag,
+        )
     checked = report.checked
     if as_json:
         emit_json(
@@ -255,15 +325,18 @@ def pull(
                 "size": checked.size,
                 "root": checked.root,
                 "from_cache": report.from_cache,
-                "warnings": [n.to_dict() for n in checked.warnings],
+                "provenance": report.provenance,
+                "sboms": report.sboms,
+                "warnings": [n.to_dict() for n in report.notices],
                 "wrote": [display_path(p) for p in report.wrote],
                 "errors": [],
             }
         )
         return
-    for n in checked.warnings:
+    for n in report.notices:
         say(f"warning: {n}", always=True)
     say(
         f"bundle {checked.root} from {report.reference} ({report.digest}): {checked.size} bytes verified"
-        f"{' (from the cache)' if report.from_cache else ''}, written to {display_path(out)}"
+        f"{' (from the cache)' if report.from_cache else ''}{', provenance verified' if report.provenance else ''}"
+        f", written to {display_path(out)}"
     )

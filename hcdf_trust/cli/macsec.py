@@ -209,9 +209,7 @@ def _output_plan(p: Any, *, passphrase_file: str | None, backend: dict[str, Any]
 def _indexed(doc: str, tree: Any) -> str | None:
     """``doc``, whose export index generate and rotate write, when its tree is found where
     resolve finds it by default (the index's fast path assumes so); None otherwise."""
-    from ..include.resolver import TreeOptions
-
-    return doc if tree == TreeOptions() else None
+    return doc if tree.finds_tree_by_default() else None
 
 
 def _save(
@@ -484,7 +482,6 @@ def export(
     # The store opens (scrypt, on a second thread) from here on, while the rest is imported and
     # the description verified and planned.
     opening = _in_background(lambda: KeyStore.open(store_dir, _wrapper(passphrase_file, backend)))
-    from ..include.resolver import TreeOptions
     from ..macsec import index
     from ..macsec.export import collect, mesh_keys, render
 
@@ -493,7 +490,7 @@ def export(
     # A store that does not open sends us to the description too: its errors come first, and
     # opening.result() then raises the store's error again. Only for a tree found where resolve
     # finds it by default: with --base, --root, --lock... it is planned in full.
-    found = index.candidate(doc, store_dir, device) if tree == TreeOptions() else None
+    found = index.candidate(doc, store_dir, device) if tree.finds_tree_by_default() else None
     p = None
     if found is not None:
         try:

@@ -12,7 +12,7 @@ import click
 
 from ..errors import counted
 from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options, warn
-from .params import source_date_epoch_option
+from .params import load_provenance_keys, provenance_key_options, source_date_epoch_option
 
 
 def signing_key_options(*, required: bool) -> Callable[[Any], Any]:
@@ -108,7 +108,6 @@ def keygen(kind: str, out: str, passphrase_file: str | None, force: bool, as_jso
     is_flag=True,
     help="Accept a --previous without a signed manifest; its latest.json history is taken on your word.",
 )
-@CA_BUNDLE_OPTION
 @click.option("--config", type=click.Path(dir_okay=False), help="ota.toml [default: ota.toml beside DOC, if any].")
 @click.option("--changelog", help="Changelog for images whose ota.toml entry has none.")
 @click.option(
@@ -136,7 +135,6 @@ def build(
     allow_http: bool,
     previous: str | None,
     import_unsigned_history: bool,
-    ca_bundle: str | None,
     config: str | None,
     changelog: str | None,
     update_hcdf: bool,
@@ -171,7 +169,7 @@ def build(
                 date=format_date(source_date.timestamp()) if source_date is not None else None,
                 tree=tree,
                 jobs=jobs,
-                ca_bundle=ca_bundle,
+                ca_bundle=tree.ca_bundle,  # tree_options' --ca-bundle: --previous and --online alike
                 allow_http=allow_http,
                 import_unsigned_history=import_unsigned_history,
                 provenance=provenance,
@@ -223,16 +221,7 @@ def build(
 @click.option(
     "--provenance", is_flag=True, help="Also verify provenance.intoto.json (signed by --key and --provenance-key)."
 )
-@click.option(
-    "--provenance-key",
-    "provenance_keys",
-    multiple=True,
-    type=click.Path(dir_okay=False),
-    help="Another public key (PEM) that may sign the provenance (repeatable).",
-)
-@click.option(
-    "--threshold", type=click.IntRange(1, 64), default=1, show_default=True, help="Provenance signatures needed."
-)
+@provenance_key_options(besides_key=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
 def verify_cmd(
@@ -249,16 +238,13 @@ def verify_cmd(
     """Check every signature, digest and latest.json of RELEASE_DIR against its signed manifest."""
     from ..ota.keys import load_public
     from ..ota.release import read_release
-    from ..ota.signer import key_id
     from ..ota.verify import check_release
     from . import fail
 
     public = load_public(key)
-    keys = [public, *(load_public(k) for k in provenance_keys)]
     if not provenance and (provenance_keys or threshold != 1):
         raise click.UsageError("--provenance-key and --threshold need --provenance")
-    if len({key_id(k) for k in keys}) < threshold:
-        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--key, --provenance-key)")
+    keys = load_provenance_keys(provenance_keys, threshold, key=public)
     release, files = read_release(
         release_dir, public, previous=previous, ca_bundle=ca_bundle, import_unsigned=import_unsigned_history
     )
@@ -369,16 +355,6 @@ def _registry_options(func: Any) -> Any:
     return CA_BUNDLE_OPTION(INSECURE_REGISTRY_OPTION(func))
 
 
-def _client(target: str, *, ca_bundle: str | None, insecure: tuple[str, ...], push: bool, need_tag: bool) -> Any:
-    from ..oci.auth import find_credentials
-    from ..oci.client import RegistryClient
-    from ..oci.reference import parse_reference
-
-    ref = parse_reference(target, need_tag=need_tag)
-    creds = find_credentials(ref.netloc)
-    return ref, RegistryClient(ref, credentials=creds, ca_bundle=ca_bundle, insecure_registries=insecure, push=push)
-
-
 @ota.command()
 @click.argument("release_dir", type=click.Path(file_okay=False))
 @click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
@@ -415,7 +391,11 @@ def push(
     from . import fail
 
     attached = [read_sbom(path) for path in sboms]  # refused before anything is sent
-    ref, client = _client(target, ca_bundle=ca_bundle, insecure=insecure_registries, push=True, need_tag=True)
+    from ..oci.client import connect
+
+    ref, client = connect(
+        target, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True, need_tag=True
+    )
     with client:
         if key is not None:
             from ..oci.release import read_provenance
@@ -486,16 +466,7 @@ def push(
     is_flag=True,
     help="Fail unless a provenance referrer of this release is listed (it is verified whenever one is).",
 )
-@click.option(
-    "--provenance-key",
-    "provenance_keys",
-    multiple=True,
-    type=click.Path(dir_okay=False),
-    help="Another public key (PEM) that may sign the provenance (repeatable).",
-)
-@click.option(
-    "--threshold", type=click.IntRange(1, 64), default=1, show_default=True, help="Provenance signatures needed."
-)
+@provenance_key_options(besides_key=True)
 @_registry_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors
@@ -518,15 +489,14 @@ def pull(
     from ..oci.release import pull_release
     from ..ota.keys import load_public
     from ..ota.release import previous_manifest
-    from ..ota.signer import key_id
     from ..store import default_cache_dir
 
     public = load_public(key)
-    others = tuple(load_public(k) for k in provenance_keys)
-    if len({key_id(k) for k in (public, *others)}) < threshold:
-        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys (--key, --provenance-key)")
+    others = tuple(load_provenance_keys(provenance_keys, threshold, key=public)[1:])
     before = previous_manifest(previous, public, ca_bundle=ca_bundle) if previous is not None else None
-    ref, client = _client(source, ca_bundle=ca_bundle, insecure=insecure_registries, push=False, need_tag=False)
+    from ..oci.client import connect
+
+    ref, client = connect(source, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
     with client:
         report = pull_release(
             ref,

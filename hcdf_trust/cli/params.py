@@ -6,6 +6,7 @@ never a traceback or a silent default. Counts use ``click.IntRange`` with both b
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -117,6 +118,53 @@ def source_date_epoch_option(func: Any) -> Any:
         metavar="SECONDS",
         help="Date outputs with this time, in seconds since 1970, for reproducible builds [env: SOURCE_DATE_EPOCH].",
     )(func)
+
+
+def provenance_key_options(*, besides_key: bool) -> Callable[[Any], Any]:
+    """``--provenance-key`` (repeatable) and ``--threshold``: who may sign a provenance and how
+    many distinct signers are needed, the same in every verb that verifies one (ota verify,
+    ota pull, verify X.hcdfz, bundle pull). ``besides_key``: the verb has a ``--key`` (a
+    release key) that counts as a signer too (ota verify, ota pull); a bundle has no release
+    key, so there every signer is a ``--provenance-key``. The help says which; the meaning is
+    otherwise one. Check the values with :func:`load_provenance_keys`."""
+    signer = (
+        "Another public key (PEM) that may sign the provenance, besides --key (repeatable)."
+        if besides_key
+        else "A public key (PEM) that may sign the provenance (repeatable)."
+    )
+    among = "--key and --provenance-key" if besides_key else "--provenance-key"
+
+    def apply(func: Any) -> Any:
+        func = click.option(
+            "--threshold",
+            type=click.IntRange(1, 64),
+            default=1,
+            show_default=True,
+            help=f"Provenance signatures needed, by distinct keys among {among}.",
+        )(func)
+        return click.option(
+            "--provenance-key", "provenance_keys", multiple=True, type=click.Path(dir_okay=False), help=signer
+        )(func)
+
+    return apply
+
+
+def load_provenance_keys(files: tuple[str, ...], threshold: int, *, key: Any = None) -> list[Any]:
+    """The public keys that may sign a provenance: ``key`` (a release key already loaded, if
+    the verb has one) first, then each ``--provenance-key`` file.
+
+    Raises:
+        click.UsageError: ``threshold`` is more than the distinct keys given (exit 2).
+        InputError / KeyFileError: a key file that cannot be read (exit 3).
+    """
+    from ..ota.keys import load_public
+    from ..ota.signer import key_id
+
+    keys = ([key] if key is not None else []) + [load_public(f) for f in files]
+    if len({key_id(k) for k in keys}) < threshold:
+        among = "--key, --provenance-key" if key is not None else "--provenance-key"
+        raise click.UsageError(f"--threshold {threshold} needs as many distinct keys ({among})")
+    return keys
 
 
 # --- the per-project config file (hcdf_trust.config), applied the same way to every verb -------

@@ -402,14 +402,11 @@ def publish(
     plan.commit()
     pushed = None
     if ref is not None:
-        from ..oci.auth import find_credentials
-        from ..oci.client import RegistryClient
+        from ..oci.client import connect
         from ..oci.site import push_site
 
-        creds = find_credentials(ref.netloc)
-        with RegistryClient(
-            ref, credentials=creds, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True
-        ) as client:
+        _, client = connect(ref, ca_bundle=ca_bundle, insecure_registries=insecure_registries, push=True)
+        with client:
             pushed = push_site(site, ref, client)
     if as_json:
         emit_json(
@@ -615,9 +612,12 @@ def validate_with_registry(
     strict: bool,
     cache_dir: str | None = None,
     tree: Any = None,
+    ca_bundle: str | None = None,
+    insecure_registries: tuple[str, ...] = (),
 ) -> Any:
     """``validate --registry``: the registry supplies the schema (unless ``--schema``) and
-    checks extension domains, versions, content and registered stream-profile digests."""
+    checks extension domains, versions, content and registered stream-profile digests
+    (``ca_bundle``, ``insecure_registries``: ``--ca-bundle``, ``--insecure-registry``)."""
     import os
 
     from ..document import Document, is_json_form
@@ -628,7 +628,9 @@ def validate_with_registry(
 
     if trusted_root is None:
         raise click.UsageError("--registry needs --trusted-root")
-    schemas = RegistrySchemaSource(_client(site, trusted_root, cache_dir))
+    schemas = RegistrySchemaSource(
+        _client(site, trusted_root, cache_dir, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
+    )
     path = Path(os.path.abspath(doc))
     source = display_path(path)
     data = read_local(path, path.parent, source=source)

@@ -8,7 +8,16 @@ from typing import Any
 import click
 
 from ..errors import counted
-from . import SCHEMA_ENV, emit_json, handle_errors, say, tree_location_options, use_schemas
+from . import (
+    CA_BUNDLE_OPTION,
+    INSECURE_REGISTRY_OPTION,
+    SCHEMA_ENV,
+    emit_json,
+    handle_errors,
+    say,
+    tree_location_options,
+    use_schemas,
+)
 from .params import ConfigOption
 
 
@@ -31,7 +40,7 @@ from .params import ConfigOption
     "registry_site",
     cls=ConfigOption,
     config_key="registry.site",
-    help="Registry (URL or folder): schemas, extensions, stream profiles.",
+    help="Registry (https URL, oci:// artifact or folder): schemas, extensions, stream profiles.",
 )
 @click.option(
     "--trusted-root",
@@ -41,6 +50,8 @@ from .params import ConfigOption
     help="The registry's root.json you trust.",
 )
 @click.option("--strict", is_flag=True, help="With --registry: unregistered extension domains/versions are errors.")
+@CA_BUNDLE_OPTION  # for an https or oci:// --registry, as in every verb that talks https
+@INSECURE_REGISTRY_OPTION
 @tree_location_options
 @handle_errors
 def validate(
@@ -50,6 +61,8 @@ def validate(
     registry_site: str | None,
     trusted_root: str | None,
     strict: bool,
+    ca_bundle: str | None,
+    insecure_registries: tuple[str, ...],
     tree: Any,
 ) -> None:
     """Validate DOC against an XSD and check the HCDF semantic rules the XSD cannot express.
@@ -64,7 +77,14 @@ def validate(
             from .registry import validate_with_registry
 
             report = validate_with_registry(
-                doc, schema=schemas, site=registry_site, trusted_root=trusted_root, strict=strict, tree=tree
+                doc,
+                schema=schemas,
+                site=registry_site,
+                trusted_root=trusted_root,
+                strict=strict,
+                tree=tree,
+                ca_bundle=ca_bundle,
+                insecure_registries=insecure_registries,
             )
         else:
             report = validate_document(doc, schema=schemas, tree_options=tree)

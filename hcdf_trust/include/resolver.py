@@ -26,7 +26,7 @@ import os
 import sys
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
@@ -123,8 +123,9 @@ class ResolveOptions:
 @dataclass(frozen=True)
 class TreeOptions:
     """Where a verb built on resolve (audit, sbom, macsec, ota build, validate) finds the tree:
-    resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock`` and ``--offline``,
-    with resolve's meaning. Such verbs read the tree offline unless told ``--online``."""
+    resolve's ``--base``, ``--mirror``, ``--root``, ``--cache-dir``, ``--lock``, ``--offline``
+    and ``--ca-bundle``, with resolve's meaning. Such verbs read the tree offline unless told
+    ``--online``."""
 
     base: str | None = None
     mirrors: tuple[tuple[str, str], ...] = ()
@@ -132,11 +133,13 @@ class TreeOptions:
     cache_dir: str | None = None
     lock_path: str | None = None
     offline: bool = True
+    ca_bundle: str | None = None  # extra CAs for https, under --online (and the verb's other https)
 
     def resolve_options(self, **fixed: Any) -> ResolveOptions:
         """These options as a :class:`ResolveOptions`, with the verb's own ``fixed`` ones
-        (``locked``, ``write_cache``, ``ca_bundle``...). The cache is written only online."""
+        (``locked``, ``write_cache``...). The cache is written only online."""
         fixed.setdefault("write_cache", not self.offline)
+        fixed.setdefault("ca_bundle", self.ca_bundle)
         return ResolveOptions(
             base=self.base,
             mirrors=self.mirrors,
@@ -146,6 +149,11 @@ class TreeOptions:
             offline=self.offline,
             **fixed,
         )
+
+    def finds_tree_by_default(self) -> bool:
+        """True when the tree is read where resolve reads it by default, offline (the CAs
+        trusted for https do not move it)."""
+        return replace(self, ca_bundle=None) == TreeOptions()
 
 
 @dataclass

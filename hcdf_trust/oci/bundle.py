@@ -6,21 +6,29 @@ The artifact (docs/oci.md, "bundle push / pull"): an image manifest with ``artif
 manifest's annotations name the root entry, its SHA-256 and the bundle's. The bundle is its own
 lock: every file it holds is pinned by its document, so no signature is needed to check that
 what was pulled is one consistent robot; *which* bundle is meant is the manifest digest a
-fleet pins (``oci://…@sha256:…``).
+fleet pins (``oci://…@sha256:…``), or, for a tag, the bundle's signed provenance. Beside it,
+as ``ota push`` attaches a release's (:mod:`.referrers`, the same code): the provenance
+``X.hcdfz.intoto.json`` (``bundle --provenance``) and each SBOM, as referrers whose
+``subject`` is the bundle manifest.
 
 ``pull`` trusts nothing the registry says; in order:
 
-1. The manifest's digest is the hash of the body received (a ``@sha256:`` reference must match).
+1. The manifest's digest is the hash of the body received (a ``@sha256:`` reference must match;
+   a tag is pulled only through a provenance that verifies, or when the caller trusts the tag).
 2. The manifest is a bundle artifact: artifact type, empty config, exactly one layer of
    :data:`BUNDLE_LAYER_TYPE`, a size within a bundle's cap (``bundle.MAX_BYTES``), a plain title.
 3. The blob comes from the content store (verified before: a repeated pull) or is fetched by
    digest, hashed while it streams and refused past its declared size; only a blob whose
    SHA-256 and size are the manifest's enters the store.
-4. In a private staging folder the blob is read as ``verify X.hcdfz`` reads it: the same strict
+4. The referrers are listed once, each checked against its subject; the provenance is fetched
+   (bounded, hashed) when keys were given to check it, and required when asked for.
+5. In a private staging folder the blob is read as ``verify X.hcdfz`` reads it: the same strict
    archive reader and the same walk, every pin re-hashed (exit 3 for the structure, 1 for the
-   content); the manifest's annotations must say what the verified bundle says.
-5. Only then is the bundle written to ``--out`` through the OutputPlan, copied from the staged
-   file and hashed again as it is copied.
+   content), then the provenance as ``verify X.hcdfz --provenance`` checks it; the manifest's
+   annotations must say what the verified bundle says. Messages name the reference and the
+   entry (``oci://…@sha256:…/scout2.hcdfz/assets/…``), never the staging folder.
+6. Only then is the bundle written to ``--out`` (and the verified provenance beside it) through
+   the OutputPlan, copied from the staged file and hashed again as it is copied.
 
 The staging folder and the content store are the ones ``ota pull`` uses (:mod:`.release`), so a
 killed pull of either kind is swept by the next.
@@ -35,7 +43,7 @@ import tempfile
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import DigestMismatchError, ErrorGroup, IntegrityError, Notice
+from ..errors import DigestMismatchError, ErrorGroup, InputError, IntegrityError, Notice
 from .client import MANIFEST_TYPE, RegistryClient, sha256_digest
 from .reference import Reference
 from .referrers import EMPTY_DESCRIPTOR
@@ -63,12 +71,25 @@ class Checked:
         return {ROOT: self.root, ROOT_SHA256: self.root_sha256, BUNDLE_SHA256: self.sha256}
 
 
-def verify_bundle(path: str) -> Checked:
+@dataclass(frozen=True)
+class Provenance:
+    """A bundle's provenance envelope to verify (``verify X.hcdfz --provenance``'s checks):
+    its bytes, where they came from (for messages), who may sign it and how many must."""
+
+    data: bytes
+    source: str
+    keys: list[Any]
+    threshold: int = 1
+
+
+def verify_bundle(path: str, *, provenance: Provenance | None = None) -> Checked:
     """The verdict of ``hcdf-trust verify PATH`` on a ``.hcdfz``: the strict archive reader, then
-    the resolver's walk over its entries (offline, writing nothing, every pin re-hashed).
+    the resolver's walk over its entries (offline, writing nothing, every pin re-hashed); with
+    ``provenance``, also ``verify PATH --provenance``'s, over the same bytes.
 
     Raises:
-        BundleFormatError (exit 3), ErrorGroup of the walk's errors (exit 1 for a mismatch).
+        BundleFormatError (exit 3), ErrorGroup of the walk's errors (exit 1 for a mismatch),
+        MalformedProvenanceError / ProvenanceError (the envelope, its signatures, its statement).
     """
     from ..include.resolver import ResolveOptions, verify
 
@@ -77,6 +98,14 @@ def verify_bundle(path: str) -> Checked:
         raise ErrorGroup(res.errors)
     assert res.bundle is not None  # a .hcdfz name is always read as a bundle
     archive = res.bundle.archive  # the bytes the walk checked (no second read)
+    if provenance is not None:
+        from ..provenance.bundle import verify_bundle_provenance
+
+        errors = verify_bundle_provenance(
+            archive, provenance.data, provenance.keys, threshold=provenance.threshold, source=provenance.source
+        )
+        if errors:
+            raise ErrorGroup(errors)
     root = archive.root
     root_sha = hashlib.sha256(archive.data(root)).hexdigest()
     return Checked(root.name, root_sha, archive.sha256, archive.size, list(res.warnings))
@@ -106,21 +135,74 @@ def manifest_for(checked: Checked, title: str) -> bytes:
 
 def layer_title(path: str) -> str:
     """The layer's title: the bundle's file name when it is a plain one, else ``bundle.hcdfz``
-    (pull checks it as a one-segment path; it never names where the bundle is written)."""
+    (pull checks it as a one-segment path; it never names where the bundle is written); the
+    same for the provenance beside it (``X.hcdfz.intoto.json``, else ``bundle.hcdfz.intoto.json``)."""
+    from ..provenance.bundle import SUFFIX
     from .release import _SEGMENT
 
     name = os.path.basename(path)
+    if name.endswith(SUFFIX):
+        bundle = name[: -len(SUFFIX)]
+        return (bundle if _SEGMENT.fullmatch(name) else "bundle.hcdfz") + SUFFIX
     return name if _SEGMENT.fullmatch(name) else "bundle.hcdfz"
 
 
-def push_bundle(path: str, ref: Reference, client: RegistryClient) -> dict[str, Any]:
-    """Verify ``path`` (a hostile or broken bundle is never sent), then upload the empty config,
+def read_envelope(path: str) -> bytes | None:
+    """The provenance beside the bundle ``path`` (``X.hcdfz.intoto.json``, ``bundle
+    --provenance``), bounded; None without one."""
+    from ..localfile import read_input
+    from ..provenance.bundle import envelope_path
+    from ..provenance.dsse import MAX_ENVELOPE_BYTES
+
+    where = envelope_path(path)
+    if not os.path.lexists(where):
+        return None
+    return read_input(where, limit=MAX_ENVELOPE_BYTES, what="provenance")
+
+
+def push_bundle(
+    path: str,
+    ref: Reference,
+    client: RegistryClient,
+    *,
+    sboms: list[Any] | None = None,
+    provenance_keys: list[Any] | None = None,
+    threshold: int = 1,
+) -> dict[str, Any]:
+    """Verify ``path`` (a hostile or broken bundle is never sent) and, given
+    ``provenance_keys``, its provenance (which must then exist); then upload the empty config,
     the bundle's bytes (hashed again as they are sent: a file swapped since it was verified is
-    refused and the manifest never pushed) and the manifest under the tag."""
+    refused and the manifest never pushed), the manifest under the tag, and the referrers: the
+    provenance beside the bundle (``X.hcdfz.intoto.json``) when there is one, and each SBOM
+    (:func:`.release.read_sbom`), attached as ``ota push`` attaches a release's."""
     from ..localfile import open_regular
+    from ..provenance import PREDICATE_TYPE
+    from ..provenance.bundle import envelope_path
+    from .referrers import (
+        BUNDLE_PROVENANCE_TYPE,
+        BUNDLE_SBOM_TYPE,
+        DSSE_TYPE,
+        PREDICATE_ANNOTATION,
+        attach,
+        push_small_blob,
+    )
     from .release import EMPTY
 
-    checked = verify_bundle(path)
+    envelope = read_envelope(path)
+    check = None
+    if provenance_keys is not None:
+        if envelope is None:
+            from ..errors import NotFoundError
+
+            where = envelope_path(path)
+            raise NotFoundError(
+                f"{where}: no provenance beside the bundle to verify (--provenance-key)",
+                file=where,
+                expected="bundle --provenance's envelope",
+                actual="none",
+            )
+        check = Provenance(envelope, envelope_path(path), provenance_keys, threshold)
+    checked = verify_bundle(path, provenance=check)
     body = manifest_for(checked, layer_title(path))
     digest = sha256_digest(body)
     client.check()
@@ -131,15 +213,31 @@ def push_bundle(path: str, ref: Reference, client: RegistryClient) -> dict[str, 
     finally:
         os.close(fd)
     client.put_manifest(ref.tag or digest, body, MANIFEST_TYPE)
-    # Referrers: a bundle has none yet. When `bundle --provenance` writes a signed statement of
-    # the bundle, attach it here as ota push attaches a release's (referrers.attach with subject
-    # (digest, len(body))), and check it in pull_bundle after step 4 as check_referrers does.
+    items: list[tuple[str, dict[str, Any]]] = []
+    if envelope is not None:
+        about = {TITLE: layer_title(envelope_path(path)), PREDICATE_ANNOTATION: PREDICATE_TYPE}
+        items.append((BUNDLE_PROVENANCE_TYPE, push_small_blob(client, envelope, DSSE_TYPE, about)))
+    for sbom in sboms or []:
+        items.append((BUNDLE_SBOM_TYPE, push_small_blob(client, sbom.data, sbom.media_type, {TITLE: sbom.title})))
+    referrers = attach(client, (digest, len(body)), items)
+    warnings = list(checked.warnings)
+    if envelope is not None and check is None:
+        warnings.append(
+            Notice(
+                "unverified-provenance",
+                f"attached {envelope_path(path)} without --provenance-key: not verified first "
+                "(a pull with --provenance-key verifies it)",
+                file=envelope_path(path),
+            )
+        )
     return {
         "digest": digest,
         "sha256": checked.sha256,
         "size": checked.size,
         "annotations": checked.annotations(),
-        "warnings": checked.warnings,
+        "referrers": [{"digest": d, "artifactType": t} for d, (t, _) in zip(referrers, items, strict=True)],
+        "provenance_verified": check is not None,
+        "warnings": warnings,
     }
 
 
@@ -171,15 +269,50 @@ class BundlePullReport:
     checked: Checked
     from_cache: bool
     wrote: list[str] = field(default_factory=list)
+    provenance: str | None = None  # the provenance referrer verified and written beside --out, if any
+    sboms: list[dict[str, Any]] = field(default_factory=list)  # SBOM referrers listed (checked, not fetched)
+    notices: list[Notice] = field(default_factory=list)
 
 
-def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: str) -> BundlePullReport:
-    """Steps 1-5 above. Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
+def pull_bundle(
+    ref: Reference,
+    client: RegistryClient,
+    *,
+    out: str,
+    cache_dir: str,
+    provenance_keys: list[Any] | None = None,
+    threshold: int = 1,
+    require_provenance: bool = False,
+    trust_tag: bool = False,
+) -> BundlePullReport:
+    """Steps 1-6 above. ``provenance_keys``: who may sign the bundle's provenance (none given:
+    a provenance listed is not fetched, and a notice says so); ``threshold`` signatures needed;
+    ``require_provenance``: none listed is an error. A tag (``ref`` without a digest) names
+    whatever the registry says today: it is pulled only when its provenance verifies (keys
+    given: then one is required), or with ``trust_tag``.
+
+    Raises:
+        InputError: a tag without keys or ``trust_tag``, or ``require_provenance`` without keys
+            (exit 3; the CLI says so as a usage error before any request). IntegrityError
+            (exit 1) or InputError (exit 3) before any write. Messages name ``oci://…@sha256:…``
+            and the entry inside the bundle, never the staging folder.
+    """
     from ..bundle import MAX_BYTES, is_bundle
+    from ..errors import HcdfTrustError, relabel
     from ..outputs import BUNDLE, ORDINARY, FileContent, OutputPlan
+    from ..provenance.bundle import envelope_path
     from ..store import ContentStore
     from .release import STAGE_PREFIX, _fetch_blob, _hold, sweep_stages
 
+    keys = list(provenance_keys or [])
+    if ref.digest is None and not trust_tag and not keys:
+        raise InputError(
+            f"{ref}: a tag names whatever the registry says today; pull by digest (@sha256:…), "
+            "verify the bundle's provenance (--provenance-key), or take the tag as it is (--trust-tag)",
+            url=str(ref),
+        )
+    if require_provenance and not keys:
+        raise InputError("--require-provenance needs --provenance-key (a provenance no key checks proves nothing)")
     # 1. the manifest, pinned by the hash of its body
     got = client.get_manifest(ref.reference)
     if got is None:
@@ -206,24 +339,39 @@ def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: 
         )
     layer = layers[0]
     hex_ = layer["digest"].split(":", 1)[1]
+    title = layer["annotations"][TITLE]
     # 3. the blob, into the content store only if it is the manifest's
     store = ContentStore(cache_dir)
     blob = store.verified_path(hex_)
     cached = blob is not None and blob.stat().st_size == layer["size"]
     if blob is None or not cached:
-        blob = _fetch_blob(client, store, layer, title=layer["annotations"][TITLE], where=f"{source}#/layers/0")
-    # 4. verify X.hcdfz in a private staging folder, under --out's name (messages name it)
+        blob = _fetch_blob(client, store, layer, title=title, where=f"{source}#/layers/0")
+    # 4. the referrers: the provenance (fetched only when a key can check it), the SBOMs
+    if require_provenance:
+        why: str | None = "--require-provenance"
+    elif ref.digest is None and not trust_tag:
+        why = "a tag is trusted through its provenance"
+    else:
+        why = None
+    provenance, sboms, notices = _referrers(client, digest, source, keys=keys, required=why)
+    # 5. verify X.hcdfz (and its provenance) in a private staging folder; every message names
+    # the reference and the entry (oci://…@sha256:…/scout2.hcdfz/assets/…), never that folder
     os.makedirs(cache_dir, exist_ok=True)
     sweep_stages(cache_dir)
     stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
     lock = _hold(stage)
     try:
-        staged = os.path.join(stage, os.path.basename(out) if is_bundle(out) else "bundle.hcdfz")
+        staged = os.path.join(stage, title if is_bundle(title) else "bundle.hcdfz")  # as messages name it
         try:
             os.link(blob, staged, follow_symlinks=False)
         except OSError:  # another filesystem, or links not allowed
             shutil.copyfile(blob, staged, follow_symlinks=False)
-        checked = verify_bundle(staged)
+        check = None
+        if provenance is not None:
+            check = Provenance(provenance[1], f"{source} ({provenance[0]})", keys, threshold)
+        checked = verify_bundle(staged, provenance=check)
+        for notice in checked.warnings:
+            relabel(notice, stage, source)
         if checked.sha256 != hex_:  # the store handed over another file than the one hashed
             raise DigestMismatchError(
                 f"{source}: the staged bundle is not the layer's blob", expected=layer["digest"], actual=checked.sha256
@@ -238,12 +386,74 @@ def pull_bundle(ref: Reference, client: RegistryClient, *, out: str, cache_dir: 
                     expected=value,
                     actual=str(said.get(key))[:100],
                 )
-        # 5. into --out, all or nothing, hashed again as it is copied
+        # 6. into --out (and the verified provenance beside it), all or nothing, the bundle
+        # hashed again as it is copied
         plan = OutputPlan()
         plan.protect_tree(cache_dir, what="the cache")
         plan.add(out, FileContent(staged, checked.size, checked.sha256), flag="--out", replaces=(ORDINARY, BUNDLE))
+        if provenance is not None:
+            plan.add(envelope_path(out), provenance[1], flag="--out", replaces=(ORDINARY,))
         wrote = [str(p) for p in plan.commit()]
+    except HcdfTrustError as exc:
+        relabel(exc, stage, source)
+        raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         os.close(lock)
-    return BundlePullReport(str(ref), digest, checked, cached, wrote)
+    return BundlePullReport(
+        str(ref),
+        digest,
+        checked,
+        cached,
+        wrote,
+        provenance[0] if provenance is not None else None,
+        sboms,
+        [*notices, *checked.warnings],
+    )
+
+
+def _referrers(
+    client: RegistryClient, digest: str, source: str, *, keys: list[Any], required: str | None
+) -> tuple[tuple[str, bytes] | None, list[dict[str, Any]], list[Notice]]:
+    """The referrers of the bundle manifest ``digest`` (``source``: its reference, for
+    messages), each checked against its subject (:func:`.referrers.listed`): the provenance
+    (its referrer digest and envelope bytes; fetched only when ``keys`` can check it; when
+    ``required`` says why, none is an error), the SBOMs as ``--json`` lists them, and a notice
+    for a provenance listed that no key was given to check."""
+    from ..provenance.dsse import MAX_ENVELOPE_BYTES
+    from .referrers import (
+        BUNDLE_PROVENANCE_TYPE,
+        BUNDLE_SBOM_TYPE,
+        CYCLONEDX_TYPE,
+        DSSE_TYPE,
+        SPDX_TYPE,
+        listed,
+        one_provenance,
+        sbom_list,
+    )
+
+    types = {BUNDLE_PROVENANCE_TYPE: frozenset({DSSE_TYPE}), BUNDLE_SBOM_TYPE: frozenset({CYCLONEDX_TYPE, SPDX_TYPE})}
+    found = listed(client, digest, types, what="bundle")
+    sboms = sbom_list(found, BUNDLE_SBOM_TYPE)
+    if not keys:
+        unchecked = [r.digest for r in found if r.artifact_type == BUNDLE_PROVENANCE_TYPE]
+        notices = []
+        if unchecked:
+            notices.append(
+                Notice(
+                    "oci-provenance-unchecked",
+                    f"{source}: a provenance referrer is listed ({unchecked[0]}) but no --provenance-key was "
+                    "given to check it: not verified, not written",
+                )
+            )
+        return None, sboms, notices
+    got = one_provenance(
+        client,
+        found,
+        source,
+        artifact_type=BUNDLE_PROVENANCE_TYPE,
+        limit=MAX_ENVELOPE_BYTES,
+        required=required is not None,
+        why=required or "",
+    )
+    return ((got[0].digest, got[1]) if got is not None else None), sboms, []

@@ -441,6 +441,36 @@ class _Parts:
             raise RegistryError("the blob is longer than its declared size")
 
 
+def connect(
+    target: str | Reference,
+    *,
+    ca_bundle: str | None = None,
+    insecure_registries: Iterable[str] = (),
+    push: bool = False,
+    need_tag: bool = False,
+) -> tuple[Reference, RegistryClient]:
+    """The reference ``target`` (``oci://…``, parsed unless it already is) and a client for its
+    repository with the credentials :mod:`.auth` finds for its host: how every verb that talks
+    to an OCI registry opens one (``ca_bundle``, ``insecure_registries``: ``--ca-bundle``,
+    ``--insecure-registry``; ``push``: ask for push rights; ``need_tag``: refuse a digest).
+
+    Raises:
+        InputError: a reference we cannot use (credentials or a query in it, no tag when needed).
+    """
+    from .auth import find_credentials
+    from .reference import parse_reference
+
+    ref = parse_reference(target, need_tag=need_tag) if isinstance(target, str) else target
+    client = RegistryClient(
+        ref,
+        credentials=find_credentials(ref.netloc),
+        ca_bundle=ca_bundle,
+        insecure_registries=insecure_registries,
+        push=push,
+    )
+    return ref, client
+
+
 def fallback_tag(digest: str) -> str:
     """The referrers tag schema: ``sha256:<hex>`` -> ``sha256-<hex>``."""
     return digest.replace(":", "-", 1)

@@ -1,5 +1,5 @@
-"""Referrers of a release manifest: the SUIT envelope, the provenance and the SBOM, each one
-small OCI 1.1 artifact whose ``subject`` is the release manifest.
+"""Referrers of a release or bundle manifest: the SUIT envelope (releases), the provenance and
+the SBOMs, each one small OCI 1.1 artifact whose ``subject`` is that manifest.
 
 Pushed as an image manifest with its own ``artifactType``, the empty config and exactly one
 layer; listed through the referrers API or, where the registry has none (distribution 2.8),
@@ -25,6 +25,8 @@ from .client import INDEX_TYPE, MANIFEST_TYPE, RegistryClient, fallback_tag, sha
 SIGNATURE_TYPE = "application/vnd.hcdf.release.signature.v1"  # artifactType of the SUIT referrer
 PROVENANCE_TYPE = "application/vnd.hcdf.release.provenance.v1"  # artifactType of the provenance referrer
 SBOM_TYPE = "application/vnd.hcdf.release.sbom.v1"  # artifactType of an SBOM referrer
+BUNDLE_PROVENANCE_TYPE = "application/vnd.hcdf.bundle.provenance.v1"  # a bundle's (bundle --provenance)
+BUNDLE_SBOM_TYPE = "application/vnd.hcdf.bundle.sbom.v1"  # an SBOM of a bundle (sbom X.hcdfz)
 DSSE_TYPE = "application/vnd.dsse.envelope.v1+json"  # the provenance layer: a DSSE envelope
 CYCLONEDX_TYPE = "application/vnd.cyclonedx+json"  # IANA-registered
 SPDX_TYPE = "application/spdx+json"  # IANA-registered
@@ -97,10 +99,22 @@ def _update_fallback(client: RegistryClient, subject: str, descriptors: list[dic
     client.put_manifest(tag, json.dumps(index, sort_keys=True, separators=(",", ":")).encode(), INDEX_TYPE)
 
 
-def listed(client: RegistryClient, digest: str, layer_types: dict[str, frozenset[str]]) -> list[Referrer]:
+def push_small_blob(
+    client: RegistryClient, data: bytes, media_type: str, annotations: dict[str, str]
+) -> dict[str, Any]:
+    """Push a blob held in memory (a provenance, an SBOM) and return its layer descriptor."""
+    digest = sha256_digest(data)
+    client.push_blob(digest, len(data), [data])
+    return {"mediaType": media_type, "digest": digest, "size": len(data), "annotations": annotations}
+
+
+def listed(
+    client: RegistryClient, digest: str, layer_types: dict[str, frozenset[str]], *, what: str = "release"
+) -> list[Referrer]:
     """The referrers of ``digest`` whose ``artifactType`` is a key of ``layer_types``, each
     fetched by digest and checked: subject, artifact type, exactly one layer of one of the
     allowed media types with a valid digest. Others (another tool's signatures) are ignored.
+    ``what``: the subject's kind, for messages (``release``, ``bundle``).
 
     Raises:
         ReferrerError: a listed referrer that is missing, hashes otherwise, points at another
@@ -131,7 +145,7 @@ def listed(client: RegistryClient, digest: str, layer_types: dict[str, frozenset
         subject = doc.get("subject") if isinstance(doc, dict) else None
         if not isinstance(subject, dict) or subject.get("digest") != digest:
             raise ReferrerError(
-                f"referrer {rd} ({kind}) points at another release",
+                f"referrer {rd} ({kind}) points at another {what}",
                 expected=digest,
                 actual=str(subject.get("digest") if isinstance(subject, dict) else None)[:100],
             )
@@ -183,3 +197,48 @@ def fetch_layer(client: RegistryClient, referrer: Referrer, *, limit: int) -> by
             actual="sha256:" + h.hexdigest(),
         )
     return data
+
+
+def one_provenance(
+    client: RegistryClient,
+    found: list[Referrer],
+    shown: str,
+    *,
+    artifact_type: str,
+    limit: int,
+    required: bool,
+    why: str = "--require-provenance",
+) -> tuple[Referrer, bytes] | None:
+    """The provenance referrer among ``found`` (:func:`listed`, the referrers of ``shown``) and its blob
+    (fetched, at most ``limit`` bytes, hashed against its descriptor); None when there is none
+    and none is ``required``. What it says is the caller's to verify.
+
+    Raises:
+        ReferrerError: two with different envelopes (which one is meant?), or none when
+            ``required`` (``why`` says who asked). DigestMismatchError: see :func:`fetch_layer`.
+    """
+    provenances = [r for r in found if r.artifact_type == artifact_type]
+    if len({r.layer["digest"] for r in provenances}) > 1:
+        raise ReferrerError(
+            f"{shown}: {len(provenances)} provenance referrers with different envelopes: which one is meant?",
+            expected="one provenance",
+            actual=", ".join(r.digest for r in provenances),
+        )
+    if not provenances:
+        if required:
+            raise ReferrerError(
+                f"{shown}: no provenance referrer is listed ({why})",
+                expected=f"a referrer of type {artifact_type}",
+                actual="none",
+            )
+        return None
+    return provenances[0], fetch_layer(client, provenances[0], limit=limit)
+
+
+def sbom_list(found: list[Referrer], artifact_type: str) -> list[dict[str, Any]]:
+    """The SBOM referrers among ``found``, as ``--json`` lists them (checked, not fetched)."""
+    return [
+        {"digest": r.digest, "mediaType": r.layer["mediaType"], "blob": r.layer["digest"], "size": r.layer["size"]}
+        for r in found
+        if r.artifact_type == artifact_type
+    ]

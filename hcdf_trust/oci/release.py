@@ -158,7 +158,15 @@ def push_release(
 ) -> dict[str, Any]:
     """Upload every blob (streamed), the manifest under the tag, and its referrers: the SUIT
     envelope, the provenance when the folder has one, and each SBOM given."""
-    from .referrers import DSSE_TYPE, PREDICATE_ANNOTATION, PROVENANCE_TYPE, SBOM_TYPE, SIGNATURE_TYPE, attach
+    from .referrers import (
+        DSSE_TYPE,
+        PREDICATE_ANNOTATION,
+        PROVENANCE_TYPE,
+        SBOM_TYPE,
+        SIGNATURE_TYPE,
+        attach,
+        push_small_blob,
+    )
 
     layers = release_layers(folder, release)
     push_blobs(client, folder, layers)
@@ -171,24 +179,16 @@ def push_release(
     if provenance is not None:
         from ..provenance import FILE_NAME, PREDICATE_TYPE
 
-        items.append(
-            (PROVENANCE_TYPE, _blob(client, provenance, DSSE_TYPE, FILE_NAME, {PREDICATE_ANNOTATION: PREDICATE_TYPE}))
-        )
+        about = {TITLE: FILE_NAME, PREDICATE_ANNOTATION: PREDICATE_TYPE}
+        items.append((PROVENANCE_TYPE, push_small_blob(client, provenance, DSSE_TYPE, about)))
     for sbom in sboms or []:
-        items.append((SBOM_TYPE, _blob(client, sbom.data, sbom.media_type, sbom.title, {})))
+        items.append((SBOM_TYPE, push_small_blob(client, sbom.data, sbom.media_type, {TITLE: sbom.title})))
     referrers = attach(client, (digest, len(body)), items)
     return {
         "digest": digest,
         "layers": [x.descriptor() for x in layers],
         "referrers": [{"digest": d, "artifactType": t} for d, (t, _) in zip(referrers, items, strict=True)],
     }
-
-
-def _blob(client: RegistryClient, data: bytes, media_type: str, title: str, about: dict[str, str]) -> dict[str, Any]:
-    """Push a small blob held in memory (a provenance, an SBOM); its descriptor."""
-    digest = sha256_digest(data)
-    client.push_blob(digest, len(data), [data])
-    return {"mediaType": media_type, "digest": digest, "size": len(data), "annotations": {TITLE: title, **about}}
 
 
 def read_provenance(folder: str) -> bytes | None:
@@ -359,6 +359,7 @@ def pull_release(
     """Steps 1–6 above. ``provenance_keys``: who else may sign the provenance (``--key``
     always may), ``threshold`` signatures needed; ``require_provenance``: none is an error.
     Raises IntegrityError (exit 1) or InputError (exit 3) before any write."""
+    from ..errors import relabel
     from ..outputs import FileContent, OutputPlan
     from ..store import ContentStore
 
@@ -438,6 +439,9 @@ def pull_release(
             staged_file = FileContent(os.path.join(staged, *title.split("/")), size, blob.split(":", 1)[1])
             plan.add(os.path.join(out_dir, *title.split("/")), staged_file, flag="--out", under=out_dir)
         wrote = [str(p) for p in plan.commit()]
+    except HcdfTrustError as exc:  # named as the user named it: oci://…@sha256:…/FILE, never the stage
+        relabel(exc, staged, source)
+        raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         os.close(lock)
@@ -622,8 +626,9 @@ def check_referrers(
         SBOM_TYPE,
         SIGNATURE_TYPE,
         SPDX_TYPE,
-        fetch_layer,
         listed,
+        one_provenance,
+        sbom_list,
     )
 
     types = {
@@ -645,21 +650,17 @@ def check_referrers(
         notices.append(
             Notice("oci-no-referrer", f"{digest}: no SUIT envelope referrer is listed (the release itself verified)")
         )
-    provenances = [r for r in found if r.artifact_type == PROVENANCE_TYPE]
-    if len({r.layer["digest"] for r in provenances}) > 1:
-        raise ReferrerError(
-            f"{digest}: {len(provenances)} provenance referrers with different envelopes: which one is meant?",
-            expected="one provenance",
-            actual=", ".join(r.digest for r in provenances),
-        )
     provenance = None
     blob = ("", 0)
-    if provenances:
-        from ..provenance.dsse import MAX_ENVELOPE_BYTES  # (imported only for a release that has one)
-        from ..provenance.verify import verify_provenance
+    from ..provenance.dsse import MAX_ENVELOPE_BYTES
 
-        chosen = provenances[0]
-        data = fetch_layer(client, chosen, limit=MAX_ENVELOPE_BYTES)
+    got = one_provenance(
+        client, found, digest, artifact_type=PROVENANCE_TYPE, limit=MAX_ENVELOPE_BYTES, required=require_provenance
+    )
+    if got is not None:
+        from ..provenance.verify import verify_provenance  # (imported only for a release that has one)
+
+        chosen, data = got
         with open(os.path.join(staged, PROVENANCE_NAME), "xb") as f:  # our private staging folder
             f.write(data)
         errors = verify_provenance(staged, release, list(keys), threshold=threshold)
@@ -667,18 +668,7 @@ def check_referrers(
             raise _group(errors)
         provenance = chosen.digest
         blob = (chosen.layer["digest"], chosen.layer["size"])
-    elif require_provenance:
-        raise ReferrerError(
-            f"{digest}: no provenance referrer is listed (--require-provenance)",
-            expected=f"a referrer of type {PROVENANCE_TYPE}",
-            actual="none",
-        )
-    sboms = [
-        {"digest": r.digest, "mediaType": r.layer["mediaType"], "blob": r.layer["digest"], "size": r.layer["size"]}
-        for r in found
-        if r.artifact_type == SBOM_TYPE
-    ]
-    return CheckedReferrers(signatures, provenance, sboms, notices, blob)
+    return CheckedReferrers(signatures, provenance, sbom_list(found, SBOM_TYPE), notices, blob)
 
 
 def _group(errors: list[HcdfTrustError]) -> HcdfTrustError:

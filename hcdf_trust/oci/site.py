@@ -20,7 +20,7 @@ from urllib.parse import unquote, urlsplit
 from ..digest import hash_fd
 from ..errors import DigestMismatchError, HcdfTrustError, InputError
 from ..localfile import open_checked
-from .client import MANIFEST_TYPE, RegistryClient, sha256_digest
+from .client import MANIFEST_TYPE, RegistryClient, connect, sha256_digest
 from .reference import Reference
 from .referrers import EMPTY_DESCRIPTOR
 from .release import ArtifactError, _Layer, check_manifest, push_blobs
@@ -81,13 +81,7 @@ def oci_fetcher(site: str, *, ca_bundle: str | None = None, insecure_registries:
     from tuf.api.exceptions import DownloadError, DownloadHTTPError
     from tuf.ngclient import FetcherInterface
 
-    from .auth import find_credentials
-    from .reference import parse_reference
-
-    ref = parse_reference(site)
-    client = RegistryClient(
-        ref, credentials=find_credentials(ref.netloc), ca_bundle=ca_bundle, insecure_registries=insecure_registries
-    )
+    ref, client = connect(site, ca_bundle=ca_bundle, insecure_registries=insecure_registries)
     got = client.get_manifest(ref.reference)
     if got is None:
         raise ArtifactError(f"{ref}: the registry has no such manifest", url=str(ref))
