@@ -1,6 +1,6 @@
 """Benchmark for ``hcdf-trust ota push`` / ``ota pull`` (issue 22) against plain curl, same run.
 
-    .venv/bin/python bench/oci.py [--images 50] [--size 1048576] [--repeat 3]
+    .venv/bin/python bench/oci.py [--images 50] [--size 1048576] [--repeat 5] [--before CLI]
 
 A release of ``--images`` MCUboot images of ``--size`` random bytes (bench/ota.py's
 generator, one ``ota build``) is pushed to and pulled from the Debian ``docker-registry``
@@ -9,8 +9,11 @@ same bytes with curl and verify nothing: uploads are one ``POST`` + one ``PUT`` 
 process per blob (what a shell script does), downloads one curl process fetching every
 blob over one connection. ``ota pull`` starts from an empty cache and an empty folder and
 does everything it always does (digests while streaming, content store, ``ota verify`` of
-every image in a staging folder, the referrers, the output plan). Medians of ``--repeat``
-runs after a warm-up, wall clock, and the peak RSS of the hcdf-trust process (GNU time).
+every image in a staging folder, the referrers, the output plan). ``--before CLI`` (e.g. a
+wrapper running an older checkout) pulls the same release in the same rounds, the order of
+the pulls alternating from round to round. Each process is timed by GNU time: wall clock,
+CPU seconds (user + system: what the process itself cost, whatever the machine's load) and
+peak RSS. Medians of ``--repeat`` rounds after a warm-up round.
 Targets: pull ≤ 1.5× curl; memory independent of image size.
 """
 
@@ -56,14 +59,28 @@ def start_registry() -> tuple[subprocess.Popen[bytes], str]:
     sys.exit("docker-registry did not start")
 
 
+class Timed:
+    """One process as GNU time saw it."""
+
+    def __init__(self, wall: float, cpu: float, kib: int) -> None:
+        self.wall, self.cpu, self.kib = wall, cpu, kib
+
+
+def timed(argv: list[str], *, check: bool = True) -> Timed:
+    """Run ``argv`` under GNU time: wall clock, user + system CPU seconds, peak RSS (KiB)."""
+    t = time.perf_counter()
+    p = subprocess.run([TIME, "-f", "%U %S %M", *argv], capture_output=True, text=True, env=ENV)
+    wall = time.perf_counter() - t
+    if check and p.returncode != 0:
+        sys.exit(f"failed: {' '.join(argv)}\n{p.stderr}")
+    user, system, kib = p.stderr.strip().splitlines()[-1].split()
+    return Timed(wall, float(user) + float(system), int(kib))
+
+
 def peak_rss(argv: list[str]) -> tuple[float, int]:
     """Wall clock and peak RSS (KiB) of one hcdf-trust process."""
-    t = time.perf_counter()
-    p = subprocess.run([TIME, "-f", "%M", *argv], capture_output=True, text=True, env=ENV)
-    wall = time.perf_counter() - t
-    if p.returncode != 0:
-        sys.exit(f"failed: {' '.join(argv)}\n{p.stderr}")
-    return wall, int(p.stderr.strip().splitlines()[-1])
+    t = timed(argv)
+    return t.wall, t.kib
 
 
 def curl_push(host: str, repo: str, files: list[Path]) -> float:
@@ -86,70 +103,88 @@ def curl_push(host: str, repo: str, files: list[Path]) -> float:
     return time.perf_counter() - t
 
 
-def curl_pull(host: str, repo: str, digests: list[str], dest: Path) -> float:
+def curl_pull(host: str, repo: str, digests: list[str], dest: Path) -> Timed:
     shutil.rmtree(dest, ignore_errors=True)
     dest.mkdir(parents=True)
     argv = ["curl", "-sS", "-f", "-L"]
     for i, d in enumerate(digests):
         argv += [f"http://{host}/v2/{repo}/blobs/{d}", "-o", str(dest / f"{i}")]
-    t = time.perf_counter()
-    subprocess.run(argv, check=True)
-    return time.perf_counter() - t
+    return timed(argv)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--images", type=int, default=50)
     ap.add_argument("--size", type=int, default=1 << 20)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--before", help="another hcdf-trust to pull with in the same rounds (an older checkout)")
     args = ap.parse_args()
     doc = generate(args.images, args.size)
     release = WORK / "release"
     run([CLI, "ota", "build", doc, "--firmware-dir", WORK / "fw", "--key", WORK / "key.pem", "--out", release])
     pub = WORK / "key.pub.pem"
     files = sorted(p for p in release.rglob("*") if p.is_file())
+    pullers = {"pull": str(CLI), **({"before": args.before} if args.before else {})}
     proc, host = start_registry()
+    loads = []
     try:
-        n = iter(range(10_000))
-        res: dict[str, list[float]] = {"push": [], "curl_push": [], "pull": [], "curl_pull": [], "verify": []}
-        rss: dict[str, list[int]] = {"push": [], "pull": []}
+        res: dict[str, list[Timed]] = {k: [] for k in ("push", "curl_push", "curl_pull", "verify", *pullers)}
         for i in range(args.repeat + 1):  # the first round is the warm-up
-            repo = f"bench/r{next(n)}"
-            w, m = peak_rss([str(CLI), "ota", "push", str(release), f"oci://{host}/{repo}:1"])
+            repo = f"bench/r{i}"
+            push = timed([str(CLI), "ota", "push", str(release), f"oci://{host}/{repo}:1"])
             c = curl_push(host, f"bench/c{i}", files)
-            cache, out = OCI / f"cache{i}", OCI / f"out{i}"
-            pw, pm = peak_rss(
-                [str(CLI), "ota", "pull", f"oci://{host}/{repo}:1", "--key", str(pub), "--out", str(out),
-                 "--cache-dir", str(cache), "--json"]
-            )  # fmt: skip
             manifest = json.loads(
                 subprocess.run(
                     ["curl", "-sS", "-H", "Accept: application/vnd.oci.image.manifest.v1+json",
                      f"http://{host}/v2/{repo}/manifests/1"], capture_output=True, check=True,
                 ).stdout
             )  # fmt: skip
-            cp = curl_pull(host, repo, [x["digest"] for x in manifest["layers"]], OCI / f"curl{i}")
-            vw, _ = peak_rss([str(CLI), "ota", "verify", str(out), "--key", str(pub)])
+            digests = [x["digest"] for x in manifest["layers"]]
+            order = ["curl", *pullers]
+            order = order[i % len(order) :] + order[: i % len(order)]  # who goes first rotates
+            pulled: dict[str, Timed] = {}
+            for who in order:
+                if who == "curl":
+                    pulled[who] = curl_pull(host, repo, digests, OCI / f"curl{i}")
+                    continue
+                cache, out = OCI / f"cache-{who}{i}", OCI / f"out-{who}{i}"
+                pulled[who] = timed(
+                    [pullers[who], "ota", "pull", f"oci://{host}/{repo}:1", "--key", str(pub), "--out", str(out),
+                     "--cache-dir", str(cache), "--json"]
+                )  # fmt: skip
+            verify = timed([str(CLI), "ota", "verify", str(OCI / f"out-pull{i}"), "--key", str(pub)])
+            loads.append(os.getloadavg()[0])
             if i:
-                res["push"].append(w)
-                res["curl_push"].append(c)
-                res["pull"].append(pw)
-                res["curl_pull"].append(cp)
-                res["verify"].append(vw)
-                rss["push"].append(m)
-                rss["pull"].append(pm)
+                res["push"].append(push)
+                res["curl_push"].append(Timed(c, 0.0, 0))
+                res["curl_pull"].append(pulled["curl"])
+                res["verify"].append(verify)
+                for who in pullers:
+                    res[who].append(pulled[who])
     finally:
         proc.terminate()
         proc.wait()
-    med = {k: statistics.median(v) for k, v in res.items()}
+
+    def med(key: str, attr: str = "wall") -> float:
+        return statistics.median(getattr(t, attr) for t in res[key])
+
     total = sum(f.stat().st_size for f in files)
-    print(f"{len(files)} files, {total / (1 << 20):.1f} MiB; load {os.getloadavg()[0]:.1f}; medians of {args.repeat}")
-    print(f"push {med['push']:.2f} s vs curl {med['curl_push']:.2f} s: {med['push'] / med['curl_push']:.2f}×")
-    print(f"pull {med['pull']:.2f} s vs curl {med['curl_pull']:.2f} s: {med['pull'] / med['curl_pull']:.2f}×")
     print(
-        f"ota verify alone (same folder) {med['verify']:.2f} s; pull minus verify {med['pull'] - med['verify']:.2f} s"
+        f"{len(files)} files, {total / (1 << 20):.1f} MiB; 1-min load {min(loads):.1f}–{max(loads):.1f}; "
+        f"medians of {args.repeat} rounds"
     )
-    print(f"peak RSS: push {max(rss['push']) / 1024:.0f} MiB, pull {max(rss['pull']) / 1024:.0f} MiB")
+    print(f"push {med('push'):.2f} s vs curl {med('curl_push'):.2f} s: {med('push') / med('curl_push'):.2f}×")
+    curl_wall, curl_cpu = med("curl_pull"), med("curl_pull", "cpu")
+    print(f"curl pull: {curl_wall:.2f} s wall, {curl_cpu:.2f} s CPU")
+    for who in pullers:
+        ratios = [t.wall / c.wall for t, c in zip(res[who], res["curl_pull"], strict=True)]
+        print(
+            f"{who}: {med(who):.2f} s wall ({med(who) / curl_wall:.2f}× curl; per-round ratio median "
+            f"{statistics.median(ratios):.2f}×, {min(ratios):.2f}–{max(ratios):.2f}), "
+            f"{med(who, 'cpu'):.2f} s CPU, peak RSS {max(t.kib for t in res[who]) / 1024:.0f} MiB"
+        )
+    print(f"ota verify alone (same folder) {med('verify'):.2f} s wall, {med('verify', 'cpu'):.2f} s CPU")
+    print(f"peak RSS: push {max(t.kib for t in res['push']) / 1024:.0f} MiB")
 
 
 if __name__ == "__main__":

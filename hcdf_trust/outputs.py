@@ -109,9 +109,34 @@ class FileContent(NamedTuple):
             return f.read()
 
 
+class HeldFile(NamedTuple):
+    """An output's bytes that are a file this run made itself and still holds open (``ota pull``
+    and ``bundle pull`` write each blob, as it is hashed, into a private staging folder and
+    verify it there): committed by *moving that very file* into place, not by copying it.
+
+    At commit the file at ``path`` is hard-linked under a temporary name in its destination
+    folder (held open as every output's folder is, so never through a symlink), and adopted only
+    if that name is the inode ``fd`` holds, a regular file of ``size`` bytes; its staging name is
+    then removed and it must have no other link (nobody keeps a name through which it could be
+    rewritten); from there it is committed as any staged output (mode, fsync, rename, roll-back).
+    Its bytes are not hashed again: the caller wrote them from the bytes it hashed, into a file
+    it created (``O_EXCL``, mode 0600, in a folder only it uses) and still holds. On another
+    filesystem (no hard link possible) the file is copied from ``fd`` instead, hashed as it is
+    copied against ``sha256``, as a :class:`FileContent` is. The caller closes ``fd`` after the
+    commit."""
+
+    fd: int
+    path: str
+    size: int
+    sha256: str
+
+    def read(self) -> bytes:
+        return os.pread(self.fd, self.size + 1, 0)
+
+
 class _Output(NamedTuple):  # a tuple: a frozen dataclass costs ~1 ms of start-up to define
     path: Path  # the real folder + the name as given (a symlink at the destination is replaced, not followed)
-    data: bytes | FileContent
+    data: bytes | FileContent | HeldFile
     mode: int
     flag: str  # how the user named it, for messages: "--lock", "--out", ...
     shown: str  # the path as the user gave it
@@ -210,7 +235,7 @@ class OutputPlan:
     def add(
         self,
         path: str | os.PathLike[str],
-        data: bytes | FileContent,
+        data: bytes | FileContent | HeldFile,
         *,
         flag: str,
         mode: int = 0o644,
@@ -234,16 +259,16 @@ class OutputPlan:
         None is ``(ORDINARY,)`` (never a key, key store, registry source or document);
         ``NEW_ONLY`` is nothing (the destination must not exist).
         ``stdout``: ``path`` ``-`` means standard output. ``folder_mode``: of folders made.
-        ``data`` a :class:`FileContent`: copied from that file at commit (not with ``if_changed``
-        nor to standard output).
+        ``data`` a :class:`FileContent`: copied from that file at commit; a :class:`HeldFile`:
+        that file moved into place at commit (neither with ``if_changed`` nor to standard output).
 
         Raises:
             OutputError: ``path`` is an input, inside a protected folder, another
                 output of this run, a directory or other non-regular file, under
                 a regular file or a symlinked folder of its tree, or key material.
         """
-        if isinstance(data, FileContent) and (if_changed or stdout):
-            raise ValueError("a FileContent output is written as a new file, not if_changed nor to stdout")
+        if isinstance(data, (FileContent, HeldFile)) and (if_changed or stdout):
+            raise ValueError("a file output is written as a new file, not if_changed nor to stdout")
         if stdout and os.fspath(path) == "-":
             assert isinstance(data, bytes)
             self._stdout.append(data)
@@ -325,7 +350,7 @@ class OutputPlan:
         for o in self._outputs.values():
             rel = os.path.relpath(o.path, root)
             if rel != ".." and not rel.startswith("../"):
-                found[rel.replace(os.sep, "/")] = o.data.read() if isinstance(o.data, FileContent) else o.data
+                found[rel.replace(os.sep, "/")] = o.data if isinstance(o.data, bytes) else o.data.read()
         return found
 
     def commit(self) -> list[Path]:
@@ -750,7 +775,7 @@ def _holds(out: _Output) -> bool:
         fd = os.open(out.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError:  # missing, a symlink (ELOOP), unreadable: written as usual
         return False
-    assert isinstance(out.data, bytes)  # add() refuses if_changed with a FileContent
+    assert isinstance(out.data, bytes)  # add() refuses if_changed with a file output
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode) or stat.S_IMODE(st.st_mode) != out.mode or st.st_size != len(out.data):
@@ -771,11 +796,21 @@ def _holds(out: _Output) -> bool:
 def _stage(out: _Output, dfd: int) -> tuple[int, str]:
     """Write ``out`` to a temporary file in the folder ``dfd``, with its mode from the first
     byte; return the open descriptor (to fsync) and the temporary file's name."""
+    if isinstance(out.data, HeldFile):
+        adopted = _adopt(out.data, out, dfd)
+        if adopted is not None:
+            return adopted
     fd, tmp = create_temp(out.path.parent, f".{out.path.name}.", ".tmp", dir_fd=dfd)  # 0600
     try:
         os.fchmod(fd, out.mode)
         if isinstance(out.data, FileContent):
-            _copy(out.data, fd, shown=out.shown)
+            src = os.open(out.data.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+            try:
+                _copy(src, out.data, fd, shown=out.shown)
+            finally:
+                os.close(src)
+        elif isinstance(out.data, HeldFile):  # on another filesystem than its destination
+            _copy(out.data.fd, out.data, fd, shown=out.shown)
         else:
             view = memoryview(out.data)
             while view:
@@ -791,8 +826,56 @@ def _stage(out: _Output, dfd: int) -> tuple[int, str]:
 _COPY_CHUNK = 1 << 20
 
 
-def _copy(source: FileContent, fd: int, *, shown: str) -> None:
-    """Copy ``source`` into ``fd`` a chunk at a time, hashing what is written.
+def _adopt(held: HeldFile, out: _Output, dfd: int) -> tuple[int, str] | None:
+    """Link the held file under a temporary name in the folder ``dfd`` and take it as ``out``'s
+    staged file (see :class:`HeldFile`): a new descriptor of it and the temporary name; None
+    when it lies on another filesystem (the caller copies it).
+
+    Raises:
+        IntegrityError: the file at ``held.path`` is not the one held, not ``held.size`` bytes,
+            or has another link (nothing is left in ``dfd``).
+    """
+    from .errors import IntegrityError
+
+    held_st = os.fstat(held.fd)
+    for _ in range(8):
+        tmp = f".{out.path.name}.{os.urandom(6).hex()}.tmp"
+        try:
+            os.link(held.path, tmp, dst_dir_fd=dfd, follow_symlinks=False)  # never replaces a file
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            if exc.errno in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.EOPNOTSUPP):
+                return None  # another filesystem, or one without hard links
+            raise
+        break
+    else:
+        raise FileExistsError(errno.EEXIST, "no unused temporary file name", os.fspath(out.path.parent))
+    try:
+        st = os.stat(tmp, dir_fd=dfd, follow_symlinks=False)
+        if (st.st_dev, st.st_ino) != (held_st.st_dev, held_st.st_ino) or not stat.S_ISREG(st.st_mode):
+            why = "is no longer the file that was verified"
+        elif held_st.st_size != held.size:
+            why = f"holds {held_st.st_size} bytes, not the {held.size} verified"
+        else:
+            os.unlink(held.path)
+            links = os.fstat(held.fd).st_nlink
+            why = f"has {links - 1} other link(s) through which it could be rewritten" if links != 1 else ""
+        if why:
+            raise IntegrityError(
+                f"{out.shown}: its staged file {display_path(held.path)} {why} (nothing written)", file=out.shown
+            )
+        os.fchmod(held.fd, out.mode)
+        return os.dup(held.fd), tmp
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp, dir_fd=dfd)
+        raise
+
+
+def _copy(src: int, source: FileContent | HeldFile, fd: int, *, shown: str) -> None:
+    """Copy the file ``src`` (``source``'s) into ``fd`` a chunk at a time from its start,
+    hashing what is written.
 
     Raises:
         IntegrityError: the bytes copied are not ``source.size`` bytes of ``source.sha256``.
@@ -804,18 +887,14 @@ def _copy(source: FileContent, fd: int, *, shown: str) -> None:
 
     h = hashlib.sha256()
     size = 0
-    src = os.open(source.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-    try:
-        while chunk := os.read(src, _COPY_CHUNK):
-            h.update(chunk)
-            size += len(chunk)
-            if size > source.size:
-                break
-            view = memoryview(chunk)
-            while view:
-                view = view[os.write(fd, view) :]
-    finally:
-        os.close(src)
+    while chunk := os.pread(src, _COPY_CHUNK, size):
+        h.update(chunk)
+        size += len(chunk)
+        if size > source.size:
+            break
+        view = memoryview(chunk)
+        while view:
+            view = view[os.write(fd, view) :]
     if size != source.size or h.hexdigest() != source.sha256:
         raise IntegrityError(
             f"{shown}: its source {display_path(source.path)} changed after it was verified (nothing written)",

@@ -452,3 +452,133 @@ def test_a_killed_registry_refresh_leaves_no_temporary_file_in_the_client_cache(
     r = reg.run("verify", *reg.client_args())
     assert r.exit_code == 0, r.stderr
     assert strays() == [] and hidden(metadata) == []
+
+
+# -- held files (ota pull's and bundle pull's staged blobs): moved into place, not copied --------
+def _held(stage: Path, data: bytes, name: str = "blob"):
+    """A staged file as oci/blobs.py makes one: created O_EXCL in a private folder, held open."""
+    import hashlib
+
+    from hcdf_trust.outputs import HeldFile
+
+    stage.mkdir(mode=0o700, exist_ok=True)
+    fd = os.open(stage / name, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    os.write(fd, data)
+    return HeldFile(fd, str(stage / name), len(data), hashlib.sha256(data).hexdigest())
+
+
+def test_a_held_file_is_moved_into_place_with_its_mode_and_nothing_left_behind(tmp_path):
+    held = _held(tmp_path / "stage", b"image bytes")
+    plan = OutputPlan()
+    plan.add(tmp_path / "out" / "b" / "1.bin", held, flag="--out", under=tmp_path / "out")
+    plan.add(tmp_path / "out" / "release.suit", b"manifest", flag="--out", under=tmp_path / "out")
+    plan.commit()
+    dest = tmp_path / "out" / "b" / "1.bin"
+    st = dest.stat()
+    assert dest.read_bytes() == b"image bytes" and oct(st.st_mode & 0o777) == "0o644"
+    assert (st.st_dev, st.st_ino) == (os.fstat(held.fd).st_dev, os.fstat(held.fd).st_ino)  # moved, not copied
+    assert st.st_nlink == 1 and list((tmp_path / "stage").iterdir()) == []
+    assert hidden(tmp_path / "out") == []
+    os.close(held.fd)
+
+
+@pytest.mark.parametrize("swap", ["other file", "symlink to it", "symlink elsewhere"])
+def test_a_held_file_whose_staged_name_was_swapped_is_refused_with_nothing_written(tmp_path, swap):
+    """The staged name must still be the file held (and verified): a file of the same size put
+    in its place, or a symlink (even to the held file), fails the whole commit."""
+    from hcdf_trust.errors import IntegrityError
+
+    held = _held(tmp_path / "stage", b"verified")
+    os.rename(held.path, tmp_path / "stage" / "kept")
+    if swap == "other file":
+        Path(held.path).write_bytes(b"attacker")
+    elif swap == "symlink to it":
+        Path(held.path).symlink_to(tmp_path / "stage" / "kept")
+    else:
+        (tmp_path / "victim").write_bytes(b"attacker")
+        Path(held.path).symlink_to(tmp_path / "victim")
+    plan = OutputPlan()
+    plan.add(tmp_path / "out" / "a.txt", b"small", flag="--out", under=tmp_path / "out")
+    plan.add(tmp_path / "out" / "b.bin", held, flag="--out", under=tmp_path / "out")
+    with pytest.raises(IntegrityError, match="no longer the file that was verified"):
+        plan.commit()
+    assert not (tmp_path / "out").exists()
+    os.close(held.fd)
+
+
+def test_a_held_file_with_another_link_or_another_size_is_refused(tmp_path):
+    """Another hard link is a name through which the output could be rewritten later; a size
+    other than the one verified (appended after the check) is not what was verified."""
+    from hcdf_trust.errors import IntegrityError
+
+    held = _held(tmp_path / "stage", b"verified")
+    os.link(held.path, tmp_path / "elsewhere")
+    plan = OutputPlan()
+    plan.add(tmp_path / "out" / "b.bin", held, flag="--out", under=tmp_path / "out")
+    with pytest.raises(IntegrityError, match="1 other link"):
+        plan.commit()
+    assert not (tmp_path / "out").exists()
+    os.close(held.fd)
+    held = _held(tmp_path / "stage", b"verified", "two")
+    os.write(held.fd, b"+more")
+    plan = OutputPlan()
+    plan.add(tmp_path / "out" / "b.bin", held, flag="--out", under=tmp_path / "out")
+    with pytest.raises(IntegrityError, match="not the 8 verified"):
+        plan.commit()
+    assert not (tmp_path / "out").exists() and Path(held.path).exists()
+    os.close(held.fd)
+
+
+def test_a_held_file_keeps_the_planners_refusals(tmp_path):
+    """Inputs, key material and symlinked folders of the tree are refused for a held file as for
+    any output, and the held file stays where it was."""
+    key = tmp_path / "key.pem"
+    key.write_bytes(private_pem(generate("ecdsa-p256"), None))
+    held = _held(tmp_path / "stage", b"verified")
+    plan = OutputPlan()
+    plan.protect(tmp_path / "input.hcdf", what="the root document")
+    (tmp_path / "input.hcdf").write_bytes(b"<hcdf/>")
+    with pytest.raises(OutputError, match="refusing to overwrite an input"):
+        plan.add(tmp_path / "input.hcdf", held, flag="--out")
+    with pytest.raises(OutputError, match="is a private key: refusing to replace it"):
+        plan.add(key, held, flag="--out")
+    with pytest.raises(ValueError):
+        plan.add(tmp_path / "x", held, flag="--out", if_changed=True)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "outside").mkdir()
+    plan.add(tmp_path / "out" / "board" / "1.bin", held, flag="--out", under=tmp_path / "out")
+    (tmp_path / "out" / "board").symlink_to(tmp_path / "outside")
+    with pytest.raises(OutputError, match="symlink"):
+        plan.commit()
+    assert list((tmp_path / "outside").iterdir()) == [] and Path(held.path).read_bytes() == b"verified"
+    os.close(held.fd)
+
+
+def test_a_held_file_on_another_filesystem_is_copied_and_hashed(tmp_path, monkeypatch):
+    """Where no hard link can be made (EXDEV), the held file is copied from its descriptor and
+    hashed against the digest it was verified with: changed bytes fail the commit."""
+    import errno
+
+    from hcdf_trust.errors import IntegrityError
+
+    real_link = os.link
+
+    def no_link(src, dst, **kw):
+        if str(src).startswith(str(tmp_path / "stage")):
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        return real_link(src, dst, **kw)
+
+    monkeypatch.setattr(os, "link", no_link)
+    held = _held(tmp_path / "stage", b"verified")
+    plan = OutputPlan()
+    plan.add(tmp_path / "out" / "b.bin", held, flag="--out", under=tmp_path / "out")
+    plan.commit()
+    dest = tmp_path / "out" / "b.bin"
+    assert dest.read_bytes() == b"verified" and dest.stat().st_ino != os.fstat(held.fd).st_ino
+    os.pwrite(held.fd, b"V", 0)
+    plan = OutputPlan()
+    plan.add(tmp_path / "out2" / "b.bin", held, flag="--out", under=tmp_path / "out2")
+    with pytest.raises(IntegrityError, match="changed after it was verified"):
+        plan.commit()
+    assert not (tmp_path / "out2").exists()
+    os.close(held.fd)

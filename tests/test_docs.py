@@ -338,6 +338,7 @@ def _verbs() -> dict[str, click.Command]:
 FOREIGN = {
     "--no-deps": "pip wheel",
     "--repeat": "bench/*.py",
+    "--before": "bench/oci.py, bench/oci_bundle.py",
     "--ours": "git checkout",
     "--theirs": "git checkout",
     "--align": "imgtool",

@@ -20,7 +20,6 @@ import pytest
 from hcdf_trust.cli import main
 
 from .conftest import PROJECT
-from .servers import https_server, serve, tls  # noqa: F401  (fixtures are used by name)
 
 
 def _leaves(cmd: click.Command, path: tuple[str, ...] = ()) -> list[tuple[str, click.Command]]:

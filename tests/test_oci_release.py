@@ -110,6 +110,61 @@ def test_demo_release_through_the_registry_with_only_the_public_key(cli, registr
     assert cli("ota", "verify", dest, "--key", pub_only / "demo.pub.pem").exit_code == 0
 
 
+def test_pulled_files_are_files_of_their_own_never_links_to_the_cache(cli, registry, release, tmp_path):  # noqa: F811
+    """Each staged blob is a new file moved into --out (one link, mode 0644), never the content
+    store's blob (a shared inode would let an edit of one change the other); the store keeps
+    its read-only blobs and no staging folder is left, fetched or resumed."""
+    robot, out = release
+    assert cli("ota", "push", out, registry.ref(tag="own")).exit_code == 0
+    cache = tmp_path / "cache"
+    for dest in (tmp_path / "first", tmp_path / "again"):  # fetched, then from the content store
+        r = cli("ota", "pull", registry.ref(tag="own"), "--key", robot.pub, "--out", dest, "--cache-dir", cache)
+        assert r.exit_code == 0, r.stderr
+        blobs = [p.stat() for p in (cache / "sha256").rglob("*") if p.is_file()]
+        assert blobs and all(oct(st.st_mode & 0o777) == "0o444" for st in blobs)
+        inodes = {(st.st_dev, st.st_ino) for st in blobs}
+        pulled = [p.stat() for p in dest.rglob("*") if p.is_file()]
+        assert len(pulled) == len(tree(out))
+        for st in pulled:
+            assert st.st_nlink == 1 and oct(st.st_mode & 0o777) == "0o644"
+            assert (st.st_dev, st.st_ino) not in inodes
+        assert tree(dest) == tree(out)
+        assert not list(cache.glob(".oci-pull-*"))
+
+
+def test_imgtool_checks_each_staged_image_once_and_its_verdict_decides(
+    cli,
+    registry,  # noqa: F811
+    release,
+    tmp_path,
+    monkeypatch,
+):
+    """pull runs imgtool on each staged image as it arrives (once: ota verify of the staged
+    release takes those verdicts), and a verdict other than OK for any image refuses the whole
+    pull, nothing written (imgtool's verdict stood in by one it never gives a good image)."""
+    from hcdf_trust.ota import images
+
+    robot, out = release
+    assert cli("ota", "push", out, registry.ref(tag="verdict")).exit_code == 0
+    real = images.verify_image_fd
+    calls: list[int] = []
+
+    def counted(fd, key):
+        calls.append(fd)
+        return real(fd, key)
+
+    monkeypatch.setattr(images, "verify_image_fd", counted)
+    r = cli("ota", "pull", registry.ref(tag="verdict"), "--key", robot.pub, "--out", tmp_path / "ok", "--json")
+    assert r.exit_code == 0, r.stderr
+    n_images = sum(1 for f in r.json["files"] if f["mediaType"] == "application/vnd.hcdf.mcuboot.image.v1")
+    assert n_images and len(calls) == n_images
+
+    monkeypatch.setattr(images, "verify_image_fd", lambda fd, key: ("INVALID_SIGNATURE", None))
+    r = cli("ota", "pull", registry.ref(tag="verdict"), "--key", robot.pub, "--out", tmp_path / "bad")
+    assert r.exit_code == 1 and "does not verify with the key (INVALID_SIGNATURE)" in r.stderr, r.stderr
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_killed_pulls_staging_folder_is_swept_a_live_ones_kept(cli, registry, release, tmp_path):  # noqa: F811
     import fcntl
     import os

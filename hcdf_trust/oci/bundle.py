@@ -18,19 +18,21 @@ as ``ota push`` attaches a release's (:mod:`.referrers`, the same code): the pro
 2. The manifest is a bundle artifact: artifact type, empty config, exactly one layer of
    :data:`BUNDLE_LAYER_TYPE`, a size within a bundle's cap (``bundle.MAX_BYTES``), a plain title.
 3. The blob comes from the content store (verified before: a repeated pull) or is fetched by
-   digest, hashed while it streams and refused past its declared size; only a blob whose
-   SHA-256 and size are the manifest's enters the store.
+   digest, hashed while it streams (into the store and a file of a private staging folder)
+   and refused past its declared size; only a blob whose SHA-256 and size are the manifest's
+   enters the store or stays staged.
 4. The referrers are listed once, each checked against its subject; the provenance is fetched
    (bounded, hashed) when keys were given to check it, and required when asked for.
-5. In a private staging folder the blob is read as ``verify X.hcdfz`` reads it: the same strict
+5. In the staging folder the blob is read as ``verify X.hcdfz`` reads it: the same strict
    archive reader and the same walk, every pin re-hashed (exit 3 for the structure, 1 for the
    content), then the provenance as ``verify X.hcdfz --provenance`` checks it; the manifest's
    annotations must say what the verified bundle says. Messages name the reference and the
    entry (``oci://…@sha256:…/scout2.hcdfz/assets/…``), never the staging folder.
 6. Only then is the bundle written to ``--out`` (and the verified provenance beside it) through
-   the OutputPlan, copied from the staged file and hashed again as it is copied.
+   the OutputPlan: the staged file, which this pull wrote from the bytes it hashed and held
+   open since, is moved into place (:class:`~hcdf_trust.outputs.HeldFile`).
 
-The staging folder and the content store are the ones ``ota pull`` uses (:mod:`.release`), so a
+The staging folder and the content store are the ones ``ota pull`` uses (:mod:`.blobs`), so a
 killed pull of either kind is swept by the next.
 """
 
@@ -38,8 +40,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -138,13 +138,13 @@ def layer_title(path: str) -> str:
     (pull checks it as a one-segment path; it never names where the bundle is written); the
     same for the provenance beside it (``X.hcdfz.intoto.json``, else ``bundle.hcdfz.intoto.json``)."""
     from ..provenance.bundle import SUFFIX
-    from .release import _SEGMENT
+    from .blobs import SEGMENT
 
     name = os.path.basename(path)
     if name.endswith(SUFFIX):
         bundle = name[: -len(SUFFIX)]
-        return (bundle if _SEGMENT.fullmatch(name) else "bundle.hcdfz") + SUFFIX
-    return name if _SEGMENT.fullmatch(name) else "bundle.hcdfz"
+        return (bundle if SEGMENT.fullmatch(name) else "bundle.hcdfz") + SUFFIX
+    return name if SEGMENT.fullmatch(name) else "bundle.hcdfz"
 
 
 def read_envelope(path: str) -> bytes | None:
@@ -299,10 +299,10 @@ def pull_bundle(
     """
     from ..bundle import MAX_BYTES, is_bundle
     from ..errors import HcdfTrustError, relabel
-    from ..outputs import BUNDLE, ORDINARY, FileContent, OutputPlan
+    from ..outputs import BUNDLE, ORDINARY, OutputPlan
     from ..provenance.bundle import envelope_path
     from ..store import ContentStore
-    from .release import STAGE_PREFIX, _fetch_blob, _hold, sweep_stages
+    from .blobs import Stage, fetch_blob
 
     keys = list(provenance_keys or [])
     if ref.digest is None and not trust_tag and not keys:
@@ -340,66 +340,63 @@ def pull_bundle(
     layer = layers[0]
     hex_ = layer["digest"].split(":", 1)[1]
     title = layer["annotations"][TITLE]
-    # 3. the blob, into the content store only if it is the manifest's
+    # 3. the blob into the content store, only if it is the manifest's, and into a file of our
+    # own in a private staging folder, under the name messages give it
     store = ContentStore(cache_dir)
-    blob = store.verified_path(hex_)
-    cached = blob is not None and blob.stat().st_size == layer["size"]
-    if blob is None or not cached:
-        blob = _fetch_blob(client, store, layer, title=title, where=f"{source}#/layers/0")
-    # 4. the referrers: the provenance (fetched only when a key can check it), the SBOMs
-    if require_provenance:
-        why: str | None = "--require-provenance"
-    elif ref.digest is None and not trust_tag:
-        why = "a tag is trusted through its provenance"
-    else:
-        why = None
-    provenance, sboms, notices = _referrers(client, digest, source, keys=keys, required=why)
-    # 5. verify X.hcdfz (and its provenance) in a private staging folder; every message names
-    # the reference and the entry (oci://…@sha256:…/scout2.hcdfz/assets/…), never that folder
-    os.makedirs(cache_dir, exist_ok=True)
-    sweep_stages(cache_dir)
-    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
-    lock = _hold(stage)
-    try:
-        staged = os.path.join(stage, title if is_bundle(title) else "bundle.hcdfz")  # as messages name it
+    with Stage(cache_dir) as stage:
         try:
-            os.link(blob, staged, follow_symlinks=False)
-        except OSError:  # another filesystem, or links not allowed
-            shutil.copyfile(blob, staged, follow_symlinks=False)
-        check = None
-        if provenance is not None:
-            check = Provenance(provenance[1], f"{source} ({provenance[0]})", keys, threshold)
-        checked = verify_bundle(staged, provenance=check)
-        for notice in checked.warnings:
-            relabel(notice, stage, source)
-        if checked.sha256 != hex_:  # the store handed over another file than the one hashed
-            raise DigestMismatchError(
-                f"{source}: the staged bundle is not the layer's blob", expected=layer["digest"], actual=checked.sha256
+            held, cached = fetch_blob(
+                client,
+                store,
+                layer,
+                title=title,
+                where=f"{source}#/layers/0",
+                stage=stage,
+                rel=title if is_bundle(title) else "bundle.hcdfz",
             )
-        said = doc.get("annotations")
-        said = said if isinstance(said, dict) else {}
-        for key, value in checked.annotations().items():
-            if said.get(key) != value:
-                raise IntegrityError(
-                    f"{source}: manifest annotation {key} is not what the verified bundle says",
-                    file=source,
-                    expected=value,
-                    actual=str(said.get(key))[:100],
+            # 4. the referrers: the provenance (fetched only when a key can check it), the SBOMs
+            if require_provenance:
+                why: str | None = "--require-provenance"
+            elif ref.digest is None and not trust_tag:
+                why = "a tag is trusted through its provenance"
+            else:
+                why = None
+            provenance, sboms, notices = _referrers(client, digest, source, keys=keys, required=why)
+            # 5. verify X.hcdfz (and its provenance) on the staged file; every message names the
+            # reference and the entry (oci://…@sha256:…/scout2.hcdfz/assets/…), never that folder
+            check = None
+            if provenance is not None:
+                check = Provenance(provenance[1], f"{source} ({provenance[0]})", keys, threshold)
+            checked = verify_bundle(held.path, provenance=check)
+            for notice in checked.warnings:
+                relabel(notice, stage.path, source)
+            if checked.sha256 != hex_:  # the staged file is not the one hashed
+                raise DigestMismatchError(
+                    f"{source}: the staged bundle is not the layer's blob",
+                    expected=layer["digest"],
+                    actual=checked.sha256,
                 )
-        # 6. into --out (and the verified provenance beside it), all or nothing, the bundle
-        # hashed again as it is copied
-        plan = OutputPlan()
-        plan.protect_tree(cache_dir, what="the cache")
-        plan.add(out, FileContent(staged, checked.size, checked.sha256), flag="--out", replaces=(ORDINARY, BUNDLE))
-        if provenance is not None:
-            plan.add(envelope_path(out), provenance[1], flag="--out", replaces=(ORDINARY,))
-        wrote = [str(p) for p in plan.commit()]
-    except HcdfTrustError as exc:
-        relabel(exc, stage, source)
-        raise
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        os.close(lock)
+            said = doc.get("annotations")
+            said = said if isinstance(said, dict) else {}
+            for key, value in checked.annotations().items():
+                if said.get(key) != value:
+                    raise IntegrityError(
+                        f"{source}: manifest annotation {key} is not what the verified bundle says",
+                        file=source,
+                        expected=value,
+                        actual=str(said.get(key))[:100],
+                    )
+            # 6. into --out (and the verified provenance beside it), all or nothing: the staged
+            # file moved into place
+            plan = OutputPlan()
+            plan.protect_tree(cache_dir, what="the cache")
+            plan.add(out, held, flag="--out", replaces=(ORDINARY, BUNDLE))
+            if provenance is not None:
+                plan.add(envelope_path(out), provenance[1], flag="--out", replaces=(ORDINARY,))
+            wrote = [str(p) for p in plan.commit()]
+        except HcdfTrustError as exc:
+            relabel(exc, stage.path, source)
+            raise
     return BundlePullReport(
         str(ref),
         digest,

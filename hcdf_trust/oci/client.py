@@ -100,9 +100,17 @@ class RegistryClient:
         self._auth: str | None = None  # the Authorization header, once a challenge said which
         self._ssl: Any = load_ca_bundle(ca_bundle) if ca_bundle else True
         self._httpx: ModuleType = _import_httpx()
-        self._client: httpx.Client = self._httpx.Client(
-            verify=self._ssl,
-            timeout=self._httpx.Timeout(timeout),
+        # https goes through a transport made at the first https request: loading the system's
+        # CA certificates into a TLS context costs ~80 ms, which a plain-http (loopback) registry
+        # never needs unless it redirects to https. Plain http gets a context with no CA at all:
+        # it never speaks TLS, and would accept no certificate if it did.
+        import ssl
+
+        httpx_ = self._httpx
+        self._client: httpx.Client = httpx_.Client(
+            transport=httpx_.HTTPTransport(verify=ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)),
+            mounts={"https://": _LazyTransport(lambda: httpx_.HTTPTransport(verify=self._ssl))},
+            timeout=httpx_.Timeout(timeout),
             follow_redirects=False,
             trust_env=False,  # no proxy or .netrc credentials picked up behind our back
             headers={"Accept-Encoding": "identity", "User-Agent": "hcdf-trust"},
@@ -510,3 +518,30 @@ def _describe(exc: BaseException) -> str:
 
 
 __all__ = ["InputError", "RegistryClient", "RegistryError", "fallback_tag", "sha256_digest"]
+
+
+class _LazyTransport:  # an httpx.BaseTransport (httpx is imported lazily, so not its subclass)
+    """An httpx transport made by ``make`` when the first request needs it (see RegistryClient)."""
+
+    def __init__(self, make: Any) -> None:
+        import threading
+
+        self._make = make
+        self._made: Any = None
+        self._lock = threading.Lock()  # the fetch pool's threads may all start at once
+
+    def handle_request(self, request: Any) -> Any:
+        with self._lock:
+            if self._made is None:
+                self._made = self._make()
+        return self._made.handle_request(request)
+
+    def close(self) -> None:
+        if self._made is not None:
+            self._made.close()
+
+    def __enter__(self) -> _LazyTransport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

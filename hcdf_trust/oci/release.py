@@ -16,14 +16,19 @@ the referrers API or, where the registry has none, the ``sha256-<hex>`` tag.
    path, no duplicate, not even by case).
 3. Each blob comes from the content store (a blob verified before: a resumed pull) or is
    fetched by digest, hashed while streaming and refused past its declared size; only a blob
-   whose SHA-256 and size are the manifest's enters the store.
-4. The files are laid out in a private staging folder and ``ota verify`` runs there with the
-   public key (signature, every image, latest.json, ``--previous``): a title the signed manifest
-   does not account for is refused; the layer annotations must say what the signed manifest says.
+   whose SHA-256 and size are the manifest's enters the store. The same bytes go into a file
+   of a private staging folder (:mod:`.blobs`), where the release is laid out as in ``--out``;
+   a blob refused leaves nothing there either.
+4. ``ota verify`` runs on the staging folder with the public key (signature, every image,
+   latest.json, ``--previous``): a title the signed manifest does not account for is refused;
+   the layer annotations must say what the signed manifest says. imgtool checks each MCUboot
+   image as soon as it is staged, while the other blobs still arrive.
 5. The referrers must point at this release: the SUIT ones hold this release's envelope, a
    provenance is fetched, hashed and verified as ``ota verify --provenance`` does (required
    with ``require_provenance``), SBOMs are listed.
-6. Only then is the release written into ``--out`` through one OutputPlan (all or nothing).
+6. Only then is the release written into ``--out`` through one OutputPlan (all or nothing):
+   the staged files, written from the bytes hashed and held open since, are moved into place
+   (:class:`~hcdf_trust.outputs.HeldFile`), not copied.
 """
 
 from __future__ import annotations
@@ -31,18 +36,16 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
-import tempfile
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from ..digest import hash_fd
 from ..errors import DigestMismatchError, HcdfTrustError, InputError, IntegrityError, Notice
-from ..flock import flock
 from ..localfile import open_checked, read_chunks
+from ..outputs import HeldFile
+from .blobs import SEGMENT
 from .client import MANIFEST_TYPE, RegistryClient, sha256_digest
 from .reference import Reference
 from .referrers import EMPTY_DESCRIPTOR, ReferrerError
@@ -62,7 +65,6 @@ MAX_LAYERS = 1024
 FETCH_THREADS = 4
 MAX_TOTAL_BYTES = 8 << 30
 MAX_LAYER_BYTES = 256 << 20  # one release file (a bundle layer has the bundle's own cap)
-_SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,254}")
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
 
 
@@ -108,7 +110,7 @@ class _Layer:
 
 def release_layers(folder: str, release: Any) -> list[_Layer]:
     """The files ``ota verify`` reads in ``folder``, with their media types and annotations."""
-    from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME
+    from ..ota.read import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME
     from ..ota.verify import image_path
 
     wanted: list[tuple[str, str, dict[str, str]]] = [(MANIFEST_NAME, SUIT_TYPE, {})]
@@ -241,7 +243,7 @@ def read_sbom(path: str) -> Sbom:
             expected='"bomFormat": "CycloneDX" or an spdx.org/rdf/3 @context',
         )
     name = os.path.basename(path)
-    if not _SEGMENT.fullmatch(name):
+    if not SEGMENT.fullmatch(name):
         name = "sbom.cdx.json" if media_type == CYCLONEDX_TYPE else "sbom.spdx.json"
     return Sbom(data, media_type, name)
 
@@ -323,7 +325,7 @@ def check_manifest(
         if not isinstance(title, str):
             raise ArtifactError(f"{where}: no {TITLE} annotation", file=source)
         parts = title.split("/")
-        if len(parts) > max_segments or not all(_SEGMENT.fullmatch(p) and p not in (".", "..") for p in parts):
+        if len(parts) > max_segments or not all(SEGMENT.fullmatch(p) and p not in (".", "..") for p in parts):
             raise ArtifactError(
                 f"{where}: title {title[:200]!r} is not a plain relative path "
                 f"(1-{max_segments} segments of A-Z a-z 0-9 . _ + -)",
@@ -362,6 +364,7 @@ def pull_release(
     from ..errors import relabel
     from ..outputs import FileContent, OutputPlan
     from ..store import ContentStore
+    from .blobs import Stage, fetch_blob
 
     # 1. the manifest, pinned by the hash of its body
     got = client.get_manifest(ref.reference)
@@ -375,44 +378,54 @@ def pull_release(
     source = str(ref.with_digest(digest))
     # 2. ours, and well-formed
     doc, layers = check_manifest(body, source=source)
-    # 3. every blob into the content store, verified
     store = ContentStore(cache_dir)
-    cached = 0
-    paths: dict[str, Path] = {}
-    todo: list[tuple[int, dict[str, Any]]] = []
-    for i, layer in enumerate(layers):
-        hit = store.verified_path(layer["digest"].split(":", 1)[1])
-        if hit is not None and hit.stat().st_size == layer["size"]:
-            paths[layer["annotations"][TITLE]] = hit
-            cached += 1
-        else:
-            todo.append((i, layer))
-    # a few blobs at a time: each request waits on the registry, not on us (1 connection each)
-    with ThreadPoolExecutor(max_workers=FETCH_THREADS) as pool:
-        fetched = pool.map(
-            lambda item: _fetch_blob(
-                client, store, item[1], title=item[1]["annotations"][TITLE], where=f"{source}#/layers/{item[0]}"
-            ),
-            todo,
-        )
-        for (_, layer), path in zip(todo, list(fetched), strict=True):
-            paths[layer["annotations"][TITLE]] = path
-    # 4. ota verify in a staging folder beside the store (hard links to the verified blobs);
-    # the folder's lock lies beside the release, not in it (it is no file of the release)
-    os.makedirs(cache_dir, exist_ok=True)
-    sweep_stages(cache_dir)
-    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=cache_dir)
-    lock = _hold(stage)
-    staged = os.path.join(stage, "release")
+    # 3. every blob into the content store and into a file of our own in a private staging
+    # folder (the release laid out as in --out), hashed as it streams; a few blobs at a time
+    # (each request waits on the registry, not on us). An MCUboot image is checked by imgtool
+    # as soon as it is staged, while the others still arrive (hashlib, OpenSSL and the
+    # network release the GIL); the verify stack is imported meanwhile.
+    stage = Stage(cache_dir)
+    staged = os.path.join(stage.path, "release")
     try:
-        for title, path in paths.items():
-            dest = os.path.join(staged, *title.split("/"))
-            os.makedirs(os.path.dirname(dest), exist_ok=True)
-            try:
-                os.link(path, dest, follow_symlinks=False)
-            except OSError:  # another filesystem, or links not allowed
-                shutil.copyfile(path, dest, follow_symlinks=False)
-        release, errors = _verify_staged(staged, public_key, previous, set(paths), layers)
+        pool = ThreadPoolExecutor(max_workers=FETCH_THREADS)
+        jobs = []
+        try:
+            jobs = [
+                pool.submit(
+                    fetch_blob,
+                    client,
+                    store,
+                    x,
+                    title=t,
+                    where=f"{source}#/layers/{i}",
+                    stage=stage,
+                    rel=f"release/{t}",
+                )
+                for i, x in enumerate(layers)
+                for t in [x["annotations"][TITLE]]
+            ]
+            # while they arrive: the verify stack loads (COSE, CBOR, imgtool), then each image is
+            # checked by imgtool in layer order as soon as it is staged
+            from ..ota import read, verify  # noqa: F401
+            from ..ota.images import verify_image_fd
+
+            held: dict[str, HeldFile] = {}
+            images: dict[str, tuple[str, str | None]] = {}
+            cached = 0
+            for x, job in zip(layers, jobs, strict=True):  # in order, each as soon as it is in
+                title = x["annotations"][TITLE]
+                held[title], hit = job.result()
+                cached += hit
+                if x["mediaType"] == MCUBOOT_TYPE:  # imgtool, on this thread: one image held at a time
+                    images[title] = verify_image_fd(held[title].fd, public_key)
+        except BaseException:
+            for job in jobs:
+                job.cancel()
+            raise
+        finally:
+            pool.shutdown(wait=True)
+        # 4. ota verify of the staged release, with the public key
+        release, errors = _verify_staged(staged, public_key, previous, set(held), layers, images)
         if errors:
             raise _group(errors)
         # 5. the referrers: SUIT envelopes, the provenance (verified here), SBOMs
@@ -427,24 +440,23 @@ def pull_release(
             threshold=threshold,
             require_provenance=require_provenance,
         )
-        # 6. into --out, all or nothing: copied from the staged files (never all in memory),
-        # each copy hashed against the digest it was verified with
+        # 6. into --out, all or nothing: each staged file moved into place (never all in
+        # memory, never copied), the provenance copied and hashed against its digest
         plan = OutputPlan()
         plan.protect(key_path, what="the public key")
         plan.protect_tree(cache_dir, what="the cache")
-        digests = {x["annotations"][TITLE]: (x["digest"], x["size"]) for x in layers}
+        outputs: dict[str, HeldFile | FileContent] = dict(held)
         if checked.provenance is not None:
-            digests[PROVENANCE_NAME] = checked.provenance_blob
-        for title, (blob, size) in sorted(digests.items()):
-            staged_file = FileContent(os.path.join(staged, *title.split("/")), size, blob.split(":", 1)[1])
-            plan.add(os.path.join(out_dir, *title.split("/")), staged_file, flag="--out", under=out_dir)
+            blob, size = checked.provenance_blob
+            outputs[PROVENANCE_NAME] = FileContent(os.path.join(staged, PROVENANCE_NAME), size, blob.split(":", 1)[1])
+        for title, data in sorted(outputs.items()):
+            plan.add(os.path.join(out_dir, *title.split("/")), data, flag="--out", under=out_dir)
         wrote = [str(p) for p in plan.commit()]
     except HcdfTrustError as exc:  # named as the user named it: oci://…@sha256:…/FILE, never the stage
         relabel(exc, staged, source)
         raise
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        os.close(lock)
+        stage.close()
     files = [
         {"title": x["annotations"][TITLE], "mediaType": x["mediaType"], "digest": x["digest"], "size": x["size"]}
         for x in layers
@@ -463,85 +475,27 @@ def pull_release(
     )
 
 
-STAGE_PREFIX = ".oci-pull-"
-_STAGE_LOCK = ".lock"
 PROVENANCE_NAME = "provenance.intoto.json"  # == provenance.FILE_NAME (not imported: that package loads lazily)
-_STALE_UNLOCKED = 600.0  # a staging folder with no lock file yet, older than this: its pull died
-
-
-def _hold(stage: str) -> int:
-    """Lock the staging folder for the life of this pull (a killed pull's lock goes with it)."""
-    fd = os.open(os.path.join(stage, _STAGE_LOCK), os.O_CREAT | os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
-    flock(fd)
-    return fd
-
-
-def sweep_stages(cache_dir: str) -> int:
-    """Remove the staging folders killed pulls left in ``cache_dir`` (those whose lock no
-    live pull holds); returns how many."""
-    import time
-
-    removed = 0
-    with os.scandir(cache_dir) as entries:
-        for entry in entries:
-            if not entry.name.startswith(STAGE_PREFIX) or not entry.is_dir(follow_symlinks=False):
-                continue
-            try:
-                fd = os.open(os.path.join(entry.path, _STAGE_LOCK), os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
-            except FileNotFoundError:
-                if time.time() - entry.stat(follow_symlinks=False).st_mtime > _STALE_UNLOCKED:
-                    shutil.rmtree(entry.path, ignore_errors=True)
-                    removed += 1
-                continue
-            except OSError:
-                continue
-            try:
-                flock(fd, wait=False)
-            except BlockingIOError:  # a pull is running there
-                continue
-            finally:
-                os.close(fd)  # (releases the lock we may have taken; the folder goes next)
-            shutil.rmtree(entry.path, ignore_errors=True)
-            removed += 1
-    return removed
-
-
-def _fetch_blob(client: RegistryClient, store: Any, layer: dict[str, Any], *, title: str, where: str) -> Path:
-    want = layer["digest"].split(":", 1)[1]
-    size = layer["size"]
-    with client.blob(layer["digest"], size) as chunks:
-        hashed, path = store.ingest(
-            chunks, accept=lambda h: h.sha256 == want and h.size == size, limit=size, source=title
-        )
-    if path is None:
-        if hashed.size != size:
-            raise DigestMismatchError(
-                f"{title}: the blob is shorter than the manifest says",
-                file=where,
-                expected=str(size),
-                actual=str(hashed.size),
-            )
-        raise DigestMismatchError(
-            f"{title}: the blob's SHA-256 is not its digest in the manifest",
-            file=where,
-            expected=layer["digest"],
-            actual=f"sha256:{hashed.sha256}",
-        )
-    return Path(path)
 
 
 def _verify_staged(
-    stage: str, public_key: Any, previous: Any, titles: set[str], layers: list[dict[str, Any]]
+    stage: str,
+    public_key: Any,
+    previous: Any,
+    titles: set[str],
+    layers: list[dict[str, Any]],
+    images: dict[str, tuple[str, str | None]],
 ) -> tuple[Any, list[HcdfTrustError]]:
     import dataclasses
 
-    from ..ota.release import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
+    from ..ota.read import HISTORY_NAME, MANIFEST_JSON_NAME, MANIFEST_NAME, read_release
     from ..ota.verify import check_release, image_path
 
     release, files = read_release(stage, public_key)
-    # each blob was hashed as it arrived, and is hashed again as it lands in --out
+    # each blob was hashed as it was written into the staged file that lands in --out, and each
+    # MCUboot image checked by imgtool there (the same file, held open since it was created)
     known = {x["annotations"][TITLE]: x["digest"].split(":", 1)[1] for x in layers}
-    files = dataclasses.replace(files, sha256=known)
+    files = dataclasses.replace(files, sha256=known, mcuboot=images)
     errors = check_release(release, files, public_key, previous=previous)
     accounted = {MANIFEST_NAME, *files.latest}
     if files.rendering is not None:

@@ -185,8 +185,6 @@ def verify_image(data: bytes, public_key: Any) -> tuple[str, str | None]:
 
     Returns (imgtool's result name, the image hash hex or None).
     """
-    from imgtool import image
-
     if public_key is None:
         raise ValueError("verify_image needs a public key")
     fd = os.memfd_create("mcuboot-image", os.MFD_CLOEXEC)
@@ -194,10 +192,20 @@ def verify_image(data: bytes, public_key: Any) -> tuple[str, str | None]:
         view = memoryview(data)
         while view:
             view = view[os.write(fd, view) :]
-        try:
-            result, _version, digest, _sig = image.Image.verify(f"/proc/self/fd/{fd}", public_key)
-        except (struct.error, IndexError, ValueError) as exc:
-            return f"MALFORMED ({exc})", None
+        return verify_image_fd(fd, public_key)
     finally:
         os.close(fd)
+
+
+def verify_image_fd(fd: int, public_key: Any) -> tuple[str, str | None]:
+    """:func:`verify_image` of the file open as ``fd``, read from its start by imgtool itself
+    (``ota pull`` checks each staged image so, while the other blobs arrive)."""
+    from imgtool import image
+
+    if public_key is None:
+        raise ValueError("verify_image needs a public key")
+    try:
+        result, _version, digest, _sig = image.Image.verify(f"/proc/self/fd/{fd}", public_key)
+    except (struct.error, IndexError, ValueError) as exc:
+        return f"MALFORMED ({exc})", None
     return result.name, digest.hex() if digest is not None else None
