@@ -79,3 +79,25 @@ def test_the_mac_must_be_the_first_key_and_the_one_the_header_parses_to(stores):
     other = mac[:-1] + ("0" if mac[-1] != "0" else "1")
     forged = raw.replace(mac.encode(), other.encode(), 1)
     assert not a.sealed(forged, other, label=LABEL)
+
+
+def test_a_store_changed_outside_the_tool_is_refused_naming_the_file(tmp_path):
+    """``KeyStore.open``'s MAC check: the whole message, and the store file it names."""
+    from hcdf_trust.macsec.store import STORE_NAME, KeyStoreIntegrityError, now_utc
+    from hcdf_trust.outputs import OutputPlan
+
+    wrapper = PassphraseWrapper(b"one")
+    store = KeyStore.create(tmp_path / "keys", wrapper)
+    store.bind("robot", document="robot.hcdf")
+    plan = OutputPlan()
+    store.plan_write(plan, now=now_utc())
+    plan.commit()
+    KeyStore.open(tmp_path / "keys", wrapper)  # as written: opens
+    path = tmp_path / "keys" / STORE_NAME
+    path.write_bytes(path.read_bytes().replace(b'"robot":"robot"', b'"robot": "robot"', 1))
+    with pytest.raises(KeyStoreIntegrityError) as caught:
+        KeyStore.open(tmp_path / "keys", wrapper)
+    assert caught.value.message == (
+        "the key store's metadata does not match its MAC: it was changed outside hcdf-trust"
+    )
+    assert caught.value.file == str(path)

@@ -78,6 +78,20 @@ def test_a_site_folder_named_three_ways_shares_one_client_folder(reg, tmp_path, 
     assert len(_client_folders(xdg)) == 1
 
 
+def test_the_default_client_folder_is_named_by_the_site_and_root_it_trusts(reg, tmp_path, monkeypatch):
+    """The folder is the client's memory (what it trusted last): its name must stay the same from
+    one release to the next, or an upgrade silently forgets it. Computed here independently: the
+    first 24 hex digits of SHA-256 over the site's real path, a NUL and the trusted root's bytes."""
+    import hashlib
+    import os
+
+    xdg = tmp_path / "xdg"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(xdg))
+    _verify(reg, reg.site)
+    key = hashlib.sha256(os.path.realpath(reg.site).encode() + b"\0" + reg.root_json.read_bytes()).hexdigest()
+    assert _client_folders(xdg) == [xdg / "hcdf-trust" / "registry" / key[:24]]
+
+
 def test_another_site_or_another_trusted_root_gets_its_own_client_folder(reg, tmp_path, monkeypatch):
     xdg = tmp_path / "xdg"
     monkeypatch.setenv("XDG_CACHE_HOME", str(xdg))

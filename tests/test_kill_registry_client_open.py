@@ -58,7 +58,7 @@ def test_a_trusted_root_over_the_limit_is_not_read(reg, tmp_path):
     assert _errors(reg, reg.site, root, tmp_path / "c", 0) == []  # at the limit: read
     root.write_bytes(root.read_bytes() + b" ")
     [err] = _errors(reg, reg.site, root, tmp_path / "c2", 3)
-    assert "trusted root" in err["message"] and err["file"] == str(root)
+    assert (err["message"], err["file"]) == ("trusted root is over the 512000-byte limit", str(root))
     assert not (tmp_path / "c2").exists()  # refused before the client made its folder
 
 
@@ -128,3 +128,78 @@ def test_a_replaced_core_schema_is_refused_on_the_next_run(reg, tmp_path):
     [again] = _errors(reg, reg.site, reg.root_json, cache, 1)
     assert again["message"] == err["message"]
     assert json.loads((cache / "metadata" / "targets.json").read_text())["signed"]["targets"]["schemas/hcdf/1.0.xsd"]
+
+
+def test_site_metadata_with_a_duplicate_key_is_named_by_file(reg, tmp_path):
+    """``check_metadata`` on a download: the file (as the URL names it) and the parser's reason,
+    whole. python-tuf alone would keep the last "signed" and verify."""
+    path = reg.site / "metadata" / "timestamp.json"
+    doc = json.loads(path.read_bytes())
+    evil = json.dumps({**doc["signed"], "version": 999})
+    path.write_text(path.read_text().replace('"signed":', f'"signed": {evil}, "signed":', 1))
+    [err] = _errors(reg, reg.site, reg.root_json, tmp_path / "c", 1)
+    assert (err["file"], err["code"]) == ("timestamp.json", "registry-attack"), err
+    assert err["message"] == (
+        "ambiguous or malformed metadata: timestamp.json: key 'signed' appears twice in the object at "
+        "(the document) (parsers disagree on which one counts)"
+    ), err
+
+
+def test_site_metadata_that_is_not_json_is_named_by_file_and_line(reg, tmp_path):
+    path = reg.site / "metadata" / "timestamp.json"
+    path.write_text('{\n"signed":\n  {,\n')
+    [err] = _errors(reg, reg.site, reg.root_json, tmp_path / "c", 1)
+    assert (err["file"], err["line"], err["code"]) == ("timestamp.json", 3, "registry-attack"), err
+    assert err["message"] == (
+        "ambiguous or malformed metadata: timestamp.json is not JSON: "
+        "Expecting property name enclosed in double quotes (column 4)"
+    ), err
+
+
+def test_a_client_cache_file_that_cannot_be_written_is_named_with_the_cache(reg, tmp_path):
+    """The metadata python-tuf writes goes through the output planner, whose refusal names the file
+    as the client's cache (a folder where timestamp.json belongs)."""
+    cache = tmp_path / "c"
+    blocked = cache / "metadata" / "timestamp.json"
+    blocked.mkdir(parents=True)
+    [err] = _errors(reg, reg.site, reg.root_json, cache, 3)
+    assert (err["message"], err["file"], err["code"]) == (
+        f"the registry client cache {blocked} is a directory",
+        str(blocked),
+        "output",
+    )
+
+
+def test_an_unreadable_cached_role_does_not_make_the_client_forget_the_others(reg, tmp_path):
+    """A cached role file that fails the strict reader is skipped, and the client still remembers
+    every other role it trusted: a core schema replaced in top-level targets is refused although an
+    ambiguous cached file comes before ``targets.json`` in the folder's listing order."""
+    import os
+
+    from tests.conftest import HCDFORMAT
+
+    reg.run("add", reg.src, "--core", "hcdf", "--version", "1.0", "--schema", HCDFORMAT / "hcdf.xsd",
+            "--content", reg.content)  # fmt: skip
+    reg.publish()
+    cache = tmp_path / "c"
+    assert _errors(reg, reg.site, reg.root_json, cache, 0) == []
+    meta = cache / "metadata"
+    # ambiguous role files until one is listed before targets.json (the client reads the folder in
+    # that order, os.scandir's, which the file system decides)
+    for n in range(200):
+        (meta / f"broken-{n}.json").write_text('{"signed": {}, "signed": {}}')
+        order = [e.name for e in os.scandir(meta)]
+        if any(name.startswith("broken-") for name in order[: order.index("targets.json")]):
+            break
+    else:
+        pytest.skip("no file was listed before targets.json")
+    evil = b"<xs:schema xmlns:xs='http://www.w3.org/2001/XMLSchema'/>"
+
+    def replace(signed):
+        signed.targets["schemas/hcdf/1.0.xsd"] = reg.put_target("schemas/hcdf/1.0.xsd", evil)
+
+    reg.forge("targets", replace, signer=reg.top_signer("targets"))
+    [err] = _errors(reg, reg.site, reg.root_json, cache, 1)
+    assert err["message"] == (
+        "replaced published version: schemas/hcdf/1.0.xsd (targets) changed content since this client last saw it"
+    )

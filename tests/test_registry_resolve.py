@@ -289,3 +289,21 @@ def test_an_https_registry_is_trusted_through_resolves_ca_bundle(cli, published,
     (tmp_path / "robot.hcdf.lock").unlink()
     r = _resolve(cli, published, doc, site=site.url("/"))
     assert r.exit_code == 3 and "CERTIFICATE_VERIFY_FAILED" in r.json["errors"][0]["message"], r.stdout
+
+
+def test_resolve_registry_fetches_stop_after_resolves_timeout(cli, published, tmp_path, http_server):
+    """--timeout bounds the registry's fetches too (its client kept its own 30 s default)."""
+    import time
+
+    reg, _ = published
+    for name in ("2.root.json", "timestamp.json"):
+        http_server.stall(f"/metadata/{name}")  # the first request of a TUF refresh: never answered
+    doc = _robot(tmp_path)
+    start = time.monotonic()
+    res = cli(
+        "resolve", doc, "--registry", http_server.base, "--trusted-root", reg.root_json, "--json", "--timeout", "1"
+    )
+    elapsed = time.monotonic() - start
+    assert res.exit_code == 3, res.stdout
+    assert "timed out" in res.stdout.lower() or "timeout" in res.stdout.lower(), res.stdout
+    assert elapsed < 20, elapsed  # 30 s (the client's default) per request without the fix

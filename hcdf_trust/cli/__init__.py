@@ -383,6 +383,7 @@ def _registry(
     offline: bool,
     persist: bool,
     ca_bundle: str | None = None,
+    timeout: float = 30.0,
 ) -> Any:
     if site is None:
         if trusted_root is not None:
@@ -397,7 +398,7 @@ def _registry(
         raise click.UsageError(f"--registry {site!r} is a URL, and this run is offline: give a folder copy of the site")
     from ..registry.resolution import RegistryCheck
 
-    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist, ca_bundle=ca_bundle)
+    return RegistryCheck.open(site, trusted_root, strict=strict, persist=persist, ca_bundle=ca_bundle, timeout=timeout)
 
 
 def fetch_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -745,6 +746,7 @@ def resolve(
         offline=options.offline,
         persist=True,
         ca_bundle=options.ca_bundle,
+        timeout=options.timeout,  # --timeout: the registry's fetches too
     )
     res = _run_resolve(doc, options, as_json=as_json, registry=registry)
     # Every output is checked against every input before any is written; all land or none.

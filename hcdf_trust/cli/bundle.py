@@ -15,7 +15,7 @@ import click
 
 from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options
 from .ota import signing_key_options
-from .params import load_provenance_keys, provenance_key_options, source_date_epoch_option
+from .params import load_provenance_keys, provenance_key_options, sbom_referrers_option, source_date_epoch_option
 
 
 class _WriterByDefault(click.Group):
@@ -176,14 +176,7 @@ def write(
 @bundle.command()
 @click.argument("path", metavar="X.hcdfz", type=click.Path(dir_okay=False))
 @click.argument("target", metavar="oci://HOST[:PORT]/REPO:TAG")
-@click.option(
-    "--sbom",
-    "sboms",
-    multiple=True,
-    type=click.Path(dir_okay=False),
-    help="A CycloneDX or SPDX 3 JSON SBOM of this bundle (`hcdf-trust sbom X.hcdfz`) to attach as a "
-    "referrer. Repeatable.",
-)
+@sbom_referrers_option("bundle", "`hcdf-trust sbom X.hcdfz`")
 @provenance_key_options(besides_key=False)
 @CA_BUNDLE_OPTION
 @INSECURE_REGISTRY_OPTION

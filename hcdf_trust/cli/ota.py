@@ -12,7 +12,7 @@ import click
 
 from ..errors import counted
 from . import CA_BUNDLE_OPTION, INSECURE_REGISTRY_OPTION, emit_json, handle_errors, say, tree_options, warn
-from .params import load_provenance_keys, provenance_key_options, source_date_epoch_option
+from .params import load_provenance_keys, provenance_key_options, sbom_referrers_option, source_date_epoch_option
 
 
 def signing_key_options(*, required: bool) -> Callable[[Any], Any]:
@@ -363,14 +363,7 @@ def _registry_options(func: Any) -> Any:
     type=click.Path(dir_okay=False),
     help="Public key: verify the release (and its provenance.intoto.json) before pushing.",
 )
-@click.option(
-    "--sbom",
-    "sboms",
-    multiple=True,
-    type=click.Path(dir_okay=False),
-    help="A CycloneDX or SPDX 3 JSON SBOM of this release (from `hcdf-trust sbom`) to attach as a "
-    "referrer. Repeatable.",
-)
+@sbom_referrers_option("release", "from `hcdf-trust sbom`")
 @_registry_options
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @handle_errors

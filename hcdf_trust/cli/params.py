@@ -120,6 +120,18 @@ def source_date_epoch_option(func: Any) -> Any:
     )(func)
 
 
+def sbom_referrers_option(subject: str, made_by: str) -> Callable[[Any], Any]:
+    """``--sbom FILE`` (repeatable) of ``ota push`` and ``bundle push``: SBOMs of the pushed
+    ``subject`` attached to it as OCI referrers."""
+    return click.option(
+        "--sbom",
+        "sboms",
+        multiple=True,
+        type=click.Path(dir_okay=False),
+        help=f"A CycloneDX or SPDX 3 JSON SBOM of this {subject} ({made_by}) to attach as a referrer. Repeatable.",
+    )
+
+
 def provenance_key_options(*, besides_key: bool) -> Callable[[Any], Any]:
     """``--provenance-key`` (repeatable) and ``--threshold``: who may sign a provenance and how
     many distinct signers are needed, the same in every verb that verifies one (ota verify,

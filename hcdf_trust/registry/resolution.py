@@ -76,10 +76,18 @@ class RegistryCheck:
     strict: bool = False
     persist: bool = True
     ca_bundle: str | None = None  # --ca-bundle, for an https site
+    timeout: float = 30.0  # resolve's --timeout: seconds without data from an https site
 
     @classmethod
     def open(
-        cls, site: str, trusted_root: str, *, strict: bool = False, persist: bool = True, ca_bundle: str | None = None
+        cls,
+        site: str,
+        trusted_root: str,
+        *,
+        strict: bool = False,
+        persist: bool = True,
+        ca_bundle: str | None = None,
+        timeout: float = 30.0,
     ) -> RegistryCheck:
         """Read the trusted root, and check that a folder site exists, before anything is resolved.
 
@@ -92,7 +100,15 @@ class RegistryCheck:
         elif not os.path.isdir(site):
             raise NotFoundError(f"{site}: no such registry site folder", file=site)
         root = read_input(trusted_root, limit=ROOT_LIMIT, what="trusted root")
-        return cls(site=site, trusted_root=trusted_root, root=root, strict=strict, persist=persist, ca_bundle=ca_bundle)
+        return cls(
+            site=site,
+            trusted_root=trusted_root,
+            root=root,
+            strict=strict,
+            persist=persist,
+            ca_bundle=ca_bundle,
+            timeout=timeout,
+        )
 
     def protect(self, plan: OutputPlan) -> None:
         """No output of the run may replace the trusted root or a file of a local site."""
@@ -113,11 +129,13 @@ class RegistryCheck:
     @contextlib.contextmanager
     def _client(self) -> Iterator[RegistryClient]:
         if self.persist:
-            yield RegistryClient(self.site, trusted_root=self.root, ca_bundle=self.ca_bundle)
+            yield RegistryClient(self.site, trusted_root=self.root, ca_bundle=self.ca_bundle, timeout=self.timeout)
             return
         with tempfile.TemporaryDirectory(prefix="hcdf-trust-registry-") as tmp:
             _seed(client_cache_dir(self.site, self.root) / "metadata", Path(tmp) / "metadata")
-            yield RegistryClient(self.site, trusted_root=self.root, cache_dir=Path(tmp), ca_bundle=self.ca_bundle)
+            yield RegistryClient(
+                self.site, trusted_root=self.root, cache_dir=Path(tmp), ca_bundle=self.ca_bundle, timeout=self.timeout
+            )
 
 
 def _seed(cached: Path, dest: Path) -> None:
