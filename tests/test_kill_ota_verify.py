@@ -8,6 +8,7 @@ functions, on a real signed release.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 
 import cbor2
 import pytest
@@ -260,6 +261,28 @@ def test_an_image_the_current_release_also_lists_does_not_end_the_history_images
         ]
 
 
+def test_an_older_image_that_is_the_signed_one_does_not_end_the_checks_of_the_next(two_releases):
+    """Release 1 as history, with flex-io 0.2.0 (intact) listed before another older image
+    whose bytes are not the ones it lists: that one is still checked."""
+    from hcdf_trust.ota.verify import check_release
+
+    robot, out = two_releases
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    [r1] = files.history
+    flex = r1.component("mr_mcxn_t1", "flex-io")
+    older = dataclasses.replace(flex, version="0.1.0", uri=flex.uri.replace("0.2.0.bin", "0.1.0.bin"))
+    r1 = dataclasses.replace(r1, components=(flex, older))
+    images = {**files.history_images, "mr_mcxn_t1/flex-io/0.1.0.bin": b"not the image"}
+    errors = check_release(release, dataclasses.replace(files, history=(r1,), history_images=images), pub)
+    assert [(e.message, e.actual) for e in errors] == [
+        (
+            "mr_mcxn_t1/flex-io: image mr_mcxn_t1/flex-io/0.1.0.bin of release 1 is not the one that release signed",
+            f"{hashlib.sha256(b'not the image').hexdigest()} (13 bytes)",
+        )
+    ]
+
+
 def test_an_image_two_history_releases_list_is_reported_once(two_releases):
     from hcdf_trust.ota.verify import check_release
 
@@ -285,6 +308,24 @@ def test_an_older_image_of_another_size_is_named_with_its_size(two_releases):
     assert error.file == "mr_mcxn_t1/flex-io/0.2.0.bin"
     assert error.expected.endswith(f" ({signed_size} bytes)")
     assert error.actual == f"(not read) ({signed_size + 7} bytes)"
+
+
+def test_an_older_image_that_cannot_be_opened_is_named_missing(two_releases, cli):
+    """A dangling symlink in place of release 1's image: refused, and named missing (not a size)."""
+    robot, out = two_releases
+    image = out / "mr_mcxn_t1" / "flex-io" / "0.2.0.bin"
+    signed_size, signed_sha = image.stat().st_size, hashlib.sha256(image.read_bytes()).hexdigest()
+    image.unlink()
+    image.symlink_to("gone.bin")
+    [error] = errors_of(cli, robot, out)
+    assert error == {
+        "code": "release",
+        "message": "mr_mcxn_t1/flex-io: image mr_mcxn_t1/flex-io/0.2.0.bin of release 1 "
+        "is not the one that release signed",
+        "file": "mr_mcxn_t1/flex-io/0.2.0.bin",
+        "expected": f"{signed_sha} ({signed_size} bytes)",
+        "actual": "(missing)",
+    }
 
 
 def test_a_re_release_names_both_contents(signed, tmp_path):
@@ -322,8 +363,6 @@ def test_a_rollback_found_through_previous_names_the_manifest(signed):
 
 
 def test_a_swapped_older_image_is_named_with_its_digest(two_releases):
-    import hashlib
-
     from hcdf_trust.ota.verify import check_release
 
     robot, out = two_releases
@@ -384,8 +423,6 @@ def test_a_missing_image_and_a_uri_that_does_not_name_it_are_named_in_full(built
 
 
 def test_an_image_of_the_signed_size_with_other_bytes_is_named_in_full(built):
-    import hashlib
-
     robot, out = built
     pub = load_public(str(robot.pub))
     release, files = read_release(str(out), pub)
@@ -419,6 +456,56 @@ def test_another_components_image_in_place_is_named_with_both_sizes(built):
             gnss.sha256,
         ),
         ("mr_mcxn_t1/flex-io: size differs from the signed manifest", rel, str(flex.size), str(gnss.size)),
+    ]
+
+
+def test_an_image_another_key_signed_is_named_with_imgtools_result(built, tmp_path):
+    """The manifest lists the file's digest and size, but MCUboot's signature is not this key's."""
+    from hcdf_trust.ota.keys import generate, public_pem
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    (tmp_path / "other.pub.pem").write_bytes(public_pem(generate("ecdsa-p256")))
+    other = load_public(str(tmp_path / "other.pub.pem"))
+    got = [(e.code, e.message, e.file) for e in _flex_errors(release, files, other)]
+    assert got == [
+        (
+            "bad-signature",
+            "mr_mcxn_t1/flex-io: MCUboot image does not verify with the key (INVALID_SIGNATURE)",
+            "mr_mcxn_t1/flex-io/0.2.0.bin",
+        )
+    ]
+
+
+def test_each_mcuboot_field_the_manifest_lists_otherwise_is_named_in_full(built):
+    """A manifest (not signed: check_release is pure) listing flex-io's file as it is, but another
+    MCUboot hash, header version or security counter than the image's own."""
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    flex = release.component("mr_mcxn_t1", "flex-io")
+    rel, moved = "mr_mcxn_t1/flex-io/0.2.0.bin", "mr_mcxn_t1/flex-io/0.9.0.bin"
+    files = dataclasses.replace(files, images={**files.images, moved: files.images[rel]})
+
+    def errors(**changes):
+        listed = tuple(dataclasses.replace(c, **changes) if c is flex else c for c in release.components)
+        got = _flex_errors(dataclasses.replace(release, components=listed), files, pub)
+        return [(e.message, e.file, e.expected, e.actual) for e in got if "latest.json" not in e.message]
+
+    assert errors(mcuboot_hash="ab" * 32) == [
+        ("mr_mcxn_t1/flex-io: mcuboot_hash differs from the signed manifest", rel, "ab" * 32, flex.mcuboot_hash)
+    ]
+    assert errors(version="0.9.0", uri=flex.uri.replace("0.2.0.bin", "0.9.0.bin")) == [
+        ("mr_mcxn_t1/flex-io: image header version differs from the signed manifest", moved, "0.9.0", "0.2.0")
+    ]
+    assert errors(security_counter=flex.security_counter + 1) == [
+        (
+            "mr_mcxn_t1/flex-io: image security_counter differs from the signed manifest",
+            rel,
+            str(flex.security_counter + 1),
+            str(flex.security_counter),
+        )
     ]
 
 
@@ -621,3 +708,178 @@ def test_a_previous_entry_no_release_signed_is_named_with_its_latest_json(built)
             f"0.0.1 {flex.mcuboot_hash} {flex.size} https://evil.example/x.bin",
         )
     ]
+
+
+# --- open_envelope / verify_envelope: what the CLI refuses before any image is read -------
+
+
+def _resigned(data: bytes, private, *, protected: dict) -> bytes:
+    """``data``'s envelope with its COSE_Sign1 made again, for real, by ``private`` over the same
+    manifest digest, with ``protected`` as the protected header (cwt adds nothing to it)."""
+    from cwt import COSE
+
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.signer import FileSigner
+
+    tag = cbor2.loads(data)
+    top = dict(tag.value)
+    digest = cbor2.loads(top[suit.AUTHENTICATION])[0]
+    sign1 = COSE.new(deterministic_header=True).encode_and_sign(
+        digest, FileSigner(private).cose_key(b""), protected=protected, out="cbor2/CBORTag"
+    )
+    sign1.value[2] = None  # detached, as ota build writes it
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    return cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True)
+
+
+def test_a_manifest_signed_by_the_key_without_a_kid_is_refused(built, cli):
+    """The signature is good and made by the trusted key, but the protected header names no key:
+    ota verify demands the kid (only the working group's examples may lack it)."""
+    from hcdf_trust.ota.signer import COSE_ALGS, key_id
+    from hcdf_trust.ota.verify import open_envelope
+
+    robot, out = built
+    private = load_private(str(robot.key), None)
+    pub = load_public(str(robot.pub))
+    manifest = out / "release.suit"
+    data = _resigned(manifest.read_bytes(), private, protected={1: COSE_ALGS["ecdsa-p256"][0]})
+    # the oracle: a correct signature by this key, with no kid anywhere
+    env = open_envelope(data, pub, source="x", require_kid=False)
+    assert 4 not in env.protected_map and env.protected_map == {1: COSE_ALGS["ecdsa-p256"][0]}
+    manifest.write_bytes(data)
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "bad-signature",
+            "message": "manifest was signed by another key (COSE kid)",
+            "file": str(manifest),
+            "expected": key_id(pub).hex(),
+            "actual": "None",
+        }
+    ]
+
+
+@pytest.mark.parametrize(("alg", "named", "actual"), [(-8, "'EdDSA'", "EdDSA"), (-35, "-35", "-35")])
+def test_a_cose_alg_not_bound_to_the_key_is_named_with_the_ones_that_are(built, cli, alg, named, actual):
+    """The protected header says EdDSA, or ES384 (which ota does not know by name), for an ECDSA
+    P-256 key: refused before any signature check."""
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.signer import key_id
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    sign1 = cbor2.loads(sign1)
+    sign1.value[0] = cbor2.dumps({1: alg, 4: key_id(load_public(str(robot.pub)))})
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "bad-signature",
+            "message": f"manifest COSE alg {named} is not bound to the ecdsa-p256 key",
+            "file": str(path),
+            "expected": "ESP256 or ES256",
+            "actual": actual,
+        }
+    ]
+
+
+@pytest.mark.parametrize(("kid", "shown"), [(b"another key", b"another key".hex()), (7, "7")])
+def test_another_kid_is_named_as_found(built, cli, kid, shown):
+    """A kid that is not the key's: a byte string shown in hex, anything else as it is."""
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.signer import key_id
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    sign1 = cbor2.loads(sign1)
+    sign1.value[0] = cbor2.dumps({1: -7, 4: kid})
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "bad-signature",
+            "message": "manifest was signed by another key (COSE kid)",
+            "file": str(path),
+            "expected": key_id(load_public(str(robot.pub))).hex(),
+            "actual": shown,
+        }
+    ]
+
+
+def test_a_signature_that_does_not_verify_is_named_with_its_file(built, cli):
+    """alg, kid and wrapper digest right, one bit of the signature changed."""
+    from hcdf_trust.ota import suit
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    sign1 = cbor2.loads(sign1)
+    sign1.value[3] = sign1.value[3][:-1] + bytes([sign1.value[3][-1] ^ 1])
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    [error] = errors_of(cli, robot, out)
+    assert (error["code"], error["file"]) == ("bad-signature", str(path))
+    assert error["message"].startswith("manifest signature does not verify with the key: "), error["message"]
+
+
+@pytest.mark.parametrize(("alg", "flip", "shown"), [(-16, 1, "SHA-256"), (-44, 0, "algorithm -44")])
+def test_a_wrapper_digest_that_is_not_the_manifests_is_named_with_both_digests(built, cli, alg, flip, shown):
+    """Another SHA-256, or the right bytes labelled with another algorithm (SHA-384): both
+    digests shown in one form, with the algorithm the wrapper names."""
+    from hcdf_trust.ota import suit
+
+    robot, out = built
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    manifest_sha = hashlib.sha256(cbor2.dumps(top[suit.MANIFEST])).digest()  # over the bstr-wrapped manifest
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    assert cbor2.loads(digest) == [-16, manifest_sha]
+    wrong = bytes([manifest_sha[0] ^ flip]) + manifest_sha[1:]
+    top[suit.AUTHENTICATION] = cbor2.dumps([cbor2.dumps([alg, wrong]), sign1])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    assert errors_of(cli, robot, out) == [
+        {
+            "code": "release",
+            "message": "authentication wrapper digest is not the manifest's",
+            "file": str(path),
+            "expected": f"SHA-256 {manifest_sha.hex()}",
+            "actual": f"{shown} {wrong.hex()}",
+        }
+    ]
+
+
+def test_a_signed_manifest_ota_build_would_not_write_is_named_with_its_file(built, cli):
+    """An envelope that verifies with the key, around a manifest parse_release refuses (its
+    sequence number is a string): the refusal names the manifest file."""
+    from hcdf_trust.ota import suit
+    from hcdf_trust.ota.release import sign_manifest
+    from hcdf_trust.ota.signer import FileSigner
+    from hcdf_trust.ota.verify import open_envelope
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    path = out / "release.suit"
+    env = open_envelope(path.read_bytes(), pub, source="x")
+    manifest = cbor2.loads(env.manifest)
+    manifest[suit.SEQUENCE_NUMBER] = "7"
+    data = sign_manifest(
+        cbor2.dumps(manifest, canonical=True), FileSigner(load_private(str(robot.key), None)), env.payloads
+    )[0]
+    open_envelope(data, pub, source="x")  # the oracle: it verifies
+    path.write_bytes(data)
+    r = cli("ota", "verify", out, "--key", robot.pub, "--json")
+    assert r.exit_code == 3, r.stderr
+    [error] = r.json["errors"]
+    assert (error["code"], error["message"], error["file"]) == (
+        "malformed-release",
+        "manifest sequence-number is not an unsigned integer",
+        str(path),
+    )

@@ -129,11 +129,12 @@ def open_envelope(data: bytes, public_key: Any, *, source: str, require_kid: boo
         )
     want = suit.manifest_digest(env.manifest)
     if env.digest != want:
+        alg, got_hash = cbor2.loads(env.digest)  # a SUIT_Digest: parse_envelope checked its shape
         raise ReleaseIntegrityError(
             "authentication wrapper digest is not the manifest's",
             file=source,
-            expected=cbor2.loads(want)[1].hex(),
-            actual=env.digest.hex(),
+            expected=f"SHA-256 {cbor2.loads(want)[1].hex()}",
+            actual=f"{'SHA-256' if alg == suit.SHA256 else f'algorithm {alg}'} {got_hash.hex()}",
         )
     cose_key = COSEKey.from_pem(public_key.get_public_pem(), alg=CWT_ALG[kind], kid=kid)
     try:
@@ -322,17 +323,22 @@ def _check_history_images(release: suit.Release, files: ReleaseFiles) -> list[Hc
                 continue
             current.add(rel)
             data = files.history_images[rel]
-            size = files.sizes.get(rel, len(data) if data is not None else -1)
-            if size != c.size or data is None or hashlib.sha256(data).hexdigest() != c.sha256:
-                errors.append(
-                    ReleaseIntegrityError(
-                        f"{c.name}: image {rel} of release {r.sequence_number} is not the one that release signed",
-                        file=rel,
-                        expected=f"{c.sha256} ({c.size} bytes)",
-                        actual=f"{hashlib.sha256(data).hexdigest() if data is not None else '(not read)'} "
-                        f"({size} bytes)",
-                    )
+            if data is None:  # not read: its size is not the signed one, or it cannot be opened (a dangling link)
+                size = files.sizes.get(rel)
+                actual = "(missing)" if size is None else f"(not read) ({size} bytes)"
+            else:
+                sha = hashlib.sha256(data).hexdigest()
+                if (sha, len(data)) == (c.sha256, c.size):
+                    continue
+                actual = f"{sha} ({len(data)} bytes)"
+            errors.append(
+                ReleaseIntegrityError(
+                    f"{c.name}: image {rel} of release {r.sequence_number} is not the one that release signed",
+                    file=rel,
+                    expected=f"{c.sha256} ({c.size} bytes)",
+                    actual=actual,
                 )
+            )
     return errors
 
 
