@@ -62,8 +62,18 @@ def main() -> None:
                 shutil.rmtree(cache, ignore_errors=True)
                 res[who].append(
                     timed(
-                        [pullers[who], "bundle", "pull", ref, "--trust-tag", "--out", str(out),
-                         "--cache-dir", str(cache), "--json"]
+                        [
+                            pullers[who],
+                            "bundle",
+                            "pull",
+                            ref,
+                            "--trust-tag",
+                            "--out",
+                            str(out),
+                            "--cache-dir",
+                            str(cache),
+                            "--json",
+                        ]
                     )  # fmt: skip
                 )
                 assert out.read_bytes() == bundle.read_bytes()

@@ -28,7 +28,7 @@ def test_each_start_tag_has_its_first_and_last_line_after_multiline_markup():
         b"<!-- a comment\n over two lines -->\n"  # lines 2-3
         b"<hcdf\n  a='1'>\n"  # lines 4-5
         b"  <![CDATA[\n\n]]>\n"  # lines 6-8
-        b"  <x/><y\n\n b=\"2\"/>\n"  # lines 9-11
+        b'  <x/><y\n\n b="2"/>\n'  # lines 9-11
         b"  <z c='3'/>\n"  # line 12
         b"</hcdf>\n"
     )
@@ -43,7 +43,7 @@ def test_each_start_tag_has_its_first_and_last_line_after_multiline_markup():
 
 
 def test_attributes_are_scanned_with_their_quotes_and_value_offsets():
-    data = b"<m  uri = \"a b.glb\"\tsha='x'\n name=\"\" />"
+    data = b'<m  uri = "a b.glb"\tsha=\'x\'\n name="" />'
     [tag] = scan_start_tags(data)
     assert [(a.name, a.quote, data[a.value_start : a.value_end], data[a.end - 1 : a.end]) for a in tag.attrs] == [
         (b"uri", b'"', b"a b.glb", b'"'),
@@ -51,7 +51,7 @@ def test_attributes_are_scanned_with_their_quotes_and_value_offsets():
         (b"name", b'"', b"", b'"'),
     ]
     assert tag.attr("sha") is tag.attrs[1] and tag.attr("href") is None
-    assert tag.attr("name").end == data.index(b"\" />") + 1
+    assert tag.attr("name").end == data.index(b'" />') + 1
 
 
 @pytest.mark.parametrize(
@@ -132,7 +132,7 @@ def test_an_element_on_another_line_than_its_tag_is_refused():
         assert (e.message, e.line) == ("the text at line 6 does not match <model>", ref.line)
     for inside in (6, 7):
         ref.element.sourceline = inside
-        assert b"sha=\"sha256:" + A.encode() + b'"' in apply_pins(doc, [(ref, A)])
+        assert b'sha="sha256:' + A.encode() + b'"' in apply_pins(doc, [(ref, A)])
 
 
 def test_a_tree_with_another_number_of_elements_than_the_text_is_refused():
