@@ -344,3 +344,115 @@ def test_trailing_megabytes_after_the_tlvs_are_not_kept():
         s.update(bytes(1 << 20))
     assert len(s._tlvs) <= MAX_TLV_AREAS
     assert s.verify(public(key(KIND))).ok
+
+
+def refused_info(data: bytes, pub=None):
+    verdict = stream(data).verify(pub if pub is not None else public(key(KIND)))
+    assert not verdict.ok
+    return verdict.result, verdict.info
+
+
+@pytest.mark.parametrize(
+    ("tlvs", "expected"),
+    [
+        ("wrong-hash", "INVALID_HASH"),
+        ("no-hash", "INVALID_HASH"),
+        ("no-signature", "INVALID_SIGNATURE"),
+        ("sha512", "UNSUPPORTED (SHA-512 image hash)"),
+        ("pure", "UNSUPPORTED (pure signature)"),
+        ("bad-total", "MALFORMED (the TLV area is truncated or its total is wrong)"),
+        ("bad-magic", "INVALID_TLV_INFO_MAGIC"),
+    ],
+)
+def test_a_refusal_after_the_header_still_says_what_the_header_and_protected_tlvs_read(tlvs, expected):
+    """ImageVerdict.info: "the header and protected TLVs, once those could be read (not trusted
+    unless OK)": a refusal names the version and counter the image claims."""
+    prot = prot_area()
+    hashed = header(size=len(PAYLOAD), ptlv=len(prot)) + PAYLOAD + prot
+    h, k, s = signed_tlvs(KIND, hashed)
+    body = {
+        "wrong-hash": area(INFO, tlv(SHA256, bytes(32)), k, s),
+        "no-hash": area(INFO, k, s),
+        "no-signature": area(INFO, h, k),
+        "sha512": area(INFO, tlv(0x12, bytes(64)), k, s),
+        "pure": area(INFO, h, tlv(0x25, b"\1"), k, s),
+        "bad-total": area(INFO, h, k, s, total=3),
+        "bad-magic": area(0x6906, h, k, s),
+    }[tlvs]
+    result, info = refused_info(hashed + body)
+    assert result == expected
+    assert info is not None
+    assert (str(info.version), info.security_counter, info.image_size, info.header_size) == ("1.2.3+4", 5, 512, 32)
+    assert info.protect_tlv_size == len(prot)
+
+
+def test_a_key_of_an_unsupported_type_is_named_and_the_header_still_read():
+    from imgtool import keys
+
+    for pub, name in ((keys.ECDSA384P1.generate(), "ECDSA384P1"), (keys.X25519.generate(), "X25519")):
+        result, info = refused_info(crafted(KIND), pub)
+        assert result == f"UNSUPPORTED (key type {name})"
+        assert info is not None and str(info.version) == "1.2.3+4"
+
+
+def with_prot(*prot_tlvs: bytes, counter: int = 5) -> bytes:
+    """A signed image with protected TLVs ``prot_tlvs`` (by default the security counter only)."""
+    prot = area(PROT_INFO, *(prot_tlvs or (tlv(SEC_CNT, struct.pack("<I", counter)),)))
+    hashed = header(size=len(PAYLOAD), ptlv=len(prot)) + PAYLOAD + prot
+    return hashed + area(INFO, *signed_tlvs(KIND, hashed))
+
+
+@pytest.mark.parametrize(
+    ("prot_tlvs", "counter"),
+    [
+        ((tlv(SEC_CNT, struct.pack("<I", 2**31 + 5)),), 2**31 + 5),
+        ((tlv(SEC_CNT, struct.pack("<I", 2**32 - 1)),), 2**32 - 1),
+        ((tlv(SEC_CNT, struct.pack("<I", 7)), tlv(0x7000, b"four")), 7),
+        ((tlv(0x7000, b"four"),), None),
+        ((tlv(SEC_CNT, b"\1\0\0\0\0"),), None),
+        ((tlv(SEC_CNT, b"\1\0\0"),), None),
+    ],
+    ids=["2^31+5", "2^32-1", "then-another-4-byte-tlv", "no-counter-4-byte-tlv", "5-bytes", "3-bytes"],
+)
+def test_the_security_counter_is_the_4_byte_sec_cnt_tlv_unsigned(prot_tlvs, counter):
+    verdict = stream(with_prot(*prot_tlvs)).verify(public(key(KIND)))
+    assert verdict.ok and verdict.info is not None
+    assert verdict.info.security_counter == counter
+    assert verdict.info.security_counter is None or isinstance(verdict.info.security_counter, int)
+
+
+def test_no_protected_tlvs_no_counter():
+    verdict = stream(crafted(KIND)).verify(public(key(KIND)))
+    assert verdict.ok and verdict.info is not None
+    assert verdict.info.security_counter is None and verdict.info.protect_tlv_size == 0
+
+
+def test_truncated_before_the_hash_end_names_the_sizes():
+    data = with_prot()  # header 32 + payload 512 + protected 12
+    for n in (32, 100, 32 + 512 + 11):
+        assert refused(data[:n]) == f"MALFORMED (truncated: {n} bytes, the header says {32 + 512 + 12} + TLVs)"
+
+
+@pytest.mark.parametrize("prot", [b"", area(PROT_INFO), area(PROT_INFO, tlv(SEC_CNT, bytes(4)))], ids=["0", "4", "12"])
+def test_truncated_at_the_hash_end_or_inside_the_tlv_info(prot):
+    hashed = header(size=len(PAYLOAD), ptlv=len(prot)) + PAYLOAD + prot
+    data = hashed + area(INFO, *signed_tlvs(KIND, hashed))
+    for cut in (0, 1, 3):
+        result, info = refused_info(data[: len(hashed) + cut])
+        assert result == "MALFORMED (truncated: no TLV area)"
+        assert info is not None and info.protect_tlv_size == len(prot) and str(info.version) == "1.2.3+4"
+
+
+def test_a_tlv_info_alone_with_total_4_is_an_image_without_a_hash():
+    hashed = header(size=len(PAYLOAD)) + PAYLOAD
+    result, info = refused_info(hashed + area(INFO))
+    assert result == "INVALID_HASH" and info is not None
+
+
+def test_a_tlv_overrunning_its_area_still_reads_the_header():
+    prot = prot_area()
+    hashed = header(size=len(PAYLOAD), ptlv=len(prot)) + PAYLOAD + prot
+    h, k, s = signed_tlvs(KIND, hashed)
+    result, info = refused_info(hashed + area(INFO, h, k, s, total=4 + len(h) + len(k) + 8))
+    assert result == "MALFORMED (a TLV overruns the TLV area)"
+    assert info is not None and info.security_counter == 5
