@@ -169,10 +169,22 @@ class ByteSink(Protocol):
     def write(self, data: bytes, /) -> object: ...
 
 
-def hash_chunks(chunks: Iterable[bytes], *, sink: ByteSink | None = None, limit: int | None = None) -> Hashed:
+class Sha256(Protocol):
+    """A SHA-256 being fed: ``hashlib.sha256()``, or an object that hashes the same bytes and
+    learns more from them on the way (:class:`~hcdf_trust.ota.mcuboot.ImageStream`)."""
+
+    def update(self, data: bytes, /) -> None: ...
+
+    def hexdigest(self) -> str: ...
+
+
+def hash_chunks(
+    chunks: Iterable[bytes], *, sink: ByteSink | None = None, limit: int | None = None, sha256: Sha256 | None = None
+) -> Hashed:
     """Hash an iterator of byte chunks (e.g. an HTTP body) in constant memory, optionally copying
-    them to ``sink``; ValueError past ``limit`` bytes (the caller names the file)."""
-    h = hashlib.sha256()
+    them to ``sink``; ValueError past ``limit`` bytes (the caller names the file). ``sha256``:
+    the hash to feed (default: a new ``hashlib.sha256()``)."""
+    h = sha256 if sha256 is not None else hashlib.sha256()
     size = 0
     for chunk in chunks:
         size += len(chunk)

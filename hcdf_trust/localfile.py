@@ -260,12 +260,24 @@ def read_bounded(fd: int, limit: int, *, source: str, what: str = "document") ->
     Raises:
         InputError: over the limit.
     """
+    return b"".join(stream_bounded(fd, limit, source=source, what=what))
+
+
+def stream_bounded(fd: int, limit: int, *, source: str, what: str = "document") -> Iterator[bytes]:
+    """:func:`read_bounded` as chunks, for a file hashed or checked as it is read and never
+    held whole (an MCUboot image through :class:`~hcdf_trust.ota.mcuboot.ImageStream`).
+
+    Raises:
+        InputError: over the limit (before the first read, or once it grew past it).
+    """
     if os.fstat(fd).st_size > limit:
         raise InputError(f"{what} is over the {limit}-byte limit", file=source)
-    data = b"".join(read_chunks(fd))
-    if len(data) > limit:
-        raise InputError(f"{what} is over the {limit}-byte limit", file=source)
-    return data
+    got = 0
+    for chunk in read_chunks(fd):
+        got += len(chunk)
+        if got > limit:
+            raise InputError(f"{what} is over the {limit}-byte limit", file=source)
+        yield chunk
 
 
 def read_whole(fd: int, limit: int, *, source: str, what: str) -> bytearray:

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import BinaryIO
 
-from .digest import Hashed, hash_chunks, hash_fd, is_full_sha256
+from .digest import Hashed, Sha256, hash_chunks, hash_fd, is_full_sha256
 from .errors import FetchError, InputError
 from .flock import flock
 
@@ -205,8 +205,10 @@ class ContentStore:
         accept: Callable[[Hashed], bool] | None = None,
         limit: int | None = None,
         source: str = "",
+        sha256: Sha256 | None = None,
     ) -> tuple[Hashed, Path | None]:
-        """Copy ``chunks`` into the store, hashing as they pass.
+        """Copy ``chunks`` into the store, hashing as they pass (through ``sha256`` when given,
+        see :func:`~hcdf_trust.digest.hash_chunks`).
 
         ``accept`` sees the digest before the blob is committed; if it returns
         False (a pin mismatch) nothing is stored and the path is ``None``.
@@ -226,7 +228,7 @@ class ContentStore:
             with os.fdopen(fd, "wb") as f:
                 sink = _Copy(f)
                 try:
-                    hashed = hash_chunks(chunks, sink=sink, limit=limit)
+                    hashed = hash_chunks(chunks, sink=sink, limit=limit, sha256=sha256)
                     sink.flush()
                 except ValueError as exc:
                     raise FetchError(f"body {exc}", file=source, url=source) from None

@@ -132,34 +132,47 @@ def test_pulled_files_are_files_of_their_own_never_links_to_the_cache(cli, regis
         assert not list(cache.glob(".oci-pull-*"))
 
 
-def test_imgtool_checks_each_staged_image_once_and_its_verdict_decides(
+def test_each_image_is_checked_from_the_pass_that_fetched_it_and_its_verdict_decides(
     cli,
     registry,  # noqa: F811
     release,
     tmp_path,
     monkeypatch,
 ):
-    """pull runs imgtool on each staged image as it arrives (once: ota verify of the staged
-    release takes those verdicts), and a verdict other than OK for any image refuses the whole
-    pull, nothing written (imgtool's verdict stood in by one it never gives a good image)."""
-    from hcdf_trust.ota import images
+    """pull hashes each image once, as it streams in (the ImageStream that computed its blob
+    digest also has its MCUboot image hash): ota verify of the staged release takes those
+    streams and reads no image again; a verdict other than OK for any image refuses the whole
+    pull, nothing written (the check stood in by a verdict it never gives a good image)."""
+    from hcdf_trust.ota import mcuboot, read
 
     robot, out = release
     assert cli("ota", "push", out, registry.ref(tag="verdict")).exit_code == 0
-    real = images.verify_image_fd
-    calls: list[int] = []
+    real = mcuboot.ImageStream.verify
+    checked: list[str] = []
+    reread: list[str] = []
 
-    def counted(fd, key):
-        calls.append(fd)
-        return real(fd, key)
+    def counted(self, key):
+        checked.append(self.hexdigest())
+        return real(self, key)
 
-    monkeypatch.setattr(images, "verify_image_fd", counted)
+    monkeypatch.setattr(mcuboot.ImageStream, "verify", counted)
+    monkeypatch.setattr(read.FolderImages, "scan", lambda self, rel: reread.append(rel))
+    monkeypatch.setattr(read.FolderImages, "__getitem__", lambda self, rel: reread.append(rel))
     r = cli("ota", "pull", registry.ref(tag="verdict"), "--key", robot.pub, "--out", tmp_path / "ok", "--json")
     assert r.exit_code == 0, r.stderr
-    n_images = sum(1 for f in r.json["files"] if f["mediaType"] == "application/vnd.hcdf.mcuboot.image.v1")
-    assert n_images and len(calls) == n_images
+    images = [f for f in r.json["files"] if f["mediaType"] == "application/vnd.hcdf.mcuboot.image.v1"]
+    assert images and sorted(checked) == sorted(f["digest"].split(":")[1] for f in images)
+    assert reread == []
 
-    monkeypatch.setattr(images, "verify_image_fd", lambda fd, key: ("INVALID_SIGNATURE", None))
+    monkeypatch.setattr(mcuboot.ImageStream, "verify", lambda self, key: mcuboot.ImageVerdict("INVALID_SIGNATURE"))
+    r = cli("ota", "pull", registry.ref(tag="verdict"), "--key", robot.pub, "--out", tmp_path / "bad")
+    assert r.exit_code == 3 and "not an MCUboot image (INVALID_SIGNATURE)" in r.stderr, r.stderr
+    assert not (tmp_path / "bad").exists()
+    monkeypatch.setattr(
+        mcuboot.ImageStream,
+        "verify",
+        lambda self, key: mcuboot.ImageVerdict("INVALID_SIGNATURE", None, real(self, key).info),
+    )
     r = cli("ota", "pull", registry.ref(tag="verdict"), "--key", robot.pub, "--out", tmp_path / "bad")
     assert r.exit_code == 1 and "does not verify with the key (INVALID_SIGNATURE)" in r.stderr, r.stderr
     assert not (tmp_path / "bad").exists()

@@ -14,12 +14,14 @@ the staging folder, hashed again as it is copied.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import re
 import shutil
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
+from ..digest import Sha256, hash_chunks
 from ..errors import DigestMismatchError
 from ..flock import flock
 from ..outputs import HeldFile
@@ -116,11 +118,20 @@ def _tee(chunks: Iterable[bytes], fd: int) -> Iterator[bytes]:
 
 
 def fetch_blob(
-    client: Any, store: Any, layer: dict[str, Any], *, title: str, where: str, stage: Stage, rel: str
-) -> tuple[HeldFile, bool]:
+    client: Any,
+    store: Any,
+    layer: dict[str, Any],
+    *,
+    title: str,
+    where: str,
+    stage: Stage,
+    rel: str,
+    sha256: Callable[[], Sha256] = hashlib.sha256,
+) -> tuple[HeldFile, bool, Sha256]:
     """The layer's blob from the content store (hashed again as it is staged) or from the
     registry (hashed as it streams into the store and the staged file), staged at ``rel``;
-    and whether it came from the store.
+    whether it came from the store; and the hash that saw its bytes, made by ``sha256`` (for an
+    MCUboot image an :class:`~hcdf_trust.ota.mcuboot.ImageStream`: checked in the same pass).
 
     Raises:
         DigestMismatchError: the bytes are not the manifest's (size or SHA-256); nothing of
@@ -131,11 +142,17 @@ def fetch_blob(
     size = layer["size"]
     fd, path = stage.new_file(rel)
     try:
-        if _from_store(store, want, size, fd):
-            return HeldFile(fd, path, size, want), True
+        hasher = sha256()
+        if _from_store(store, want, size, fd, hasher):
+            return HeldFile(fd, path, size, want), True, hasher
+        hasher = sha256()  # (what a stale copy in the store fed it is gone)
         with client.blob(layer["digest"], size) as chunks:
             hashed, stored = store.ingest(
-                _tee(chunks, fd), accept=lambda h: h.sha256 == want and h.size == size, limit=size, source=title
+                _tee(chunks, fd),
+                accept=lambda h: h.sha256 == want and h.size == size,
+                limit=size,
+                source=title,
+                sha256=hasher,
             )
     except BaseException:
         os.unlink(path)
@@ -155,13 +172,13 @@ def fetch_blob(
             expected=layer["digest"],
             actual=f"sha256:{hashed.sha256}",
         )
-    return HeldFile(fd, path, size, want), False
+    return HeldFile(fd, path, size, want), False, hasher
 
 
-def _from_store(store: Any, sha256: str, size: int, fd: int) -> bool:
-    """Copy the store's blob ``sha256`` into ``fd``, hashed as it is copied; False (``fd`` left
-    empty) when the store has no such blob of ``size`` bytes, or it changed since it was checked."""
-    from ..digest import hash_chunks
+def _from_store(store: Any, sha256: str, size: int, fd: int, hasher: Sha256) -> bool:
+    """Copy the store's blob ``sha256`` into ``fd``, hashed by ``hasher`` as it is copied; False
+    (``fd`` left empty) when the store has no such blob of ``size`` bytes, or it changed since it
+    was checked."""
     from ..localfile import read_chunks
 
     cached = store.verified_path(sha256)
@@ -172,7 +189,7 @@ def _from_store(store: Any, sha256: str, size: int, fd: int) -> bool:
     except OSError:
         return False
     try:
-        hashed = hash_chunks(_tee(read_chunks(src), fd), limit=size)
+        hashed = hash_chunks(_tee(read_chunks(src), fd), limit=size, sha256=hasher)
         if hashed.sha256 == sha256 and hashed.size == size:
             return True
     except ValueError:  # longer than the manifest says

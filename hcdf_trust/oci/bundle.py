@@ -345,7 +345,7 @@ def pull_bundle(
     store = ContentStore(cache_dir)
     with Stage(cache_dir) as stage:
         try:
-            held, cached = fetch_blob(
+            held, cached, _ = fetch_blob(
                 client,
                 store,
                 layer,

@@ -33,6 +33,7 @@ the referrers API or, where the registry has none, the ``sha256-<hex>`` tag.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -381,12 +382,14 @@ def pull_release(
     store = ContentStore(cache_dir)
     # 3. every blob into the content store and into a file of our own in a private staging
     # folder (the release laid out as in --out), hashed as it streams; a few blobs at a time
-    # (each request waits on the registry, not on us). An MCUboot image is checked by imgtool
-    # as soon as it is staged, while the others still arrive (hashlib, OpenSSL and the
-    # network release the GIL); the verify stack is imported meanwhile.
+    # (each request waits on the registry, not on us). An image's bytes are hashed once, by an
+    # ImageStream, which takes MCUboot's image hash from the same pass; the verify stack is
+    # imported meanwhile.
     stage = Stage(cache_dir)
     staged = os.path.join(stage.path, "release")
     try:
+        from ..ota.mcuboot import ImageStream
+
         pool = ThreadPoolExecutor(max_workers=FETCH_THREADS)
         jobs = []
         try:
@@ -400,24 +403,23 @@ def pull_release(
                     where=f"{source}#/layers/{i}",
                     stage=stage,
                     rel=f"release/{t}",
+                    sha256=ImageStream if x["mediaType"] in (MCUBOOT_TYPE, RAW_TYPE) else hashlib.sha256,
                 )
                 for i, x in enumerate(layers)
                 for t in [x["annotations"][TITLE]]
             ]
-            # while they arrive: the verify stack loads (COSE, CBOR, imgtool), then each image is
-            # checked by imgtool in layer order as soon as it is staged
+            # while they arrive: the verify stack loads (COSE, CBOR)
             from ..ota import read, verify  # noqa: F401
-            from ..ota.images import verify_image_fd
 
             held: dict[str, HeldFile] = {}
-            images: dict[str, tuple[str, str | None]] = {}
+            images: dict[str, ImageStream] = {}
             cached = 0
             for x, job in zip(layers, jobs, strict=True):  # in order, each as soon as it is in
                 title = x["annotations"][TITLE]
-                held[title], hit = job.result()
+                held[title], hit, hashed = job.result()
                 cached += hit
-                if x["mediaType"] == MCUBOOT_TYPE:  # imgtool, on this thread: one image held at a time
-                    images[title] = verify_image_fd(held[title].fd, public_key)
+                if isinstance(hashed, ImageStream):
+                    images[title] = hashed
         except BaseException:
             for job in jobs:
                 job.cancel()
@@ -484,7 +486,7 @@ def _verify_staged(
     previous: Any,
     titles: set[str],
     layers: list[dict[str, Any]],
-    images: dict[str, tuple[str, str | None]],
+    images: dict[str, Any],
 ) -> tuple[Any, list[HcdfTrustError]]:
     import dataclasses
 
@@ -492,10 +494,9 @@ def _verify_staged(
     from ..ota.verify import check_release, image_path
 
     release, files = read_release(stage, public_key)
-    # each blob was hashed as it was written into the staged file that lands in --out, and each
-    # MCUboot image checked by imgtool there (the same file, held open since it was created)
-    known = {x["annotations"][TITLE]: x["digest"].split(":", 1)[1] for x in layers}
-    files = dataclasses.replace(files, sha256=known, mcuboot=images)
+    # each image was hashed as it was written into the staged file that lands in --out (the same
+    # file, held open since it was created), by the ImageStream that also has its image hash
+    files = dataclasses.replace(files, scanned=images)
     errors = check_release(release, files, public_key, previous=previous)
     accounted = {MANIFEST_NAME, *files.latest}
     if files.rendering is not None:

@@ -1,10 +1,9 @@
 """MCUboot images through imgtool as a library: sign, hash, read back.
 
-imgtool's ``Image.load`` and ``Image.verify`` take file paths; the bytes here come
-from the bounded reader, so :func:`sign_image` fills ``Image`` the way ``load`` does
-and :func:`verify_image` hands imgtool an in-memory file (``memfd``) holding exactly
-the bytes that were hashed. imgtool prints to stdout while signing: callers that
-emit JSON run it under :func:`quiet`.
+imgtool's ``Image.load`` takes a file path; the bytes here come from the bounded reader,
+so :func:`sign_image` fills ``Image`` the way ``load`` does. imgtool prints to stdout while
+signing: callers that emit JSON run it under :func:`quiet`. Images are verified by
+:mod:`.mcuboot` (hashing each byte once), not by imgtool's ``Image.verify``.
 
 The **image hash** (what MCUmgr's image list reports, ``mcuboot_hash`` in
 ``latest.json``) is SHA-256 over header + payload + protected TLVs. It is not the
@@ -18,7 +17,6 @@ import contextlib
 import copy
 import hashlib
 import io
-import os
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -180,32 +178,14 @@ def read_info(data: bytes, *, source: str) -> ImageInfo:
 
 
 def verify_image(data: bytes, public_key: Any) -> tuple[str, str | None]:
-    """imgtool's own verification of ``data`` with ``public_key`` (never without a key:
-    imgtool then checks only the hash and still says OK).
+    """Verify the MCUboot image ``data`` with ``public_key`` (never without a key).
 
-    Returns (imgtool's result name, the image hash hex or None).
+    Returns (the result: "OK" or why not, the image hash hex when OK); see
+    :class:`~hcdf_trust.ota.mcuboot.ImageStream`, which checks an image as it streams.
     """
-    if public_key is None:
-        raise ValueError("verify_image needs a public key")
-    fd = os.memfd_create("mcuboot-image", os.MFD_CLOEXEC)
-    try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
-        return verify_image_fd(fd, public_key)
-    finally:
-        os.close(fd)
+    from .mcuboot import ImageStream
 
-
-def verify_image_fd(fd: int, public_key: Any) -> tuple[str, str | None]:
-    """:func:`verify_image` of the file open as ``fd``, read from its start by imgtool itself
-    (``ota pull`` checks each staged image so, while the other blobs arrive)."""
-    from imgtool import image
-
-    if public_key is None:
-        raise ValueError("verify_image needs a public key")
-    try:
-        result, _version, digest, _sig = image.Image.verify(f"/proc/self/fd/{fd}", public_key)
-    except (struct.error, IndexError, ValueError) as exc:
-        return f"MALFORMED ({exc})", None
-    return result.name, digest.hex() if digest is not None else None
+    stream = ImageStream()
+    stream.update(data)
+    verdict = stream.verify(public_key)
+    return verdict.result, verdict.image_hash

@@ -112,6 +112,11 @@ class ImageStream:
     def hexdigest(self) -> str:
         return self._sha.hexdigest()
 
+    @property
+    def magic(self) -> int | None:
+        """The header's magic number (None: fewer bytes than a header)."""
+        return HEADER.unpack(self._head)[0] if len(self._head) == HEADER.size else None
+
     def verify(self, public_key: Any) -> ImageVerdict:
         """Check the image fed so far (all of it) with ``public_key`` (an imgtool key: P-256,
         Ed25519, RSA-2048/3072)."""

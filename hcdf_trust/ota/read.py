@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import NotFoundError
-from ..localfile import open_checked, read_bounded, read_input
+from ..localfile import open_checked, read_bounded, read_input, stream_bounded
 from . import latest as latest_json
 from . import suit
+
+if TYPE_CHECKING:
+    from .mcuboot import ImageStream
 
 MAX_FIRMWARE_BYTES = 256 << 20
 MAX_LATEST_BYTES = latest_json.MAX_BYTES
@@ -188,6 +191,25 @@ class FolderImages(Mapping[str, "bytes | None"]):
             return None
         try:
             return read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image")
+        finally:
+            os.close(fd)
+
+    def scan(self, rel: str) -> ImageStream | None:
+        """The image at ``rel`` streamed once from disk through an :class:`ImageStream` (hashed
+        and ready to verify, never whole in memory); None as for a lookup."""
+        from .mcuboot import ImageStream
+
+        if not self._readable[rel]:
+            return None
+        try:
+            fd, _ = open_checked(os.path.join(self.folder, rel), self.folder, file=rel)
+        except NotFoundError:  # removed since it was listed: missing
+            return None
+        try:
+            stream = ImageStream()
+            for chunk in stream_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image"):
+                stream.update(chunk)
+            return stream
         finally:
             os.close(fd)
 

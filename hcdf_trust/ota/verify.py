@@ -14,8 +14,9 @@ every violation:
 3. The authentication wrapper's digest is over this manifest, and the COSE_Sign1
    verifies over that digest with the key.
 4. Each image: present, the size and SHA-256 the manifest lists (a file that is
-   another component's image is named a mix-and-match), imgtool verifies it *with
-   the key*, its MCUboot hash, header version and security counter are the listed ones.
+   another component's image is named a mix-and-match), it verifies as an MCUboot
+   image *with the key* (:mod:`.mcuboot`, hashing each byte once), its MCUboot hash,
+   header version and security counter are the listed ones.
 5. Each ``latest.json``: for a component of the manifest, and its version, hash,
    size, URL, date and changelog are the signed ones (the last two from the release
    record); ``release.suit.json`` is byte for byte the rendering of the envelope.
@@ -25,7 +26,6 @@ every violation:
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +34,8 @@ from ..errors import HcdfTrustError
 from . import latest as latest_json
 from . import suit
 from .errors import MalformedReleaseError, ReleaseIntegrityError, RollbackError, SignatureError
-from .images import read_info, verify_image
+from .images import IMAGE_MAGIC
+from .mcuboot import ImageStream
 from .signer import ALG_NAMES, COSE_ALGS, CWT_ALG, key_id
 
 # The public API (docs/api.md); everything else here is internal.
@@ -69,12 +70,10 @@ class ReleaseFiles:
     unaccounted: tuple[str, ...] = ()  # files and folders that no signed release accounts for
     linked: tuple[str, ...] = ()  # folders that are symlinks
     previous: suit.Release | None = None  # --previous's signed release (rollback: step 6)
-    # SHA-256s the caller already computed from exactly these files' bytes (ota pull: each blob
-    # as it arrived; what lands in --out is hashed against the same digest): not hashed again
-    sha256: Mapping[str, str] = field(default_factory=dict)
-    # imgtool's verdicts (result, image hash) the caller already had from exactly these files
-    # with the same key (ota pull: each staged image as it arrived): not verified again
-    mcuboot: Mapping[str, tuple[str, str | None]] = field(default_factory=dict)
+    # Images the caller already streamed through an ImageStream, exactly these files' bytes
+    # (ota pull: each blob as it arrived; what lands in --out is hashed against the same
+    # digest): not read again
+    scanned: Mapping[str, ImageStream] = field(default_factory=dict)
 
 
 def image_path(c: suit.Component) -> str:
@@ -322,15 +321,15 @@ def _check_history_images(release: suit.Release, files: ReleaseFiles) -> list[Hc
             if rel in current or rel not in files.history_images:
                 continue
             current.add(rel)
-            data = files.history_images[rel]
-            if data is None:  # not read: its size is not the signed one, or it cannot be opened (a dangling link)
+            stream = _scan(files.history_images, rel)
+            if stream is None:  # not read: its size is not the signed one, or it cannot be opened (a dangling link)
                 size = files.sizes.get(rel)
                 actual = "(missing)" if size is None else f"(not read) ({size} bytes)"
             else:
-                sha = hashlib.sha256(data).hexdigest()
-                if (sha, len(data)) == (c.sha256, c.size):
+                sha = stream.hexdigest()
+                if (sha, stream.size) == (c.sha256, c.size):
                     continue
-                actual = f"{sha} ({len(data)} bytes)"
+                actual = f"{sha} ({stream.size} bytes)"
             errors.append(
                 ReleaseIntegrityError(
                     f"{c.name}: image {rel} of release {r.sequence_number} is not the one that release signed",
@@ -400,8 +399,8 @@ def _check_image(
     c: suit.Component, files: ReleaseFiles, public_key: Any, by_sha: dict[str, suit.Component]
 ) -> list[HcdfTrustError]:
     rel = image_path(c)
-    data = files.images.get(rel)
-    if rel in files.sizes and data is None:  # the size, checked before reading: a 2 GB file is not what was signed
+    stream = files.scanned.get(rel) or _scan(files.images, rel)
+    if rel in files.sizes and stream is None:  # the size, checked before reading: a 2 GB file is not what was signed
         return [
             ReleaseIntegrityError(
                 f"{c.name}: size differs from the signed manifest (the file was not read)",
@@ -410,12 +409,12 @@ def _check_image(
                 actual=str(files.sizes[rel]),
             )
         ]
-    if data is None:
+    if stream is None:
         return [ReleaseIntegrityError(f"{c.name}: image {rel} is missing", file=rel)]
     if not c.uri.endswith(rel):
         return [ReleaseIntegrityError(f"{c.name}: uri does not name {rel}", file=rel, expected=rel, actual=c.uri)]
     errors: list[HcdfTrustError] = []
-    sha = files.sha256.get(rel) or hashlib.sha256(data).hexdigest()
+    sha = stream.hexdigest()
     if sha != c.sha256:
         other = by_sha.get(sha)
         why = f" (mix-and-match: it is the image of {other.name})" if other is not None and other is not c else ""
@@ -424,25 +423,34 @@ def _check_image(
                 f"{c.name}: file_sha256 differs from the signed manifest{why}", file=rel, expected=c.sha256, actual=sha
             )
         )
-    if len(data) != c.size:
+    if stream.size != c.size:
         errors.append(
             ReleaseIntegrityError(
                 f"{c.name}: size differs from the signed manifest",
                 file=rel,
                 expected=str(c.size),
-                actual=str(len(data)),
+                actual=str(stream.size),
             )
         )
     if c.type != "mcuboot" or errors:
         return errors
-    try:
-        info = read_info(data, source=rel)
-    except MalformedReleaseError as exc:
-        return [exc]
-    verdict = files.mcuboot.get(rel)
-    result, digest = verdict if verdict is not None else verify_image(data, public_key)
-    if result != "OK":
-        errors.append(SignatureError(f"{c.name}: MCUboot image does not verify with the key ({result})", file=rel))
+    verdict = stream.verify(public_key)
+    if verdict.info is None:  # not even its header and protected TLVs could be read
+        if verdict.result == "INVALID_MAGIC":
+            return [
+                MalformedReleaseError(
+                    f"{c.name}: not an MCUboot image (header magic)",
+                    file=rel,
+                    expected=f"{IMAGE_MAGIC:#010x}",
+                    actual=f"{stream.magic:#010x}",
+                )
+            ]
+        return [MalformedReleaseError(f"{c.name}: not an MCUboot image ({verdict.result})", file=rel)]
+    info, digest = verdict.info, verdict.image_hash
+    if not verdict.ok:
+        errors.append(
+            SignatureError(f"{c.name}: MCUboot image does not verify with the key ({verdict.result})", file=rel)
+        )
         return errors
     if digest != c.mcuboot_hash:
         errors.append(
@@ -472,6 +480,22 @@ def _check_image(
             )
         )
     return errors
+
+
+def _scan(images: Mapping[str, bytes | None], rel: str) -> ImageStream | None:
+    """The file at ``rel`` through an :class:`ImageStream` (None: missing or not to be read):
+    streamed from disk when ``images`` can (:class:`~hcdf_trust.ota.read.FolderImages`: never
+    whole in memory), else its bytes fed at once."""
+    scan = getattr(images, "scan", None)
+    if scan is not None:
+        stream: ImageStream | None = scan(rel)
+        return stream
+    data = images.get(rel)
+    if data is None:
+        return None
+    stream = ImageStream()
+    stream.update(data)
+    return stream
 
 
 def _check_latest(c: suit.Component, data: bytes, rel: str, files: ReleaseFiles, *, date: str) -> list[HcdfTrustError]:
