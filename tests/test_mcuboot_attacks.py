@@ -456,3 +456,18 @@ def test_a_tlv_overrunning_its_area_still_reads_the_header():
     result, info = refused_info(hashed + area(INFO, h, k, s, total=4 + len(h) + len(k) + 8))
     assert result == "MALFORMED (a TLV overruns the TLV area)"
     assert info is not None and info.security_counter == 5
+
+
+def test_magic_is_the_headers_first_word_once_a_header_is_in():
+    """``ImageStream.magic`` (ota verify names it when it is not MCUboot's): None before a whole
+    header (28 bytes of fields) arrived, then the first little-endian 32-bit word, whatever it is."""
+    data = crafted(KIND)
+    s = ImageStream()
+    for i in range(27):
+        s.update(data[i : i + 1])
+        assert s.magic is None
+    s.update(data[27:28])
+    assert s.magic == 0x96F3B83D
+    assert stream(b"\x01\x02\x03\x04" + bytes(24)).magic == 0x04030201
+    assert stream(b"ELF\x7f" + bytes(100)).magic == int.from_bytes(b"ELF\x7f", "little")
+    assert stream(b"").magic is None and stream(bytes(27)).magic is None
