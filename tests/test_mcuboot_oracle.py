@@ -377,3 +377,34 @@ def test_a_header_size_of_28_is_read_as_imgtool_reads_it(hdr):
     digest, sig = digest_sig(kind, hashed)
     data = resign(kind, hashed, tlv(SHA256, digest), tlv(KEYHASH, keyhash(key(kind))), tlv(SIG_TLV[kind], sig))
     assert ours(data, public(key(kind)), [27, 28]) == imgtool_verify(data, public(key(kind))) == ("OK", digest.hex())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_images_signed_as_ota_build_signs_them(kind, tmp_path):
+    """The signing path of ``ota build`` (sign_image + FileSigner, a board's header size and
+    alignment, a security counter, dependencies): imgtool's verdict, ours, SignedImage's fields."""
+    from hcdf_trust.ota.config import BoardSettings, Dependency
+    from hcdf_trust.ota.images import sign_image
+    from hcdf_trust.ota.signer import FileSigner
+    from hcdf_trust.ota.version import McubootVersion
+
+    signed = sign_image(
+        LARGE[:70001],
+        name="flex-io",
+        version=McubootVersion(2, 1, 0, 7),
+        board=BoardSettings(header_size=0x400, align=8),
+        security_counter=12,
+        create=FileSigner(key(kind)).create,
+        dependencies=(Dependency(1, "1.0.0"),),
+        comp="test",
+    )
+    expected = imgtool_verify(signed.data, public(key(kind)))
+    assert expected == ("OK", signed.image_hash)
+    for cuts in chunkings(signed.data).values():
+        s = stream(signed.data, cuts)
+        verdict = s.verify(public(key(kind)))
+        assert (verdict.result, verdict.image_hash) == expected
+        assert s.hexdigest() == signed.sha256
+        assert verdict.info is not None
+        assert (verdict.info.version, verdict.info.security_counter) == (signed.version, 12)
+        assert verdict.info.header_size == 0x400
