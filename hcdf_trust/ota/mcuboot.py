@@ -23,6 +23,9 @@ Where the bootloader (bootutil ``image_validate.c``, ``tlv.c``) is stricter than
 - SHA-384/SHA-512 image hashes and "pure" signatures are refused (releases name SHA-256 image
   hashes; nothing here builds the others).
 
+And one rule of our own: a TLV that runs past the total its TLV area declares is refused
+(bootutil's iterator reads on, unchecked; imgtool too).
+
 Bytes after the TLV area are ignored, as both do (the file's SHA-256 in the signed manifest covers
 them).
 """
