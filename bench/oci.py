@@ -1,6 +1,6 @@
 """Benchmark for ``hcdf-trust ota push`` / ``ota pull`` (issue 22) against plain curl, same run.
 
-    .venv/bin/python bench/oci.py [--images 50] [--size 1048576] [--repeat 5] [--before CLI]
+    .venv/bin/python bench/oci.py [--images 50] [--size 1048576] [--repeat 5] [--before [NAME=]CLI ...]
 
 A release of ``--images`` MCUboot images of ``--size`` random bytes (bench/ota.py's
 generator, one ``ota build``) is pushed to and pulled from the Debian ``docker-registry``
@@ -10,10 +10,10 @@ process per blob (what a shell script does), downloads one curl process fetching
 blob over one connection. ``ota pull`` starts from an empty cache and an empty folder and
 does everything it always does (digests while streaming, content store, ``ota verify`` of
 every image in a staging folder, the referrers, the output plan). ``--before CLI`` (e.g. a
-wrapper running an older checkout) pulls the same release in the same rounds, the order of
-the pulls alternating from round to round. Each process is timed by GNU time: wall clock,
-CPU seconds (user + system: what the process itself cost, whatever the machine's load) and
-peak RSS. Medians of ``--repeat`` rounds after a warm-up round.
+wrapper running an older checkout; repeatable, ``NAME=CLI`` to name each) pulls the same
+release in the same rounds, the order of the pulls rotating from round to round. Each
+process is timed by GNU time: wall clock, CPU seconds (user + system: what the process
+itself cost, whatever the machine's load) and peak RSS. Medians of ``--repeat`` rounds after a warm-up round.
 Targets: pull ≤ 1.5× curl; memory independent of image size.
 """
 
@@ -117,14 +117,23 @@ def main() -> None:
     ap.add_argument("--images", type=int, default=50)
     ap.add_argument("--size", type=int, default=1 << 20)
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--before", help="another hcdf-trust to pull with in the same rounds (an older checkout)")
+    ap.add_argument(
+        "--before",
+        action="append",
+        default=[],
+        metavar="[NAME=]CLI",
+        help="another hcdf-trust to pull with in the same rounds (an older checkout); repeatable",
+    )
     args = ap.parse_args()
     doc = generate(args.images, args.size)
     release = WORK / "release"
     run([CLI, "ota", "build", doc, "--firmware-dir", WORK / "fw", "--key", WORK / "key.pem", "--out", release])
     pub = WORK / "key.pub.pem"
     files = sorted(p for p in release.rglob("*") if p.is_file())
-    pullers = {"pull": str(CLI), **({"before": args.before} if args.before else {})}
+    pullers = {"pull": str(CLI)}
+    for n, given in enumerate(args.before):
+        name, cli = given.split("=", 1) if "=" in given else (f"before{n + 1 if n else ''}", given)
+        pullers[name] = cli
     proc, host = start_registry()
     loads = []
     try:
