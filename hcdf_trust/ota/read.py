@@ -182,12 +182,19 @@ class FolderImages(Mapping[str, "bytes | None"]):
     def add(self, rel: str, readable: bool) -> None:
         self._readable[rel] = readable
 
-    def __getitem__(self, rel: str) -> bytes | None:
+    def _open(self, rel: str) -> int | None:
+        """The image's descriptor, confined to the folder; None: missing or not to be read."""
         if not self._readable[rel]:
             return None
         try:
             fd, _ = open_checked(os.path.join(self.folder, rel), self.folder, file=rel)
         except NotFoundError:  # removed since it was listed: missing
+            return None
+        return fd
+
+    def __getitem__(self, rel: str) -> bytes | None:
+        fd = self._open(rel)
+        if fd is None:
             return None
         try:
             return read_bounded(fd, MAX_FIRMWARE_BYTES, source=rel, what="image")
@@ -199,11 +206,8 @@ class FolderImages(Mapping[str, "bytes | None"]):
         and ready to verify, never whole in memory); None as for a lookup."""
         from .mcuboot import ImageStream
 
-        if not self._readable[rel]:
-            return None
-        try:
-            fd, _ = open_checked(os.path.join(self.folder, rel), self.folder, file=rel)
-        except NotFoundError:  # removed since it was listed: missing
+        fd = self._open(rel)
+        if fd is None:
             return None
         try:
             stream = ImageStream()
