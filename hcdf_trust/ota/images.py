@@ -176,16 +176,3 @@ def read_info(data: bytes, *, source: str) -> ImageInfo:
             pos += 4 + length
     return ImageInfo(hdr, ptlv, size, McubootVersion(major, minor, rev, build), counter)
 
-
-def verify_image(data: bytes, public_key: Any) -> tuple[str, str | None]:
-    """Verify the MCUboot image ``data`` with ``public_key`` (never without a key).
-
-    Returns (the result: "OK" or why not, the image hash hex when OK); see
-    :class:`~hcdf_trust.ota.mcuboot.ImageStream`, which checks an image as it streams.
-    """
-    from .mcuboot import ImageStream
-
-    stream = ImageStream()
-    stream.update(data)
-    verdict = stream.verify(public_key)
-    return verdict.result, verdict.image_hash
