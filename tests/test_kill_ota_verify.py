@@ -883,3 +883,65 @@ def test_a_signed_manifest_ota_build_would_not_write_is_named_with_its_file(buil
         "manifest sequence-number is not an unsigned integer",
         str(path),
     )
+
+
+# --- ota/read.py's FolderImages: the image reader behind ota verify and fleet update --------
+
+
+@pytest.mark.parametrize("how", ["lookup", "scan"])
+def test_an_image_over_the_firmware_limit_is_refused_naming_it(tmp_path, how):
+    """A (sparse) file one byte over 256 MiB, listed readable (its size is a signed one): the
+    lookup (fleet update) and the streaming scan (ota verify) refuse it by name, never read it."""
+    from hcdf_trust.errors import InputError
+    from hcdf_trust.ota.read import FolderImages
+
+    (tmp_path / "b").mkdir()
+    with open(tmp_path / "b" / "app.bin", "wb") as f:
+        f.truncate((256 << 20) + 1)
+    images = FolderImages(str(tmp_path))
+    images.add("b/app.bin", True)
+    with pytest.raises(InputError) as info:
+        images["b/app.bin"] if how == "lookup" else images.scan("b/app.bin")
+    assert (info.value.message, info.value.file) == (f"image is over the {256 << 20}-byte limit", "b/app.bin")
+
+
+def test_ota_verify_streams_an_image_from_its_folder_never_holding_it_whole(built, tmp_path):
+    """check_release over a release folder (FolderImages) reads each image in chunks through the
+    MCUboot check: an 8 MiB image the manifest lists is checked with well under 8 MiB allocated."""
+    import tracemalloc
+
+    from hcdf_trust.ota.read import FolderImages
+    from hcdf_trust.ota.verify import image_path
+
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    rel, size = "mr_mcxn_t1/flex-io/0.2.0.bin", 8 << 20
+    folder = tmp_path / "big"
+    (folder / "mr_mcxn_t1" / "flex-io").mkdir(parents=True)
+    (folder / rel).write_bytes(bytes(size))
+    images = FolderImages(str(folder))
+    for c in release.components:
+        images.add(image_path(c), image_path(c) == rel)  # the others: not to be read
+    listed = tuple(
+        dataclasses.replace(c, size=size, sha256=hashlib.sha256(bytes(size)).hexdigest()) if c.app == "flex-io" else c
+        for c in release.components
+    )
+    tracemalloc.start()
+    try:
+        errors = _flex_errors(
+            dataclasses.replace(release, components=listed), dataclasses.replace(files, images=images), pub
+        )
+        _current, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert [(e.code, e.message, e.file, e.expected, e.actual) for e in errors if "latest.json" not in e.message] == [
+        (
+            "malformed-release",
+            "mr_mcxn_t1/flex-io: not an MCUboot image (header magic)",
+            rel,
+            "0x96f3b83d",
+            "0x00000000",
+        )
+    ]
+    assert peak < 3 << 20, peak  # a chunk or two (1 MiB each), not the 8 MiB image
