@@ -8,6 +8,7 @@ loopback test server replays its content (tests/_oci.py's ``mirror``).
 
 from __future__ import annotations
 
+import hashlib
 import os
 
 import pytest
@@ -135,3 +136,54 @@ def test_blobs_from_the_store_are_committed_onto_another_filesystem(cli, registr
     assert again.exit_code == 0, again.stderr
     assert again.json["from_cache"] == len(tree(out))
     assert tree(tmp_path / "b") == tree(out)
+
+
+def _pull(cli, ref, robot, dest):
+    return cli("ota", "pull", ref, "--key", robot.pub, "--out", dest, "--json")
+
+
+def test_a_symlink_planted_in_the_content_store_is_not_read_through(cli, registry, pushed, tmp_path):  # noqa: F811
+    """A store blob replaced by a symlink to a file with its very bytes (which could change once
+    hashed): the store check follows it, the copy into the staging folder does not, so that one
+    blob is fetched again; the pull still verifies and writes the release."""
+    from hcdf_trust.store import ContentStore, default_cache_dir
+
+    robot, out = pushed
+    ref = registry.ref(REPO, "r1")
+    assert _pull(cli, ref, robot, tmp_path / "a").exit_code == 0
+    blob = ContentStore(default_cache_dir()).path_for(hashlib.sha256((out / IMAGE).read_bytes()).hexdigest())
+    elsewhere = tmp_path / "elsewhere.bin"
+    elsewhere.write_bytes(blob.read_bytes())
+    blob.chmod(0o644)
+    blob.unlink()
+    blob.symlink_to(elsewhere)
+    r = _pull(cli, ref, robot, tmp_path / "b")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["from_cache"] == len(tree(out)) - 1
+    assert tree(tmp_path / "b") == tree(out)
+
+
+def test_a_store_blob_is_not_taken_for_a_layer_listing_another_size(cli, registry, pushed, tmp_path):  # noqa: F811
+    """The store holds the blob of this digest (an earlier pull); a manifest listing it one byte
+    longer is not served from the store: the registry's answer is refused for its size."""
+    import json
+
+    robot, out = pushed
+    assert _pull(cli, registry.ref(REPO, "r1"), robot, tmp_path / "a").exit_code == 0
+    doc = json.loads(registry.manifest(REPO, "r1")[0])
+    layer = next(x for x in doc["layers"] if x["annotations"]["org.opencontainers.image.title"] == IMAGE)
+    size = layer["size"]
+    layer["size"] = size + 1
+    registry.put_manifest(REPO, "longer", json.dumps(doc).encode())
+    r = _pull(cli, registry.ref(REPO, "longer"), robot, tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+    assert (r.exit_code, [(e["message"], e.get("expected"), e.get("actual")) for e in r.json["errors"]]) == (
+        3,
+        [
+            (
+                f"blob {layer['digest']}: the registry announces another size than the manifest's",
+                str(size + 1),
+                str(size),
+            )
+        ],
+    )
