@@ -163,9 +163,11 @@ def test_a_symlink_planted_in_the_content_store_is_not_read_through(cli, registr
     assert tree(tmp_path / "b") == tree(out)
 
 
-def test_a_store_blob_is_not_taken_for_a_layer_listing_another_size(cli, registry, pushed, tmp_path):  # noqa: F811
-    """The store holds the blob of this digest (an earlier pull); a manifest listing it one byte
-    longer is not served from the store: the registry's answer is refused for its size."""
+@pytest.mark.parametrize("delta", [1, -1])
+def test_a_store_blob_is_not_taken_for_a_layer_listing_another_size(cli, registry, pushed, tmp_path, delta):  # noqa: F811
+    """The store holds the blob of this digest (an earlier pull); a manifest listing it a byte
+    longer or shorter is not served from the store (shorter: the copy stops at the size and is
+    dropped): the registry's answer is then refused for its size."""
     import json
 
     robot, out = pushed
@@ -173,17 +175,46 @@ def test_a_store_blob_is_not_taken_for_a_layer_listing_another_size(cli, registr
     doc = json.loads(registry.manifest(REPO, "r1")[0])
     layer = next(x for x in doc["layers"] if x["annotations"]["org.opencontainers.image.title"] == IMAGE)
     size = layer["size"]
-    layer["size"] = size + 1
-    registry.put_manifest(REPO, "longer", json.dumps(doc).encode())
-    r = _pull(cli, registry.ref(REPO, "longer"), robot, tmp_path / "b")
+    layer["size"] = size + delta
+    registry.put_manifest(REPO, f"size{delta + 1}", json.dumps(doc).encode())
+    r = _pull(cli, registry.ref(REPO, f"size{delta + 1}"), robot, tmp_path / "b")
     assert not (tmp_path / "b").exists()
     assert (r.exit_code, [(e["message"], e.get("expected"), e.get("actual")) for e in r.json["errors"]]) == (
         3,
         [
             (
                 f"blob {layer['digest']}: the registry announces another size than the manifest's",
-                str(size + 1),
+                str(size + delta),
                 str(size),
             )
         ],
     )
+
+
+def test_a_store_blob_changed_after_its_check_is_fetched_again(cli, registry, pushed, tmp_path, monkeypatch):  # noqa: F811
+    """Another process rewrites a store blob between the store's check and the copy into the
+    staging folder (stood in by a wrapper that edits the file right after the real check): the
+    copy's hash differs, the staged file is emptied, and the blob fetched from the registry
+    alone is what lands in --out."""
+    from hcdf_trust.store import ContentStore
+
+    robot, out = pushed
+    ref = registry.ref(REPO, "r1")
+    assert _pull(cli, ref, robot, tmp_path / "a").exit_code == 0
+    image = hashlib.sha256((out / IMAGE).read_bytes()).hexdigest()
+    real = ContentStore.verified_path
+
+    def then_rewritten(self, sha256, **kw):
+        path = real(self, sha256, **kw)
+        if path is not None and sha256 == image:
+            data = bytearray(path.read_bytes())
+            data[100] ^= 1
+            path.chmod(0o644)
+            path.write_bytes(data)
+        return path
+
+    monkeypatch.setattr(ContentStore, "verified_path", then_rewritten)
+    r = _pull(cli, ref, robot, tmp_path / "b")
+    assert r.exit_code == 0, r.stderr
+    assert r.json["from_cache"] == len(tree(out)) - 1
+    assert tree(tmp_path / "b") == tree(out)
