@@ -945,3 +945,26 @@ def test_ota_verify_streams_an_image_from_its_folder_never_holding_it_whole(buil
         )
     ]
     assert peak < 3 << 20, peak  # a chunk or two (1 MiB each), not the 8 MiB image
+
+
+def test_an_image_with_the_magic_and_no_tlvs_is_named_not_mcuboot_with_its_file(built):
+    """The listed file is flex-io's MCUboot header alone (the manifest lists its digest and
+    size): the header magic is right, its TLVs are not there."""
+    robot, out = built
+    pub = load_public(str(robot.pub))
+    release, files = read_release(str(out), pub)
+    rel = "mr_mcxn_t1/flex-io/0.2.0.bin"
+    head = files.images[rel][:32]
+    listed = tuple(
+        dataclasses.replace(c, size=len(head), sha256=hashlib.sha256(head).hexdigest()) if c.app == "flex-io" else c
+        for c in release.components
+    )
+    errors = _flex_errors(
+        dataclasses.replace(release, components=listed),
+        dataclasses.replace(files, images={**files.images, rel: head}),
+        pub,
+    )
+    [e] = [e for e in errors if "latest.json" not in e.message]
+    assert (e.code, e.file) == ("malformed-release", rel)
+    assert e.message.startswith("mr_mcxn_t1/flex-io: not an MCUboot image ("), e.message
+    assert "header magic" not in e.message
