@@ -16,6 +16,7 @@ from hcdf_trust.localfile import (
     read_bounded,
     read_chunks,
     read_input,
+    stream_bounded,
 )
 
 from ._kill import hcdf, model, sha
@@ -228,6 +229,20 @@ def test_read_bounded_refuses_a_file_that_grew_past_the_limit_while_read(tmp_pat
         assert (info.value.message, info.value.file) == ("document is over the 20-byte limit", "f")  # the default
     finally:
         monkeypatch.undo()
+        os.close(fd)
+
+
+def test_stream_bounded_refuses_before_reading_naming_a_document_by_default(tmp_path):
+    """Nothing is yielded for a file already over the limit (an image is never half-hashed)."""
+    (tmp_path / "f").write_bytes(b"x" * 101)
+    fd = os.open(tmp_path / "f", os.O_RDONLY)
+    try:
+        chunks = stream_bounded(fd, 100, source="f")
+        with pytest.raises(InputError) as info:
+            next(chunks)
+        assert (info.value.message, info.value.file) == ("document is over the 100-byte limit", "f")
+        assert b"".join(stream_bounded(fd, 101, source="f", what="image")) == b"x" * 101
+    finally:
         os.close(fd)
 
 
