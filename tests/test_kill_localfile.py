@@ -246,6 +246,36 @@ def test_stream_bounded_refuses_before_reading_naming_a_document_by_default(tmp_
         os.close(fd)
 
 
+def test_stream_bounded_refuses_a_file_that_grew_past_the_limit_across_chunks(tmp_path, monkeypatch):
+    """fstat said small; the file is two 1 MiB reads and a byte, each read under the limit, the
+    sum over it: refused once the sum passes it, after no more than the limit was yielded."""
+    import hcdf_trust.localfile as localfile
+
+    (tmp_path / "f").write_bytes(b"x" * ((2 << 20) + 1))
+    fd = os.open(tmp_path / "f", os.O_RDONLY)
+    real_fstat = os.fstat
+    calls = []
+
+    def small_first(n):
+        st = real_fstat(n)
+        calls.append(n)
+        if len(calls) == 1:
+            return os.stat_result((st.st_mode, st.st_ino, st.st_dev, 1, 0, 0, 10, 0, 0, 0))
+        return st
+
+    monkeypatch.setattr(localfile.os, "fstat", small_first)
+    yielded = 0
+    try:
+        with pytest.raises(InputError) as info:
+            for chunk in stream_bounded(fd, (1 << 20) + 1, source="image.bin", what="image"):
+                yielded += len(chunk)
+        assert (info.value.message, info.value.file) == (f"image is over the {(1 << 20) + 1}-byte limit", "image.bin")
+        assert yielded == 1 << 20
+    finally:
+        monkeypatch.undo()
+        os.close(fd)
+
+
 def test_read_input_reads_a_regular_file_and_names_errors_by_source(tmp_path):
     p = tmp_path / "k.pem"
     p.write_bytes(b"key")
