@@ -968,3 +968,21 @@ def test_an_image_with_the_magic_and_no_tlvs_is_named_not_mcuboot_with_its_file(
     assert (e.code, e.file) == ("malformed-release", rel)
     assert e.message.startswith("mr_mcxn_t1/flex-io: not an MCUboot image ("), e.message
     assert "header magic" not in e.message
+
+
+@pytest.mark.parametrize("how", ["lookup", "scan"])
+def test_an_image_swapped_for_a_link_out_of_the_folder_is_refused_naming_it(tmp_path, how):
+    """Listed readable, then replaced by a symlink leading outside the release folder (as
+    between ota verify's listing and its read): refused on the descriptor, named by its path."""
+    from hcdf_trust.errors import PathEscapeError
+    from hcdf_trust.ota.read import FolderImages
+
+    (tmp_path / "secret.bin").write_bytes(b"not the release's")
+    folder = tmp_path / "rel"
+    (folder / "b").mkdir(parents=True)
+    (folder / "b" / "app.bin").symlink_to(tmp_path / "secret.bin")
+    images = FolderImages(str(folder))
+    images.add("b/app.bin", True)
+    with pytest.raises(PathEscapeError) as info:
+        images["b/app.bin"] if how == "lookup" else images.scan("b/app.bin")
+    assert info.value.file == "b/app.bin"
