@@ -399,7 +399,7 @@ def _check_image(
     c: suit.Component, files: ReleaseFiles, public_key: Any, by_sha: dict[str, suit.Component]
 ) -> list[HcdfTrustError]:
     rel = image_path(c)
-    stream = files.scanned.get(rel) or _scan(files.images, rel)
+    stream = files.scanned[rel] if rel in files.scanned else _scan(files.images, rel)
     if rel in files.sizes and stream is None:  # the size, checked before reading: a 2 GB file is not what was signed
         return [
             ReleaseIntegrityError(
