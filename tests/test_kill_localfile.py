@@ -208,21 +208,9 @@ def test_read_bounded_refuses_one_byte_over_the_limit_naming_it(tmp_path):
 
 def test_read_bounded_refuses_a_file_that_grew_past_the_limit_while_read(tmp_path, monkeypatch):
     """The size is checked again after the read: fstat said small, the read found more."""
-    import hcdf_trust.localfile as localfile
-
     (tmp_path / "f").write_bytes(b"x" * 50)
     fd = os.open(tmp_path / "f", os.O_RDONLY)
-    real_fstat = os.fstat
-    calls = []
-
-    def small_first(n):
-        st = real_fstat(n)
-        calls.append(n)
-        if len(calls) == 1:
-            return os.stat_result((st.st_mode, st.st_ino, st.st_dev, 1, 0, 0, 10, 0, 0, 0))
-        return st
-
-    monkeypatch.setattr(localfile.os, "fstat", small_first)
+    _first_fstat_says_10_bytes(monkeypatch)
     try:
         with pytest.raises(InputError) as info:
             read_bounded(fd, 20, source="f")
@@ -249,21 +237,9 @@ def test_stream_bounded_refuses_before_reading_naming_a_document_by_default(tmp_
 def test_stream_bounded_refuses_a_file_that_grew_past_the_limit_across_chunks(tmp_path, monkeypatch):
     """fstat said small; the file is two 1 MiB reads and a byte, each read under the limit, the
     sum over it: refused once the sum passes it, after no more than the limit was yielded."""
-    import hcdf_trust.localfile as localfile
-
     (tmp_path / "f").write_bytes(b"x" * ((2 << 20) + 1))
     fd = os.open(tmp_path / "f", os.O_RDONLY)
-    real_fstat = os.fstat
-    calls = []
-
-    def small_first(n):
-        st = real_fstat(n)
-        calls.append(n)
-        if len(calls) == 1:
-            return os.stat_result((st.st_mode, st.st_ino, st.st_dev, 1, 0, 0, 10, 0, 0, 0))
-        return st
-
-    monkeypatch.setattr(localfile.os, "fstat", small_first)
+    _first_fstat_says_10_bytes(monkeypatch)
     yielded = 0
     try:
         with pytest.raises(InputError) as info:
@@ -341,3 +317,20 @@ def test_absolute_resolves_link_dotdot_as_the_kernel_does(tmp_path):
         os.close(fd)
     assert absolute(given) == kernel == str(tmp_path / "real" / "x.hcdf")
     assert os.path.abspath(given) != kernel  # the lexical answer names another file
+
+
+def _first_fstat_says_10_bytes(monkeypatch):
+    """localfile's first fstat reports a 10-byte file (the file grows after it was checked)."""
+    import hcdf_trust.localfile as localfile
+
+    real_fstat = os.fstat
+    calls = []
+
+    def small_first(n):
+        st = real_fstat(n)
+        calls.append(n)
+        if len(calls) == 1:
+            return os.stat_result((st.st_mode, st.st_ino, st.st_dev, 1, 0, 0, 10, 0, 0, 0))
+        return st
+
+    monkeypatch.setattr(localfile.os, "fstat", small_first)

@@ -175,4 +175,3 @@ def read_info(data: bytes, *, source: str) -> ImageInfo:
                 counter = struct.unpack_from("<I", data, pos + 4)[0]
             pos += 4 + length
     return ImageInfo(hdr, ptlv, size, McubootVersion(major, minor, rev, build), counter)
-
