@@ -713,6 +713,22 @@ def test_a_previous_entry_no_release_signed_is_named_with_its_latest_json(built)
 # --- open_envelope / verify_envelope: what the CLI refuses before any image is read -------
 
 
+def _edit_sign1(out, index, change):
+    """Replace item ``index`` of the COSE_Sign1 in ``out/release.suit`` by ``change(item)``, the
+    wrapper digest left as it is, and write the envelope back; its path."""
+    from hcdf_trust.ota import suit
+
+    path = out / "release.suit"
+    tag = cbor2.loads(path.read_bytes())
+    top = dict(tag.value)
+    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
+    sign1 = cbor2.loads(sign1)
+    sign1.value[index] = change(sign1.value[index])
+    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
+    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    return path
+
+
 def _resigned(data: bytes, private, *, protected: dict) -> bytes:
     """``data``'s envelope with its COSE_Sign1 made again, for real, by ``private`` over the same
     manifest digest, with ``protected`` as the protected header (cwt adds nothing to it)."""
@@ -762,18 +778,11 @@ def test_a_manifest_signed_by_the_key_without_a_kid_is_refused(built, cli):
 def test_a_cose_alg_not_bound_to_the_key_is_named_with_the_ones_that_are(built, cli, alg, named, actual):
     """The protected header says EdDSA, or ES384 (which ota does not know by name), for an ECDSA
     P-256 key: refused before any signature check."""
-    from hcdf_trust.ota import suit
     from hcdf_trust.ota.signer import key_id
 
     robot, out = built
-    path = out / "release.suit"
-    tag = cbor2.loads(path.read_bytes())
-    top = dict(tag.value)
-    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
-    sign1 = cbor2.loads(sign1)
-    sign1.value[0] = cbor2.dumps({1: alg, 4: key_id(load_public(str(robot.pub)))})
-    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
-    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    protected = cbor2.dumps({1: alg, 4: key_id(load_public(str(robot.pub)))})
+    path = _edit_sign1(out, 0, lambda _: protected)
     assert errors_of(cli, robot, out) == [
         {
             "code": "bad-signature",
@@ -788,18 +797,10 @@ def test_a_cose_alg_not_bound_to_the_key_is_named_with_the_ones_that_are(built, 
 @pytest.mark.parametrize(("kid", "shown"), [(b"another key", b"another key".hex()), (7, "7")])
 def test_another_kid_is_named_as_found(built, cli, kid, shown):
     """A kid that is not the key's: a byte string shown in hex, anything else as it is."""
-    from hcdf_trust.ota import suit
     from hcdf_trust.ota.signer import key_id
 
     robot, out = built
-    path = out / "release.suit"
-    tag = cbor2.loads(path.read_bytes())
-    top = dict(tag.value)
-    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
-    sign1 = cbor2.loads(sign1)
-    sign1.value[0] = cbor2.dumps({1: -7, 4: kid})
-    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
-    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    path = _edit_sign1(out, 0, lambda _: cbor2.dumps({1: -7, 4: kid}))
     assert errors_of(cli, robot, out) == [
         {
             "code": "bad-signature",
@@ -813,17 +814,8 @@ def test_another_kid_is_named_as_found(built, cli, kid, shown):
 
 def test_a_signature_that_does_not_verify_is_named_with_its_file(built, cli):
     """alg, kid and wrapper digest right, one bit of the signature changed."""
-    from hcdf_trust.ota import suit
-
     robot, out = built
-    path = out / "release.suit"
-    tag = cbor2.loads(path.read_bytes())
-    top = dict(tag.value)
-    digest, sign1 = cbor2.loads(top[suit.AUTHENTICATION])
-    sign1 = cbor2.loads(sign1)
-    sign1.value[3] = sign1.value[3][:-1] + bytes([sign1.value[3][-1] ^ 1])
-    top[suit.AUTHENTICATION] = cbor2.dumps([digest, cbor2.dumps(sign1)])
-    path.write_bytes(cbor2.dumps(cbor2.CBORTag(tag.tag, top), canonical=True))
+    path = _edit_sign1(out, 3, lambda signature: signature[:-1] + bytes([signature[-1] ^ 1]))
     [error] = errors_of(cli, robot, out)
     assert (error["code"], error["file"]) == ("bad-signature", str(path))
     assert error["message"].startswith("manifest signature does not verify with the key: "), error["message"]
