@@ -281,5 +281,57 @@ def test_serial_line_that_never_stops_sending(fleet):
     thread.join(70)
     assert r.exit_code == 3, r.stdout
     imu = next(d for d in r.json["devices"] if d["comp"] == "imu")
-    assert imu["verdict"] == "malformed-answer" and "262144 bytes" in imu["reason"], imu
+    assert imu["verdict"] == "malformed-answer" and "262144 bytes" in imu["reason"], (imu["reason"], sent)
     assert sent and sent[0] < (64 << 20)  # the reader gave up, not the flood
+
+
+def test_opening_a_serial_line_discards_a_bounded_amount():
+    """Opening a socket:// line discards what is waiting, as pyserial does, but at most 256 KiB:
+    pyserial's own loop reads until nothing is waiting, so a peer that keeps ahead of it kept
+    ``fleet status`` inside open() until the peer stopped (a CI run saw it, on a loaded machine).
+    The peer here has pushed over 512 KiB into the kernel's buffers before the line is reset."""
+    import socket
+    import threading
+    import time
+
+    import serial
+
+    from hcdf_trust.fleet.smp import MAX_SERIAL_BYTES, _socket_line_class
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    pushed, total, opened = [0], 2 << 20, threading.Event()
+
+    def push() -> None:
+        conn, _ = server.accept()
+        try:
+            opened.wait(10)  # open() resets the line too: nothing is sent before it returns
+            while pushed[0] < total:
+                conn.sendall(b"x" * (64 << 10))
+                pushed[0] += 64 << 10
+        finally:
+            conn.close()  # the reader sees the end after the last byte
+            server.close()
+
+    thread = threading.Thread(target=push, daemon=True)
+    thread.start()
+    line = _socket_line_class()(None, timeout=0, write_timeout=0)
+    line.port = f"socket://127.0.0.1:{server.getsockname()[1]}"
+    line.open()
+    opened.set()
+    try:
+        deadline = time.monotonic() + 20
+        while pushed[0] < (512 << 10) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pushed[0] >= (512 << 10), "the kernel would not buffer 512 KiB on loopback"
+        line.reset_input_buffer()
+        assert line.in_waiting, "the reset read everything there was"
+        rest, deadline = 0, time.monotonic() + 20
+        with pytest.raises(serial.SerialException, match="disconnected"):
+            while time.monotonic() < deadline:
+                rest += len(line.read(1 << 16))
+        assert total - rest == MAX_SERIAL_BYTES
+    finally:
+        line.close()
+        thread.join(10)

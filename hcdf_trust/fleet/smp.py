@@ -118,12 +118,11 @@ _SERIAL_CLASS: Any = None
 
 def _serial_transport_class() -> Any:
     """smpclient's serial transport, whose connection may also be a pyserial URL
-    (``socket://``): then it is opened by ``serial_for_url`` and, a socket having no
+    (``socket://``): then it is a :func:`_socket_line_class` line and, a socket having no
     transmit buffer, reports nothing waiting to be sent (as smpclient's own integration
     tests do against the same emulated devices)."""
     global _SERIAL_CLASS
     if _SERIAL_CLASS is None:
-        import serial
         from smpclient.transport.serial import SMPSerialTransport
 
         class UrlSerialTransport(SMPSerialTransport):
@@ -133,7 +132,8 @@ def _serial_transport_class() -> Any:
                     object.__setattr__(self, "_conn", _BoundedReads(self._conn, chunk=None))
                     return
                 self._reset_state()
-                conn = serial.serial_for_url(address, timeout=0, write_timeout=0, do_not_open=True)
+                conn = _socket_line_class()(None, timeout=0, write_timeout=0)
+                conn.port = address  # what serial.serial_for_url does with the class it picks
                 loop = asyncio.get_running_loop()
                 await asyncio.wait_for(loop.run_in_executor(None, conn.open), timeout_s)
                 conn.out_waiting = 0
@@ -148,6 +148,29 @@ def _serial_transport_class() -> Any:
 
         _SERIAL_CLASS = UrlSerialTransport
     return _SERIAL_CLASS
+
+
+_SOCKET_LINE_CLASS: Any = None
+
+
+def _socket_line_class() -> Any:
+    """pyserial's ``socket://`` line with a bounded clean start. Its ``open`` discards what
+    is waiting until nothing is: a peer that sends faster than that loop reads keeps
+    ``open`` reading for as long as it sends (it did, on a loaded machine). This one
+    discards at most :data:`MAX_SERIAL_BYTES`; what comes after counts against the first
+    answer's budget, which calls the line malformed."""
+    global _SOCKET_LINE_CLASS
+    if _SOCKET_LINE_CLASS is None:
+        from serial.urlhandler.protocol_socket import Serial as SocketSerial
+
+        class SocketLine(SocketSerial):  # type: ignore[misc]
+            def reset_input_buffer(self) -> None:
+                left = MAX_SERIAL_BYTES
+                while left > 0 and self.in_waiting:
+                    left -= len(self.read(min(4096, left)))
+
+        _SOCKET_LINE_CLASS = SocketLine
+    return _SOCKET_LINE_CLASS
 
 
 MAX_SERIAL_BYTES = 256 << 10  # bytes read from a serial line per answer: a whole SMP frame base64-encoded is ~90 KiB
