@@ -155,7 +155,8 @@ def _same(a: tuple[Any, Path], b: tuple[Any, Path]) -> None:
 
 
 def _path(r: Any) -> str:
-    assert r.exit_code == 0, r.stderr
+    """Which path planned the export ("index" or "description"); the export must have succeeded."""
+    assert r.exit_code == 0, r.stdout + r.stderr
     return str(r.json["planned_from"])
 
 
