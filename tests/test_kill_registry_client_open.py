@@ -105,15 +105,19 @@ def test_a_stale_timestamp_is_a_freeze_attack_on_the_top_level_metadata(reg, tmp
     assert err["message"].startswith("freeze attack or stale mirror: top-level metadata: expired metadata ("), err
 
 
-def test_a_replaced_core_schema_is_refused_on_the_next_run(reg, tmp_path):
-    """Top-level targets is remembered like a domain role: a version seen once keeps its content."""
+def _core_schema_seen(reg, cache: Path) -> Path:
+    """The core schema hcdf 1.0 published, and seen once by a client caching in ``cache``."""
     from tests.conftest import HCDFORMAT
 
     reg.run("add", reg.src, "--core", "hcdf", "--version", "1.0", "--schema", HCDFORMAT / "hcdf.xsd",
             "--content", reg.content)  # fmt: skip
     reg.publish()
-    cache = tmp_path / "c"
     assert _errors(reg, reg.site, reg.root_json, cache, 0) == []
+    return cache
+
+
+def _replace_core_schema(reg, cache: Path) -> dict:
+    """Top-level targets re-signed with other bytes for that schema: the client refuses it."""
     evil = b"<xs:schema xmlns:xs='http://www.w3.org/2001/XMLSchema'/>"
 
     def replace(signed):
@@ -124,6 +128,13 @@ def test_a_replaced_core_schema_is_refused_on_the_next_run(reg, tmp_path):
     assert err["message"] == (
         "replaced published version: schemas/hcdf/1.0.xsd (targets) changed content since this client last saw it"
     )
+    return err
+
+
+def test_a_replaced_core_schema_is_refused_on_the_next_run(reg, tmp_path):
+    """Top-level targets is remembered like a domain role: a version seen once keeps its content."""
+    cache = _core_schema_seen(reg, tmp_path / "c")
+    err = _replace_core_schema(reg, cache)
     # the client keeps trusting what it saw: the next run refuses again
     [again] = _errors(reg, reg.site, reg.root_json, cache, 1)
     assert again["message"] == err["message"]
@@ -176,13 +187,7 @@ def test_an_unreadable_cached_role_does_not_make_the_client_forget_the_others(re
     ambiguous cached file comes before ``targets.json`` in the folder's listing order."""
     import os
 
-    from tests.conftest import HCDFORMAT
-
-    reg.run("add", reg.src, "--core", "hcdf", "--version", "1.0", "--schema", HCDFORMAT / "hcdf.xsd",
-            "--content", reg.content)  # fmt: skip
-    reg.publish()
-    cache = tmp_path / "c"
-    assert _errors(reg, reg.site, reg.root_json, cache, 0) == []
+    cache = _core_schema_seen(reg, tmp_path / "c")
     meta = cache / "metadata"
     # ambiguous role files until one is listed before targets.json (the client reads the folder in
     # that order, os.scandir's, which the file system decides)
@@ -193,13 +198,4 @@ def test_an_unreadable_cached_role_does_not_make_the_client_forget_the_others(re
             break
     else:
         pytest.skip("no file was listed before targets.json")
-    evil = b"<xs:schema xmlns:xs='http://www.w3.org/2001/XMLSchema'/>"
-
-    def replace(signed):
-        signed.targets["schemas/hcdf/1.0.xsd"] = reg.put_target("schemas/hcdf/1.0.xsd", evil)
-
-    reg.forge("targets", replace, signer=reg.top_signer("targets"))
-    [err] = _errors(reg, reg.site, reg.root_json, cache, 1)
-    assert err["message"] == (
-        "replaced published version: schemas/hcdf/1.0.xsd (targets) changed content since this client last saw it"
-    )
+    _replace_core_schema(reg, cache)
