@@ -382,8 +382,8 @@ def _registry(
     strict: bool,
     offline: bool,
     persist: bool,
+    timeout: float,
     ca_bundle: str | None = None,
-    timeout: float = 30.0,
 ) -> Any:
     if site is None:
         if trusted_root is not None:
@@ -829,7 +829,9 @@ def verify(
         if not provenance_keys:
             raise click.UsageError("--provenance needs --provenance-key (the public key that signed it)")
     options = ResolveOptions(**kw)
-    registry = _registry(registry_site, trusted_root, strict=options.strict, offline=True, persist=False)
+    registry = _registry(
+        registry_site, trusted_root, strict=options.strict, offline=True, persist=False, timeout=options.timeout
+    )
     res = _run_resolve(doc, options, as_json=as_json, registry=registry, verifying=True)
     if provenance:
         errors = _verify_bundle_provenance(doc, provenance_keys, threshold)

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from tuf.ngclient import Updater
 
 ROOT_LIMIT = 512_000
+DEFAULT_TIMEOUT = 30.0  # seconds to connect or between bytes from an http(s) site (--timeout's default)
 
 
 # The public API (docs/api.md); everything else here is internal.
@@ -250,7 +251,7 @@ class RegistryClient:
         *,
         trusted_root: bytes,
         cache_dir: Path | None = None,
-        timeout: float = 30.0,
+        timeout: float = DEFAULT_TIMEOUT,
         ca_bundle: str | None = None,
         insecure_registries: tuple[str, ...] = (),
         flag: str = "--registry",
@@ -305,7 +306,7 @@ class RegistryClient:
         trusted_root: str,
         *,
         cache_dir: Path | None = None,
-        timeout: float = 30.0,
+        timeout: float = DEFAULT_TIMEOUT,
         ca_bundle: str | None = None,
         insecure_registries: tuple[str, ...] = (),
         flag: str = "--registry",

@@ -32,7 +32,7 @@ from ..errors import DigestMismatchError, HcdfTrustError, InputError, IntegrityE
 from ..localfile import open_local, read_bounded, read_input
 from ..store import ContentStore, default_cache_dir
 from ..xml import parse_bytes
-from .client import ROOT_LIMIT, RegistryClient
+from .client import DEFAULT_TIMEOUT, ROOT_LIMIT, RegistryClient
 from .client import default_cache_dir as client_cache_dir
 from .validation import PROFILE_LIMIT, RegistrySchemaSource, check_document
 
@@ -76,7 +76,7 @@ class RegistryCheck:
     strict: bool = False
     persist: bool = True
     ca_bundle: str | None = None  # --ca-bundle, for an https site
-    timeout: float = 30.0  # resolve's --timeout: seconds without data from an https site
+    timeout: float = DEFAULT_TIMEOUT  # resolve's --timeout: seconds without data from an https site
 
     @classmethod
     def open(
@@ -87,7 +87,7 @@ class RegistryCheck:
         strict: bool = False,
         persist: bool = True,
         ca_bundle: str | None = None,
-        timeout: float = 30.0,
+        timeout: float = DEFAULT_TIMEOUT,
     ) -> RegistryCheck:
         """Read the trusted root, and check that a folder site exists, before anything is resolved.
 
